@@ -1,0 +1,24 @@
+# Quick start: `make demo` runs the whole job on the simulated rig; `make test` runs the suite.
+# Both do their own set-up (apt libllvm19 + libusb, a virtual environment, the packages).
+VENV ?= .venv
+STAMP := $(VENV)/.installed
+DEMO_OUT ?= demo-out
+
+.PHONY: demo test bench setup clean
+
+$(STAMP): pyproject.toml scripts/setup.sh
+	VENV=$(VENV) ./scripts/setup.sh
+
+setup: $(STAMP)
+
+demo: $(STAMP)
+	VENV=$(VENV) DEMO_OUT=$(DEMO_OUT) ./scripts/demo.sh
+
+test: $(STAMP)
+	$(VENV)/bin/python -m pytest -q -p no:cacheprovider
+
+bench: $(STAMP)
+	$(VENV)/bin/python benchmarks/run_all.py
+
+clean:
+	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache .hypothesis

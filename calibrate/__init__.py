@@ -1,0 +1,1 @@
+"""Beam calibration and dark/bias frames."""

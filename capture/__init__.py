@@ -1,0 +1,1 @@
+"""Sequencer, HDR merging and the session directory (sees device interfaces only)."""

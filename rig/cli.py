@@ -1,0 +1,62 @@
+"""The ``rig`` command line.
+
+Sub-commands live in :mod:`rig.commands`, one module each, discovered at start.
+User-facing errors become one line on stderr and a non-zero exit, never a traceback:
+bad input exits 2, a device fault 3, Ctrl-C 130.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import pkgutil
+import sys
+from typing import Sequence
+
+import rig
+import rig.commands
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line instead of usage + error
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="rig", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"rig {rig.__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+    for info in sorted(pkgutil.iter_modules(rig.commands.__path__), key=lambda m: m.name):
+        mod = importlib.import_module(f"rig.commands.{info.name}")
+        if hasattr(mod, "register"):
+            mod.register(sub)
+    return parser
+
+
+def _user_errors() -> tuple[type[BaseException], ...]:
+    from capture.errors import CaptureError
+    from drivers.errors import DeviceError
+    from estimate.errors import EstimateError
+    from rig.errors import UsageError
+
+    return (UsageError, CaptureError, EstimateError, DeviceError)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from drivers.errors import DeviceError
+
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("rig: interrupted; everything completed so far is saved", file=sys.stderr)
+        return 130
+    except _user_errors() as e:
+        print(f"rig {args.command}: error: {e}", file=sys.stderr)
+        return 3 if isinstance(e, DeviceError) else 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

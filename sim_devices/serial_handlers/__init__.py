@@ -1,0 +1,1 @@
+"""pyserial URL handlers: ``protocol_<scheme>`` modules looked up by ``serial_for_url``."""
