@@ -23,7 +23,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="rig", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="rig", description="Drive the goniometric capture rig and estimate how light scatters in a translucent slab.")
     parser.add_argument("--version", action="version", version=f"rig {rig.__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
