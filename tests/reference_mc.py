@@ -94,6 +94,8 @@ def fresnel_amplitudes(cos_i: np.ndarray, n1: float, n2: float) -> tuple[np.ndar
     reflection both are returned as 1 in magnitude (phase ignored).
     """
     cos_i = np.clip(np.asarray(cos_i, dtype=float), 0.0, 1.0)
+    if n1 == n2:  # index-matched: exactly no reflection (cos_t would round away from cos_i)
+        return np.zeros_like(cos_i), np.zeros_like(cos_i)
     sin_t2 = (n1 / n2) ** 2 * (1.0 - cos_i**2)
     tir = sin_t2 >= 1.0
     cos_t = np.sqrt(np.clip(1.0 - sin_t2, 0.0, 1.0))
