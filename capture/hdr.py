@@ -1,0 +1,328 @@
+"""Noise-optimal HDR merge of a linear CCD's exposure bracket (numpy only).
+
+Physics. A pixel with radiance ``L`` (electrons per second, dark subtracted)
+exposed for ``t`` seconds collects ``L t`` photo-electrons (Poisson) plus
+``D t`` thermal electrons (Poisson), is read with Gaussian read noise
+``sigma_r`` and digitised as ``x = bias + (L t + D t + noise) / g`` ADU with
+gain ``g`` e-/ADU (quantisation adds ``g^2/12`` e-^2). After subtracting a
+dark reference ``d`` (ADU) the per-exposure estimate
+
+    L_i = g (x_i - d_i) / t_i
+
+is unbiased with variance
+
+    Var(L_i) = (L t_i + D t_i + sigma_r^2 + g^2/12 + g^2 Var(d_i)) / t_i^2.
+
+The minimum-variance unbiased combination of independent unbiased estimates
+is inverse-variance weighting, ``L = sum(w_i L_i) / sum(w_i)`` with
+``w_i = 1/Var(L_i)`` and ``Var(L) = 1 / sum(w_i)``; with Gaussian-approximated
+Poisson noise and the variance evaluated at the common ``L`` this is the
+maximum-likelihood estimator for a linear sensor (Granados et al., "Optimal
+HDR reconstruction with linear digital cameras", CVPR 2010). The weights need
+``L``: it starts from weights that ignore shot noise (dominated by the longest
+valid exposure) and is refined a fixed number of times with the pooled
+estimate. Using the pooled ``L`` rather than each exposure's own value keeps
+the weights nearly independent of the exposure's own noise, which is what
+keeps the estimate unbiased (per-exposure weights bias bright noise down).
+
+Excluded samples. A raw value at or above the noise model's
+``saturation_adu`` (the lower of the ADC ceiling and the full-well level,
+less a headroom where the response bends) is saturated. A CCD without
+anti-blooming spills excess charge along its column (the vertical transfer
+direction), so the ``bloom_rows`` pixels above and below a saturated pixel in
+the same column are excluded from that exposure as well (``bloom_cols``
+widens the mask sideways if the optics smear). A pixel with no valid exposure
+keeps the shortest exposure's value as a lower bound, ``variance = inf`` and
+``mask = False``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Mapping, Protocol, Sequence
+
+import numpy as np
+
+from drivers.interfaces import Frame, SensorInfo
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Linear CCD noise model.
+
+    Attributes:
+        gain_e_per_adu: electrons per ADU.
+        read_noise_e: read noise, electrons RMS.
+        dark_current_e_per_s: thermal electrons per second per pixel.
+        bias_adu: offset of a zero-second dark frame, ADU.
+        saturation_adu: raw values at or above this are treated as saturated.
+    """
+
+    gain_e_per_adu: float
+    read_noise_e: float
+    dark_current_e_per_s: float
+    bias_adu: float
+    saturation_adu: float
+
+    @classmethod
+    def from_sensor(cls, sensor: SensorInfo, *, headroom: float = 0.95) -> "NoiseModel":
+        """Noise model from a sensor's facts.
+
+        The usable top is the lower of the ADC ceiling and ``bias + full_well/gain``;
+        only ``headroom`` of the span above bias is trusted because a CCD's
+        response bends before full well (and the KAF-0261E at 3 e-/ADU clips in
+        the ADC just below its ~200 ke- well).
+        """
+        if not 0.0 < headroom <= 1.0:
+            raise ValueError(f"headroom must be in (0, 1], got {headroom}")
+        top = min(float(sensor.adc_max), sensor.bias_adu + sensor.full_well_e / sensor.gain_e_per_adu)
+        return cls(
+            gain_e_per_adu=float(sensor.gain_e_per_adu),
+            read_noise_e=float(sensor.read_noise_e),
+            dark_current_e_per_s=float(sensor.dark_current_e_per_s),
+            bias_adu=float(sensor.bias_adu),
+            saturation_adu=float(sensor.bias_adu + headroom * (top - sensor.bias_adu)),
+        )
+
+    def to_dict(self) -> dict[str, float]:
+        return {k: float(v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, float]) -> "NoiseModel":
+        return cls(**{k: float(d[k]) for k in cls.__dataclass_fields__})
+
+    def frame_variance_e2(self, signal_e: np.ndarray | float, exposure_s: float) -> np.ndarray | float:
+        """Variance (e-^2) of one raw exposure: shot + dark + read + quantisation."""
+        g = self.gain_e_per_adu
+        return np.maximum(signal_e, 0.0) + self.dark_current_e_per_s * exposure_s + self.read_noise_e**2 + g * g / 12.0
+
+
+@dataclass(frozen=True)
+class MergeOptions:
+    """Knobs of :func:`merge_hdr` kept with every stack (see the module docstring)."""
+
+    bloom_rows: int = 2
+    bloom_cols: int = 0
+    iterations: int = 2
+    saturation_headroom: float = 0.95
+
+    def to_dict(self) -> dict[str, float]:
+        return asdict(self)
+
+
+class DarkReference(Protocol):
+    """What the merge subtracts: the expected dark level of an exposure and the variance of that estimate."""
+
+    def level_adu(self, exposure_s: float) -> np.ndarray | float: ...
+
+    def variance_adu2(self, exposure_s: float) -> np.ndarray | float: ...
+
+
+@dataclass
+class MatchedDarks:
+    """Dark frames matched to the light exposures: per exposure time, the mean of ``n`` darks.
+
+    The mean of ``n`` darks estimates bias + dark current of every pixel (hot
+    pixels, bias structure) with variance ``(D t + sigma_r^2 + g^2/12) / (n g^2)`` ADU^2,
+    which the merge adds to each light frame's variance.
+    """
+
+    means: dict[float, np.ndarray]
+    counts: dict[float, int]
+    noise: NoiseModel
+
+    @classmethod
+    def from_frames(cls, frames: Sequence[Frame], noise: NoiseModel) -> "MatchedDarks":
+        """Average the dark frames of each exposure time (light frames are ignored)."""
+        sums: dict[float, np.ndarray] = {}
+        counts: dict[float, int] = {}
+        for fr in frames:
+            if not fr.dark:
+                continue
+            t = float(fr.exposure_s)
+            if t in sums:
+                sums[t] += fr.data
+                counts[t] += 1
+            else:
+                sums[t] = fr.data.astype(np.float64)
+                counts[t] = 1
+        means = {t: (s / counts[t]).astype(np.float32) for t, s in sums.items()}
+        return cls(means, counts, noise)
+
+    def _key(self, exposure_s: float) -> float:
+        for t in self.means:
+            if math.isclose(t, exposure_s, rel_tol=1e-6, abs_tol=1e-9):
+                return t
+        raise ValueError(f"no dark frame matched to the {exposure_s:g} s exposure")
+
+    def level_adu(self, exposure_s: float) -> np.ndarray:
+        return self.means[self._key(exposure_s)]
+
+    def variance_adu2(self, exposure_s: float) -> float:
+        t = self._key(exposure_s)
+        g = self.noise.gain_e_per_adu
+        return float(self.noise.frame_variance_e2(0.0, t)) / (self.counts[t] * g * g)
+
+
+@dataclass(frozen=True)
+class NominalDark:
+    """Dark level predicted by the noise model alone (uniform bias + mean dark current).
+
+    Ignores per-pixel bias structure and hot pixels, so it is used for the
+    exposure decisions of the bracket, not for the stored merge.
+    """
+
+    noise: NoiseModel
+
+    def level_adu(self, exposure_s: float) -> float:
+        n = self.noise
+        return n.bias_adu + n.dark_current_e_per_s * exposure_s / n.gain_e_per_adu
+
+    def variance_adu2(self, exposure_s: float) -> float:
+        return 0.0
+
+
+@dataclass
+class HdrResult:
+    """A merged image.
+
+    Attributes:
+        radiance: float32, electrons per second after dark subtraction.
+        variance: float32, (e-/s)^2; ``inf`` where no exposure measured the pixel.
+        mask: bool, True where at least one exposure measured the pixel.
+        n_valid: uint8, number of exposures that measured the pixel.
+    """
+
+    radiance: np.ndarray
+    variance: np.ndarray
+    mask: np.ndarray
+    n_valid: np.ndarray
+
+    def channels(self) -> dict[str, np.ndarray]:
+        """The EXR channels: ``radiance``, ``variance``, ``mask`` (1.0/0.0)."""
+        return {"radiance": self.radiance, "variance": self.variance, "mask": self.mask.astype(np.float32)}
+
+
+def saturation_mask(stack: np.ndarray, saturation_adu: float, *, bloom_rows: int = 2, bloom_cols: int = 0) -> np.ndarray:
+    """Per-exposure mask of unusable samples: saturated, or within the bloom reach of one.
+
+    Args:
+        stack: raw frames, shape (N, rows, cols) (or one frame, (rows, cols)).
+        saturation_adu: raw level at or above which a sample is saturated.
+        bloom_rows: pixels along the column (axis -2) masked on each side.
+        bloom_cols: pixels along the row (axis -1) masked on each side.
+    """
+    sat = stack >= saturation_adu
+    out = sat.copy()
+    for k in range(1, bloom_rows + 1):
+        out[..., k:, :] |= sat[..., :-k, :]
+        out[..., :-k, :] |= sat[..., k:, :]
+    if bloom_cols:
+        rows_done = out.copy()
+        for k in range(1, bloom_cols + 1):
+            out[..., :, k:] |= rows_done[..., :, :-k]
+            out[..., :, :-k] |= rows_done[..., :, k:]
+    return out
+
+
+def merge_hdr(
+    light: np.ndarray | Sequence[np.ndarray],
+    exposures_s: Sequence[float],
+    darks: DarkReference,
+    noise: NoiseModel,
+    *,
+    bloom_rows: int = 2,
+    bloom_cols: int = 0,
+    iterations: int = 2,
+) -> HdrResult:
+    """Merge raw light frames into radiance (e-/s) and its variance.
+
+    Args:
+        light: raw uint16 frames, shape (N, rows, cols), or a sequence of 2-D frames.
+        exposures_s: exposure time of each frame, seconds.
+        darks: dark reference (:class:`MatchedDarks` for stored merges).
+        noise: the sensor noise model.
+        bloom_rows, bloom_cols: bloom reach masked around saturated samples.
+        iterations: refinements of the weights with the pooled estimate (>= 1).
+    """
+    stack = np.asarray(light) if not isinstance(light, np.ndarray) else light
+    if stack.ndim == 2:
+        stack = stack[None]
+    if stack.ndim != 3:
+        raise ValueError(f"light frames must have shape (N, rows, cols), got {stack.shape}")
+    n = stack.shape[0]
+    if len(exposures_s) != n or n == 0:
+        raise ValueError(f"{n} frames but {len(exposures_s)} exposure times")
+    t = np.asarray(exposures_s, dtype=np.float64)
+    if np.any(t <= 0):
+        raise ValueError("exposure times must be > 0")
+    g = noise.gain_e_per_adu
+
+    valid = ~saturation_mask(stack, noise.saturation_adu, bloom_rows=bloom_rows, bloom_cols=bloom_cols)
+    # electrons collected above the dark reference, per exposure
+    e = stack.astype(np.float32)
+    const: list[np.ndarray] = []  # variance terms that do not depend on L, e-^2 (scalar or per pixel)
+    for i in range(n):
+        e[i] -= darks.level_adu(float(t[i]))
+        const.append(np.float32(noise.frame_variance_e2(0.0, float(t[i]))) + np.float32(g * g) * np.asarray(
+            darks.variance_adu2(float(t[i])), dtype=np.float32
+        ))
+    e *= np.float32(g)
+
+    tv = valid * t.astype(np.float32)[:, None, None]  # t_i where valid, else 0
+    te = tv * e  # t_i e_i
+    tt = tv * tv  # t_i^2
+
+    def pooled(lpos: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        num = np.zeros(stack.shape[1:], dtype=np.float32)
+        den = np.zeros(stack.shape[1:], dtype=np.float32)
+        for i in range(n):
+            c = const[i] if lpos is None else lpos * np.float32(t[i]) + const[i]
+            # w_i L_i = (t^2/c)(e/t) = t e / c
+            num += te[i] / c
+            den += tt[i] / c
+        return num, den
+
+    num, den = pooled(None)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        est = num / den
+        for _ in range(max(1, iterations)):
+            lpos = np.maximum(np.nan_to_num(est, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
+            num, den = pooled(lpos)
+            est = num / den
+        var = 1.0 / den
+    n_valid = valid.sum(axis=0).astype(np.uint8)
+    mask = n_valid > 0
+    if not mask.all():
+        shortest = int(np.argmin(t))
+        est = np.where(mask, est, e[shortest] / np.float32(t[shortest]))
+        var = np.where(mask, var, np.float32(np.inf))
+    return HdrResult(est.astype(np.float32, copy=False), var.astype(np.float32, copy=False), mask, n_valid)
+
+
+def optimal_reference(
+    light: np.ndarray,
+    exposures_s: Sequence[float],
+    darks: DarkReference,
+    noise: NoiseModel,
+    true_radiance: np.ndarray,
+    valid: np.ndarray,
+) -> np.ndarray:
+    """The oracle estimator: inverse-variance weights from the TRUE radiance (benchmarks and tests).
+
+    Uses the same frames, dark reference and valid samples as :func:`merge_hdr`;
+    no real merge can beat it, so it is the yardstick for the SNR ratio.
+    """
+    g = noise.gain_e_per_adu
+    num = np.zeros(light.shape[1:], dtype=np.float64)
+    den = np.zeros(light.shape[1:], dtype=np.float64)
+    lpos = np.maximum(true_radiance, 0.0)
+    for i, ti in enumerate(exposures_s):
+        ei = g * (light[i].astype(np.float64) - darks.level_adu(ti))
+        var_e = noise.frame_variance_e2(lpos * ti, ti) + g * g * np.asarray(darks.variance_adu2(ti))
+        w = valid[i] * ti * ti / var_e
+        num += w * ei / ti
+        den += w
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return num / den
