@@ -13,7 +13,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sim", action="store_true", help="use the simulated twins whatever the ports say")
     p.add_argument("--log-io", metavar="FILE", help="write a byte transcript of every exchange")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.add_argument("--scan", action="store_true",
+                   help="list serial ports and known USB devices and suggest rig.yaml entries (sends no bytes)")
     p.set_defaults(func=run)
+
+
+def _scan(args: argparse.Namespace) -> int:
+    from rig import discovery
+    from rig.config import load_config
+
+    base = load_config(args.config)  # settings other than ports come from it
+    result = discovery.scan()
+    suggestion = discovery.suggest_config(result, base)
+    if args.json:
+        print(json.dumps({"scan": result.to_dict(), "suggested_config": suggestion}, indent=2))
+    else:
+        print("\n".join(discovery.format_scan(result)))
+        print("\nsuggested rig.yaml entries:")
+        print(suggestion, end="")
+    return 0
 
 
 def _probe(name: str, opener: Callable[[], Any], describe: Callable[[Any], dict]) -> dict:
@@ -32,6 +50,8 @@ def _probe(name: str, opener: Callable[[], Any], describe: Callable[[Any], dict]
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.scan:
+        return _scan(args)
     from drivers.iolog import Transcript
     from rig import wiring
     from rig.config import load_config
