@@ -103,13 +103,16 @@ class AltaCamera(Camera):
                 f"no Apogee Alta-U (USB {ap.VENDOR_ID:04x}:{ap.PRODUCT_ID:04x}) found; is it plugged in and powered?",
                 device=self.device_name)
         dev = None
+        sn: str | None = None
         serials = []
         for d in found:
             try:
                 sn = d.serial_number
-            except (usb.core.USBError, ValueError) as e:
-                if isinstance(e, usb.core.USBError) and e.errno in (errno.EACCES, errno.EBUSY):
+            except usb.core.USBError as e:
+                if e.errno in (errno.EACCES, errno.EBUSY):
                     raise self._map_open_error(e) from None
+                sn = None
+            except ValueError:  # pyusb: no language ids, typically no permission to open the device
                 sn = None
             serials.append(sn)
             if serial_number is None or sn == serial_number:
@@ -119,7 +122,7 @@ class AltaCamera(Camera):
             raise DeviceConnectionError(
                 f"no Alta-U with serial number {serial_number!r}; found {', '.join(map(str, serials))}",
                 device=self.device_name)
-        self._serial = dev.serial_number if serial_number is None else serial_number
+        self._serial = sn
         try:
             try:
                 cfg = dev.get_active_configuration()
