@@ -50,10 +50,11 @@ def small_sensor(rows: int = 48, cols: int = 64) -> SensorInfo:
     return SensorInfo(**{**TEST_SENSOR.__dict__, "width": cols, "height": rows})
 
 
-def bloom(electrons: np.ndarray, full_well: float, reach: int = 6) -> np.ndarray:
-    """Charge above full well spills half up, half down the column, then drains (no anti-blooming)."""
+def bloom(electrons: np.ndarray, full_well: float) -> np.ndarray:
+    """Charge above full well spills half up, half down the column until absorbed (no anti-blooming);
+    what reaches the ends of a column drains into the serial register and is lost."""
     q = electrons.astype(np.float64)
-    for _ in range(reach):
+    for _ in range(q.shape[0] + 1):
         excess = np.maximum(q - full_well, 0.0)
         if not excess.any():
             break
