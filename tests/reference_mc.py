@@ -84,6 +84,33 @@ def hg_sample(g: float) -> PhaseSample:
     return s
 
 
+def phase_callables(phase: object) -> tuple[PhaseSample, PhaseEval]:
+    """(phase_sample, phase_eval) from a phase-function object, by duck typing.
+
+    The object needs ``eval(mu)`` (1/sr) and either ``sample_mu(u)`` (cosines for uniform u) or
+    ``sample(u)`` returning cosines or (cosines, pdf) -- e.g. the classes of ``estimate.phase_hg``
+    and ``estimate.phase_exponential`` -- so the references can run with the model's own phase
+    functions without importing the model package here.
+    """
+    ev = getattr(phase, "eval", None)
+    if not callable(ev):
+        raise TypeError(f"{phase!r} has no eval(mu)")
+    inv = getattr(phase, "sample_mu", None)
+    if not callable(inv):
+        inv = getattr(phase, "sample", None)
+    if not callable(inv):
+        raise TypeError(f"{phase!r} has neither sample_mu(u) nor sample(u)")
+
+    def sample(rng: np.random.Generator, n: int) -> np.ndarray:
+        out = inv(rng.random(n))
+        return np.asarray(out[0] if isinstance(out, tuple) else out, dtype=float)
+
+    def evaluate(mu: np.ndarray) -> np.ndarray:
+        return np.asarray(ev(mu), dtype=float)
+
+    return sample, evaluate
+
+
 # ----------------------------------------------------------------------------- Fresnel
 
 

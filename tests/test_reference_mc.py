@@ -15,6 +15,7 @@ from reference_mc import (
     isotropic_eval,
     isotropic_sample,
     mc_slab_profile,
+    phase_callables,
     pixel_centers,
     single_scattering_profile,
 )
@@ -225,11 +226,12 @@ def test_mc_next_event_radiance_matches_escaping_photons(phi: float) -> None:
     within 20 degrees of +z, binned per pixel: checks the boundary factors of the estimator."""
     n = 1.45
     prof, err, st = mc_slab_profile(2.0, 0.9, 1.0, hg_sample(0.3), hg_eval(0.3), phi, 0.2, 0.25, 12, 1.0,
-                                    n_index=n, n_photons=150_000, seed=13, escape_cone_deg=20.0)
+                                    n_index=n, n_photons=300_000, seed=13, escape_cone_deg=20.0)
     assert st.escape_profile is not None and st.escape_stderr is not None
     s_err = np.sqrt(np.sum(err**2) + np.sum(st.escape_stderr**2))
     assert st.escape_profile.sum() == pytest.approx(prof.sum(), abs=4 * s_err)
-    assert 4 * s_err < 0.1 * prof.sum()  # resolves a missing Fresnel or n^2 factor many times over
+    # cone bias is about 1 % at 20 degrees; the test resolves a wrong n^2 (factor 2.1 or 4.4)
+    assert 4 * s_err < 0.07 * prof.sum()
 
 
 def test_mc_lit_face_symmetry_and_mirror() -> None:
@@ -267,3 +269,17 @@ def test_bad_input_names_the_parameter(kw: dict, name: str) -> None:
         single_scattering_profile(**args)
     with pytest.raises(ValueError, match=name):
         mc_slab_profile(phase_sample=isotropic_sample, n_photons=10, **args)
+
+
+def test_phase_callables_run_the_model_phase_functions() -> None:
+    """Duck-typed adapter: the model's own HG (if that module exists) gives the same MC as the local one."""
+    phase_hg = pytest.importorskip("estimate.phase_hg")
+    sample, evaluate = phase_callables(phase_hg.HenyeyGreenstein(0.6))
+    np.testing.assert_allclose(evaluate(np.linspace(-1, 1, 11)), hg_eval(0.6)(np.linspace(-1, 1, 11)), rtol=1e-12)
+    args = (2.0, 0.9, 0.5)
+    geo = (45.0, 0.2, 0.1, 20, 0.2)
+    a, ea, _ = mc_slab_profile(*args, sample, evaluate, *geo, n_photons=20_000, seed=8)
+    b, eb, _ = mc_slab_profile(*args, hg_sample(0.6), hg_eval(0.6), *geo, n_photons=20_000, seed=9)
+    assert a.sum() == pytest.approx(b.sum(), abs=4 * np.sqrt(np.sum(ea**2) + np.sum(eb**2)))
+    with pytest.raises(TypeError):
+        phase_callables(object())
