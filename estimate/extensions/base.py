@@ -1,0 +1,136 @@
+"""Common form of a model extension: named parameters whose neutral value means "absent".
+
+Each extension is a small module defining one `Extension` subclass. Three kinds:
+
+- ``scene``: changes the Mitsuba scene (refractive_boundary, beam_halo, filter_bandwidth,
+  angle_offset, thickness_error); the forward model reads its values when rendering.
+- ``image``: acts on the rendered radiance in image space (lens_blur, stray_light,
+  sensor_nonlinearity); it provides `apply` and the pull-back of a cotangent (`vjp_input`)
+  so that gradients of scene parameters pass through it.
+
+`derivative` of each parameter says how the forward model differentiates it:
+``ad`` (Dr.Jit reverse mode through the render), ``image`` (exact, through the image-space
+function), ``fd`` (central finite difference with common random numbers: geometric
+parameters whose Mitsuba derivative is missing or biased, e.g. directions detached in
+next-event estimation, the boundary position, the dielectric index).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import ClassVar, Mapping
+
+import numpy as np
+
+from estimate.errors import ModelParameterError
+
+__all__ = ["ParameterSpec", "Extension", "ImageExtension", "check_value"]
+
+
+@dataclass(frozen=True)
+class ParameterSpec:
+    """One extension parameter.
+
+    Attributes:
+        name: short name; the full name is "<extension>.<name>".
+        neutral: value at which the effect is absent (or a harmless shape default).
+        lower, upper: allowed range (inclusive unless `open_lower`).
+        unit: unit string for reports.
+        derivative: "ad", "image" or "fd" (see module doc).
+        fd_step: absolute finite-difference step for "fd" / default step.
+        doc: one line.
+    """
+
+    name: str
+    neutral: float
+    lower: float
+    upper: float
+    unit: str
+    derivative: str
+    fd_step: float
+    doc: str
+    open_lower: bool = False
+
+
+def check_value(full_name: str, value: float, spec: ParameterSpec) -> float:
+    """Validate one value; raises ModelParameterError naming the parameter."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ModelParameterError(f"{full_name}={value!r} is not a number") from None
+    if math.isnan(v):
+        raise ModelParameterError(f"{full_name} is NaN")
+    if v < spec.lower or (spec.open_lower and v == spec.lower) or v > spec.upper:
+        lo = "(" if spec.open_lower else "["
+        raise ModelParameterError(
+            f"{full_name}={v:g} outside its allowed range {lo}{spec.lower:g}, {spec.upper:g}] {spec.unit}")
+    return v
+
+
+class Extension:
+    """A left-out effect; subclasses set `name`, `kind`, `parameters`."""
+
+    name: ClassVar[str]
+    kind: ClassVar[str]  # "scene" or "image"
+    parameters: ClassVar[tuple[ParameterSpec, ...]]
+
+    @classmethod
+    def full_names(cls) -> list[str]:
+        return [f"{cls.name}.{p.name}" for p in cls.parameters]
+
+    @classmethod
+    def neutral_values(cls) -> dict[str, float]:
+        return {f"{cls.name}.{p.name}": p.neutral for p in cls.parameters}
+
+    @classmethod
+    def spec(cls, short: str) -> ParameterSpec:
+        for p in cls.parameters:
+            if p.name == short:
+                return p
+        raise ModelParameterError(f"extension {cls.name} has no parameter {short!r}")
+
+    @classmethod
+    def values(cls, params: Mapping[str, float]) -> dict[str, float]:
+        """This extension's values (short names) from a full parameter mapping, validated."""
+        out = {}
+        for p in cls.parameters:
+            full = f"{cls.name}.{p.name}"
+            out[p.name] = check_value(full, params.get(full, p.neutral), p)
+        return out
+
+
+class ImageExtension(Extension):
+    """An image-space effect on radiance arrays shaped (..., H, W)."""
+
+    kind = "image"
+
+    @classmethod
+    def apply(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
+              profile_only: bool) -> np.ndarray:
+        raise NotImplementedError
+
+    @classmethod
+    def vjp_input(cls, image: np.ndarray, cotangent: np.ndarray, values: Mapping[str, float], *,
+                  pixel_mm: float, profile_only: bool) -> np.ndarray:
+        """Cotangent w.r.t. the input image given one w.r.t. the output."""
+        raise NotImplementedError
+
+    @classmethod
+    def param_derivatives(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
+                          profile_only: bool) -> dict[str, np.ndarray]:
+        """d output / d parameter for each parameter (central differences of this exact,
+        deterministic image function; no rendering noise involved)."""
+        out = {}
+        for p in cls.parameters:
+            h = p.fd_step
+            lo = dict(values)
+            hi = dict(values)
+            base = values[p.name]
+            a = max(p.lower, base - h) if not p.open_lower else max(p.lower + 1e-12, base - h)
+            b = min(p.upper, base + h)
+            lo[p.name] = a
+            hi[p.name] = b
+            out[p.name] = (cls.apply(image, hi, pixel_mm=pixel_mm, profile_only=profile_only)
+                           - cls.apply(image, lo, pixel_mm=pixel_mm, profile_only=profile_only)) / (b - a)
+        return out

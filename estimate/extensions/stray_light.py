@@ -1,0 +1,48 @@
+"""Extension `stray_light`: additive background, constant or slowly varying across the row.
+
+I(x) + offset + slope_per_mm * x, x in mm from the rendered window's centre (object
+space), constant along y. Units: the render's radiance units. Derivative: exact.
+"""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import numpy as np
+
+from estimate.extensions.base import ImageExtension, ParameterSpec
+
+__all__ = ["StrayLight"]
+
+
+class StrayLight(ImageExtension):
+    name = "stray_light"
+    parameters = (
+        ParameterSpec("offset", 0.0, 0.0, float("inf"), "radiance", "image", 1e-4,
+                      "constant background"),
+        ParameterSpec("slope_per_mm", 0.0, float("-inf"), float("inf"), "radiance/mm", "image", 1e-4,
+                      "linear variation across the row"),
+    )
+
+    @staticmethod
+    def _x_mm(width: int, pixel_mm: float) -> np.ndarray:
+        return (np.arange(width) + 0.5 - 0.5 * width) * pixel_mm
+
+    @classmethod
+    def apply(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
+              profile_only: bool) -> np.ndarray:
+        img = np.asarray(image, dtype=np.float64)
+        x = cls._x_mm(img.shape[-1], pixel_mm)
+        return img + values["offset"] + values["slope_per_mm"] * x
+
+    @classmethod
+    def vjp_input(cls, image: np.ndarray, cotangent: np.ndarray, values: Mapping[str, float], *,
+                  pixel_mm: float, profile_only: bool) -> np.ndarray:
+        return np.asarray(cotangent, dtype=np.float64)
+
+    @classmethod
+    def param_derivatives(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
+                          profile_only: bool) -> dict[str, np.ndarray]:
+        img = np.asarray(image, dtype=np.float64)
+        x = cls._x_mm(img.shape[-1], pixel_mm)
+        return {"offset": np.ones_like(img), "slope_per_mm": np.broadcast_to(x, img.shape).copy()}

@@ -1,0 +1,538 @@
+"""The forward model: the rig as a differentiable Mitsuba 3 scene.
+
+A homogeneous slab (sigma_t [1/mm], albedo, phase function `exp<M>` or `tthg`) lit by the
+calibrated collimated beam (`estimate.beam`) at stage angles phi, seen by a telecentric
+camera (orthographic sensor) that renders only the pixel window asked for (one row for
+estimation, a band or the full frame for the simulated camera). One channel per render
+(`*_ad_mono` variant). Extensions (`estimate.extensions`) add the physics a base fit may
+leave out; each is switched on by name at construction and has neutral values.
+
+Parameters are a flat mapping name -> float:
+    "sigma_t", "albedo",
+    "phase.b1" .. "phase.bM"                        (phase "exp<M>"),
+    "phase.g_forward", "phase.g_backward", "phase.w_forward"   (phase "tthg"),
+    "<extension>.<parameter>"                       (see `ForwardModel.parameter_names`).
+
+All angles of a call are rendered with the same compiled kernels: angles and parameters
+are opaque Dr.Jit values. Seeds are explicit: angle k of a call with seed s uses the
+Mitsuba seed `render_seed(s, k, j)` (j: band node of `filter_bandwidth`), so a call is
+reproducible and finite differences can use common random numbers.
+
+See docs/forward-model.md for the API and its conventions.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import threading
+from typing import Any, Callable, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from estimate.beam import BeamProfile
+from estimate.errors import ModelParameterError
+from estimate.extensions import EXTENSIONS, IMAGE_ORDER, check_value, get_extension
+from estimate.extensions.base import ImageExtension, ParameterSpec
+from estimate.extensions.filter_bandwidth import band_nodes
+from estimate.extensions.refractive_boundary import INTERNAL_REFLECTIONS
+from estimate.geometry import PixelWindow, RigGeometry
+from estimate.mitsuba_env import init_mitsuba
+from estimate.mitsuba_phase import exp_phase_dict, tthg_phase_dict
+
+__all__ = ["ForwardModel", "render_seed", "BASE_SPECS", "phase_specs"]
+
+_INF = float("inf")
+
+#: Base parameters of every model.
+BASE_SPECS: dict[str, ParameterSpec] = {
+    "sigma_t": ParameterSpec("sigma_t", 1.0, 0.0, 1e4, "1/mm", "ad", 0.02,
+                             "extinction coefficient", open_lower=True),
+    "albedo": ParameterSpec("albedo", 0.9, 0.0, 1.0, "", "ad", 0.01, "single-scattering albedo"),
+}
+
+
+def phase_specs(phase: str) -> dict[str, ParameterSpec]:
+    """Parameter specs of a phase model name: "exp<M>" (M >= 0) or "tthg"."""
+    m = re.fullmatch(r"exp(\d+)", phase)
+    if m:
+        return {f"phase.b{i}": ParameterSpec(f"b{i}", 0.0, -1000.0, 1000.0, "", "ad", 0.05,
+                                             f"exponential phase coefficient of mu^{i}")
+                for i in range(1, int(m.group(1)) + 1)}
+    if phase == "tthg":
+        return {
+            "phase.g_forward": ParameterSpec("g_forward", 0.5, -0.999, 0.999, "", "ad", 0.01, "forward lobe g"),
+            "phase.g_backward": ParameterSpec("g_backward", -0.3, -0.999, 0.999, "", "ad", 0.01, "backward lobe g"),
+            "phase.w_forward": ParameterSpec("w_forward", 0.9, 0.0, 1.0, "", "ad", 0.01, "forward lobe weight"),
+        }
+    raise ModelParameterError(f"unknown phase model {phase!r}; use 'exp<M>' (e.g. exp3) or 'tthg'")
+
+
+def render_seed(seed: int, angle_index: int, band_index: int = 0) -> int:
+    """Mitsuba seed of one render of a call (uint32)."""
+    return (int(seed) * 1_000_003 + angle_index * 7919 + band_index * 104_729) % (2 ** 32)
+
+
+class ForwardModel:
+    """The rig's forward model for one colour channel.
+
+    Args:
+        geometry: slab and camera geometry.
+        beam: calibrated beam map for this channel.
+        phase: "exp<M>" (exponential, monomial basis, degree M) or "tthg".
+        extensions: names of the extensions to include (see `estimate.extensions`).
+        variant: Mitsuba variant; None = automatic (`estimate.mitsuba_env`).
+        max_depth: path length limit of `prbvolpath`.
+        rr_depth: depth at which Russian roulette starts.
+    """
+
+    def __init__(self, geometry: RigGeometry, beam: BeamProfile, *, phase: str = "exp3",
+                 extensions: Iterable[str] = (), variant: str | None = None,
+                 max_depth: int = 64, rr_depth: int = 16) -> None:
+        self.geometry = geometry
+        self.beam_profile = beam
+        self.phase = phase
+        self.extensions: tuple[str, ...] = tuple(dict.fromkeys(extensions))
+        for name in self.extensions:
+            get_extension(name)
+        self.specs: dict[str, ParameterSpec] = dict(BASE_SPECS)
+        self.specs.update(phase_specs(phase))
+        for name in self.extensions:
+            for p in EXTENSIONS[name].parameters:
+                self.specs[f"{name}.{p.name}"] = p
+        self.mi = init_mitsuba(variant)
+        import drjit as dr
+
+        self.dr = dr
+        self.max_depth = int(max_depth)
+        self.rr_depth = int(rr_depth)
+        self._lock = threading.Lock()
+        self._sensors: dict[PixelWindow, Any] = {}
+        self._build_scene()
+
+    # ------------------------------------------------------------------ parameters
+    @property
+    def parameter_names(self) -> list[str]:
+        """All parameter names of this model, base first, then phase, then extensions."""
+        return list(self.specs)
+
+    def default_parameters(self) -> dict[str, float]:
+        """Neutral / default values of every parameter."""
+        return {k: s.neutral for k, s in self.specs.items()}
+
+    def derivative_kind(self, name: str) -> str:
+        """"ad", "image" or "fd": how `vjp` / `jacobian` differentiate this parameter."""
+        return self._spec(name).derivative
+
+    def _spec(self, name: str) -> ParameterSpec:
+        try:
+            return self.specs[name]
+        except KeyError:
+            ext = name.split(".", 1)[0]
+            if ext in EXTENSIONS and ext not in self.extensions:
+                raise ModelParameterError(
+                    f"parameter {name!r} belongs to extension {ext!r}, which this model does not include") from None
+            if ext not in EXTENSIONS and "." in name and ext != "phase":
+                get_extension(ext)
+            raise ModelParameterError(f"unknown model parameter {name!r}") from None
+
+    def validate(self, params: Mapping[str, float]) -> dict[str, float]:
+        """Full, checked parameter dict (missing names take their defaults).
+
+        Raises:
+            ModelParameterError: unknown name, NaN, or a value outside its range (the
+                message names the parameter).
+        """
+        out = self.default_parameters()
+        for k, v in params.items():
+            self._spec(k)
+            out[k] = v
+        for k, s in self.specs.items():
+            out[k] = check_value(k, out[k], s)
+        thickness = self.geometry.thickness_mm * (1.0 + out.get("thickness_error.e", 0.0))
+        if thickness <= 0:
+            raise ModelParameterError(f"thickness_error.e={out['thickness_error.e']:g} makes the thickness <= 0")
+        return out
+
+    # ------------------------------------------------------------------ scene
+    def _build_scene(self) -> None:
+        mi = self.mi
+        T = mi.ScalarTransform4f
+        g = self.geometry
+        d = g.thickness_mm
+        hw = g.half_width_mm
+        if self.phase == "tthg":
+            ps = self.specs
+            phase = tthg_phase_dict(ps["phase.g_forward"].neutral, ps["phase.g_backward"].neutral,
+                                    ps["phase.w_forward"].neutral)
+        else:
+            phase = exp_phase_dict([0.0] * sum(1 for k in self.specs if k.startswith("phase.b")))
+        refractive = "refractive_boundary" in self.extensions
+        bsdf = {"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0} if refractive else {"type": "null"}
+        self._refractive = refractive
+        scene_dict = {
+            "type": "scene",
+            "integrator": {"type": "prbvolpath", "max_depth": self.max_depth, "rr_depth": self.rr_depth},
+            "slab": {
+                "type": "cube",
+                "to_world": T().translate([0.0, 0.0, -0.5 * d]).scale([hw, hw, 0.5 * d]),
+                "bsdf": bsdf,
+                "interior": {"type": "homogeneous", "sigma_t": 1.0, "albedo": 0.5, "phase": phase},
+            },
+            "beam": {"type": "collimated_beam", "thickness": d,
+                     "reflections": INTERNAL_REFLECTIONS if refractive else 0},
+        }
+        self.scene = mi.load_dict(scene_dict)
+        beam = [e for e in self.scene.emitters()][0]
+        beam.set_profile(self.beam_profile)
+        self._beam = beam
+        self.params = mi.traverse(self.scene)
+        keys = list(self.params.keys())
+
+        def key(suffix: str) -> str:
+            hits = [k for k in keys if k.endswith(suffix)]
+            if len(hits) != 1:
+                raise RuntimeError(f"scene parameter *{suffix} not found uniquely: {hits}")
+            return hits[0]
+
+        self._k_sigma_t = key("interior_medium.sigma_t.value.value")
+        self._k_albedo = key("interior_medium.albedo.value.value")
+        self._k_vertices = key("slab.vertex_positions")
+        self._base_vertices = np.array(self.params[self._k_vertices], dtype=np.float64)
+        self._current_thickness = d
+        if self.phase == "tthg":
+            self._k_phase = {
+                "weight": key("phase_function.weight.value.value"),
+                "g0": key("phase_function.phase_0.g"),
+                "g1": key("phase_function.phase_1.g"),
+            }
+        else:
+            self._k_phase = {n: key(f"phase_function.{n.split('.')[1]}") for n in self.specs if n.startswith("phase.b")}
+        self._k_beam = {n: key(f"beam.{n}") for n in ("angle_deg", "eta", "thickness", "sigma_t",
+                                                      "halo_fraction", "halo_sigma_mm")}
+        self._current_eta = 1.5
+        if refractive:
+            self._k_eta = key("slab.bsdf.eta")
+
+    def _sensor(self, window: PixelWindow) -> Any:
+        s = self._sensors.get(window)
+        if s is None:
+            mi = self.mi
+            T = mi.ScalarTransform4f
+            g = self.geometry
+            p = g.pixel_mm
+            x, y = g.window_center_mm(window)
+            z = 10.0 + 2.0 * g.thickness_mm
+            # Mitsuba's orthographic film spans [-1, 1] in x and [-1/aspect, 1/aspect] in y.
+            half = 0.5 * window.width * p
+            s = mi.load_dict({
+                "type": "orthographic",
+                "near_clip": 1e-3, "far_clip": 1e4,
+                "to_world": T().look_at([x, y, z], [x, y, 0.0], [0.0, 1.0, 0.0]).scale([half, half, 1.0]),
+                "film": {"type": "hdrfilm", "width": window.width, "height": window.height,
+                         "rfilter": {"type": "box"}, "pixel_format": "luminance",
+                         "sample_border": False},
+                "sampler": {"type": "independent", "sample_count": 1},
+            })
+            self._sensors[window] = s
+        return s
+
+    def _set_index(self, n: float) -> None:
+        """Set the dielectric boundary's relative index (a non-differentiable Mitsuba parameter)."""
+        if n == self._current_eta:
+            return
+        self.params[self._k_eta] = float(n)
+        self._current_eta = n
+
+    def _set_thickness(self, d: float) -> None:
+        if d == self._current_thickness:
+            return
+        v = self._base_vertices.reshape(-1, 3).copy()
+        v[:, 2] *= d / self.geometry.thickness_mm
+        self.params[self._k_vertices] = self.mi.Float(v.ravel().astype(np.float32))
+        self._current_thickness = d
+
+    def _assign(self, values: Mapping[str, float], leaves: Mapping[str, Any], angle_deg: float,
+                band_x: float) -> None:
+        """Write one render's parameters into the scene (fresh AD expressions each time)."""
+        dr = self.dr
+        mi = self.mi
+
+        def val(name: str) -> Any:
+            if name in leaves:
+                return leaves[name]
+            return dr.opaque(mi.Float, values[name])
+
+        sigma_t = val("sigma_t")
+        if "filter_bandwidth" in self.extensions:
+            sigma_t = sigma_t * (1.0 + val("filter_bandwidth.spread") * band_x)
+        else:
+            sigma_t = sigma_t * 1.0
+        p = self.params
+        p[self._k_sigma_t] = sigma_t
+        p[self._k_albedo] = val("albedo") * 1.0
+        if self.phase == "tthg":
+            p[self._k_phase["weight"]] = 1.0 - val("phase.w_forward")
+            p[self._k_phase["g0"]] = val("phase.g_forward") * 1.0
+            p[self._k_phase["g1"]] = val("phase.g_backward") * 1.0
+        else:
+            for name, k in self._k_phase.items():
+                p[k] = val(name) * 1.0
+                p.set_dirty(k)
+        delta = values.get("angle_offset.delta_deg", 0.0)
+        e = values.get("thickness_error.e", 0.0)
+        n = values.get("refractive_boundary.n", 1.0)
+        d = self.geometry.thickness_mm * (1.0 + e)
+        if self._refractive:
+            self._set_index(n)
+        self._set_thickness(d)
+        kb = self._k_beam
+        p[kb["angle_deg"]] = dr.opaque(mi.Float, angle_deg + delta)
+        p[kb["eta"]] = dr.opaque(mi.Float, n)
+        p[kb["thickness"]] = dr.opaque(mi.Float, d)
+        p[kb["sigma_t"]] = sigma_t
+        if "beam_halo" in self.extensions:
+            p[kb["halo_fraction"]] = val("beam_halo.fraction") * 1.0
+            p[kb["halo_sigma_mm"]] = val("beam_halo.sigma_mm") * 1.0
+        p.update()
+
+    def _bands(self) -> list[tuple[float, float]]:
+        if "filter_bandwidth" in self.extensions:
+            x, w = band_nodes()
+            return list(zip(x.tolist(), w.tolist()))
+        return [(0.0, 1.0)]
+
+    # ------------------------------------------------------------------ rendering
+    def _render_radiance(self, values: Mapping[str, float], angles: Sequence[float],
+                         window: PixelWindow, spp: int, seed: int, first_index: int = 0) -> np.ndarray:
+        """Scene radiance (before image-space extensions), shape (N, H, W)."""
+        mi = self.mi
+        sensor = self._sensor(window)
+        out = np.zeros((len(angles), window.height, window.width))
+        with self.dr.suspend_grad():
+            for k, phi in enumerate(angles):
+                for j, (x, w) in enumerate(self._bands()):
+                    self._assign(values, {}, float(phi), x)
+                    img = mi.render(self.scene, sensor=sensor, spp=int(spp),
+                                    seed=render_seed(seed, first_index + k, j))
+                    out[k] += w * np.array(img, dtype=np.float64).reshape(window.height, window.width)
+        return out
+
+    def _image_exts(self) -> list[type[ImageExtension]]:
+        return [EXTENSIONS[n] for n in IMAGE_ORDER if n in self.extensions]  # type: ignore[misc]
+
+    def _post(self, radiance: np.ndarray, values: Mapping[str, float], profile_only: bool) -> np.ndarray:
+        img = radiance
+        for ext in self._image_exts():
+            img = ext.apply(img, ext.values(values), pixel_mm=self.geometry.pixel_mm, profile_only=profile_only)
+        return img
+
+    def _check_call(self, angles: Sequence[float], spp: int, seed: int) -> list[float]:
+        a = [float(x) for x in np.atleast_1d(np.asarray(angles, dtype=np.float64))]
+        for x in a:
+            if not math.isfinite(x) or not -360.0 <= x <= 360.0:
+                raise ModelParameterError(f"stage angle {x!r} must be a finite number of degrees")
+        if int(spp) < 1:
+            raise ModelParameterError(f"spp={spp!r} must be >= 1")
+        if int(seed) < 0:
+            raise ModelParameterError(f"seed={seed!r} must be >= 0")
+        return a
+
+    def render_profiles(self, params: Mapping[str, float], angles_deg: Sequence[float], *,
+                        spp: int = 128, seed: int = 0) -> np.ndarray:
+        """Profile rows for every angle, shape (N, W), image-space extensions applied.
+
+        Args:
+            params: parameter values (missing ones take their defaults).
+            angles_deg: stage angles phi (degrees).
+            spp: samples per pixel.
+            seed: base seed (same seed -> same result).
+        """
+        return self.render(params, angles_deg, spp=spp, seed=seed)[:, 0, :]
+
+    def render(self, params: Mapping[str, float], angles_deg: Sequence[float], *,
+               columns: tuple[int, int] | None = None, rows: tuple[int, int] | None = None,
+               spp: int = 128, seed: int = 0) -> np.ndarray:
+        """Images of a pixel window for every angle, shape (N, H, W), numpy float64.
+
+        `columns` / `rows` are sensor pixel ranges [start, stop); None = the profile's
+        columns / the profile row. A full frame: rows=(0, rows), columns=(0, columns).
+        Image-space extensions act on the window (lens blur in 2D when H > 1).
+        """
+        values = self.validate(params)
+        angles = self._check_call(angles_deg, spp, seed)
+        window = self.geometry.window(columns, rows)
+        with self._lock:
+            rad = self._render_radiance(values, angles, window, spp, seed)
+        return self._post(rad, values, profile_only=window.height == 1)
+
+    # ------------------------------------------------------------------ derivatives
+    def vjp(self, params: Mapping[str, float], angles_deg: Sequence[float], cotangent: np.ndarray, *,
+            spp: int = 128, seed: int = 0, columns: tuple[int, int] | None = None,
+            fd_parameters: bool = True) -> dict[str, float]:
+        """Vector-Jacobian product: d/dtheta sum(cotangent * profiles(theta)) for every parameter.
+
+        `cotangent` has the shape of `render_profiles` (N, W), e.g. dLoss/dprofile. "ad"
+        parameters come from Dr.Jit reverse mode (one adjoint render per angle), "image"
+        ones exactly through the image-space functions, "fd" ones (only if `fd_parameters`)
+        from central differences with common random numbers (2 extra forward renders each).
+        Uses the same seeds as `render_profiles(..., seed=seed)`.
+        """
+        values = self.validate(params)
+        angles = self._check_call(angles_deg, spp, seed)
+        window = self.geometry.window(columns, None)
+        cot = np.asarray(cotangent, dtype=np.float64)
+        if cot.shape != (len(angles), window.width):
+            raise ModelParameterError(
+                f"cotangent shape {cot.shape} != (angles, width) = {(len(angles), window.width)}")
+        if not np.all(np.isfinite(cot)):
+            raise ModelParameterError("cotangent contains NaN or infinite values")
+        cot = cot[:, None, :]
+        dr = self.dr
+        mi = self.mi
+        grads = {n: 0.0 for n in self.specs}
+        ad_names = [n for n, s in self.specs.items() if s.derivative == "ad"]
+        image_exts = self._image_exts()
+        sensor = self._sensor(window)
+        bands = self._bands()
+        linear = "sensor_nonlinearity" not in self.extensions
+        with self._lock:
+            for k, phi in enumerate(angles):
+                cot_k = cot[k:k + 1]
+                cot_rad: np.ndarray | None = None
+                if not linear and len(bands) > 1:
+                    # The nonlinear pull-back needs the band mixture before any adjoint.
+                    full = self._render_radiance(values, [phi], window, spp, seed, first_index=k)
+                    cot_rad = self._pullback(full, cot_k, values, window)[0]
+                elif linear:
+                    cot_rad = self._pullback(np.zeros_like(cot_k), cot_k, values, window)[0]
+                leaves = {n: dr.opaque(mi.Float, values[n]) for n in ad_names}
+                for leaf in leaves.values():
+                    dr.enable_grad(leaf)
+                rad = np.zeros((1, window.height, window.width))
+                for j, (x, w) in enumerate(bands):
+                    self._assign(values, leaves, float(phi), x)
+                    img = mi.render(self.scene, params=self.params, sensor=sensor, spp=int(spp),
+                                    seed=render_seed(seed, k, j))
+                    r = np.array(dr.detach(img), dtype=np.float64).reshape(window.height, window.width)
+                    rad[0] += w * r
+                    c_rad = cot_rad if cot_rad is not None else self._pullback(rad, cot_k, values, window)[0]
+                    c = mi.TensorXf(np.ascontiguousarray(w * c_rad[0]).astype(np.float32).reshape(img.shape))
+                    # Adjoint now, while the scene still holds this render's parameters.
+                    dr.backward(img * c)
+                if image_exts:
+                    for name, gv in self._pullback(rad, cot_k, values, window)[1].items():
+                        grads[name] += gv
+                for n, leaf in leaves.items():
+                    g = dr.grad(leaf)
+                    grads[n] += float(g[0]) if dr.width(g) else 0.0
+        if fd_parameters:
+            fd_names = [n for n, s in self.specs.items() if s.derivative == "fd"]
+            for n in fd_names:
+                jac = self.jacobian(values, angles, [n], spp=spp, seed=seed, columns=columns)[n]
+                grads[n] = float(np.sum(jac * cot[:, 0, :]))
+        return grads
+
+    def _pullback(self, radiance: np.ndarray, cot_out: np.ndarray, values: Mapping[str, float],
+                  window: PixelWindow) -> tuple[np.ndarray, dict[str, float]]:
+        """Cotangent on the scene radiance, and image-parameter gradients."""
+        exts = self._image_exts()
+        pm = self.geometry.pixel_mm
+        profile_only = window.height == 1
+        inputs = []
+        img = radiance
+        for ext in exts:
+            inputs.append(img)
+            img = ext.apply(img, ext.values(values), pixel_mm=pm, profile_only=profile_only)
+        grads: dict[str, float] = {}
+        cot = cot_out
+        for ext, inp in zip(reversed(exts), reversed(inputs)):
+            v = ext.values(values)
+            for short, dimg in ext.param_derivatives(inp, v, pixel_mm=pm, profile_only=profile_only).items():
+                grads[f"{ext.name}.{short}"] = float(np.sum(dimg * cot))
+            cot = ext.vjp_input(inp, cot, v, pixel_mm=pm, profile_only=profile_only)
+        return cot, grads
+
+    def value_and_grad(self, params: Mapping[str, float], angles_deg: Sequence[float],
+                       loss: Callable[[np.ndarray], tuple[float, np.ndarray]], *, spp: int = 128,
+                       seed: int = 0, fd_parameters: bool = True) -> tuple[float, np.ndarray, dict[str, float]]:
+        """Loss, profiles and the loss gradient for every parameter.
+
+        `loss(profiles) -> (value, dvalue/dprofiles)` works on numpy arrays (N, W); the
+        gradient is `vjp` of that cotangent with the same seed (so the adjoint replays the
+        forward render's paths).
+        """
+        prof = self.render_profiles(params, angles_deg, spp=spp, seed=seed)
+        value, cot = loss(prof)
+        grads = self.vjp(params, angles_deg, cot, spp=spp, seed=seed, fd_parameters=fd_parameters)
+        return float(value), prof, grads
+
+    def jacobian(self, params: Mapping[str, float], angles_deg: Sequence[float], names: Sequence[str], *,
+                 spp: int = 128, seed: int = 0, steps: Mapping[str, float] | None = None,
+                 columns: tuple[int, int] | None = None) -> dict[str, np.ndarray]:
+        """d profiles / d parameter for each name, arrays (N, W).
+
+        "image" parameters: exact through the image-space function (one render in all).
+        Others: central differences with common random numbers (same seeds), step
+        `steps[name]` or the parameter's default, shrunk to stay inside its range.
+        prbvolpath has no forward mode, so this is the efficient way to get a few columns
+        of the Jacobian.
+        """
+        values = self.validate(params)
+        angles = self._check_call(angles_deg, spp, seed)
+        window = self.geometry.window(columns, None)
+        out: dict[str, np.ndarray] = {}
+        base_rad: np.ndarray | None = None
+        for name in names:
+            spec = self._spec(name)
+            if spec.derivative == "image":
+                if base_rad is None:
+                    with self._lock:
+                        base_rad = self._render_radiance(values, angles, window, spp, seed)
+                out[name] = self._image_param_derivative(base_rad, values, name, window)
+                continue
+            h = float((steps or {}).get(name, spec.fd_step))
+            x = values[name]
+            lo = x - h
+            hi = x + h
+            lower = spec.lower + (1e-9 if spec.open_lower else 0.0)
+            if lo < lower:
+                lo = lower
+            if hi > spec.upper:
+                hi = spec.upper
+            if name == "thickness_error.e":
+                lo = max(lo, -0.9)
+            v_lo = dict(values)
+            v_hi = dict(values)
+            v_lo[name] = lo
+            v_hi[name] = hi
+            with self._lock:
+                r_hi = self._post(self._render_radiance(v_hi, angles, window, spp, seed), v_hi, window.height == 1)
+                r_lo = self._post(self._render_radiance(v_lo, angles, window, spp, seed), v_lo, window.height == 1)
+            out[name] = ((r_hi - r_lo) / (hi - lo))[:, 0, :]
+        return out
+
+    def _image_param_derivative(self, radiance: np.ndarray, values: Mapping[str, float], name: str,
+                                window: PixelWindow) -> np.ndarray:
+        """Exact derivative of the image chain output w.r.t. one image parameter."""
+        ext_name, short = name.split(".", 1)
+        pm = self.geometry.pixel_mm
+        profile_only = window.height == 1
+        exts = self._image_exts()
+        img = radiance
+        for i, ext in enumerate(exts):
+            v = ext.values(values)
+            if ext.name == ext_name:
+                d = ext.param_derivatives(img, v, pixel_mm=pm, profile_only=profile_only)[short]
+                out = ext.apply(img, v, pixel_mm=pm, profile_only=profile_only)
+                # Push the derivative through the rest of the chain (linearised).
+                for later in exts[i + 1:]:
+                    lv = later.values(values)
+                    eps = 1e-4 * max(1e-30, float(np.max(np.abs(d))) or 1.0)
+                    plus = later.apply(out + eps * d, lv, pixel_mm=pm, profile_only=profile_only)
+                    minus = later.apply(out - eps * d, lv, pixel_mm=pm, profile_only=profile_only)
+                    out = later.apply(out, lv, pixel_mm=pm, profile_only=profile_only)
+                    d = (plus - minus) / (2 * eps)
+                return d[:, 0, :]
+            img = ext.apply(img, v, pixel_mm=pm, profile_only=profile_only)
+        raise ModelParameterError(f"{name!r} is not an image-space parameter of this model")
