@@ -137,7 +137,8 @@ class FW102C(FilterChanger):
         except ProtocolError:
             # A firmware without ``speed?`` refuses it: assume the slow speed, the safe side for timeouts.
             self._high_speed = False
-        self._position: int | None = self._read_position()
+        self._position: int | None = None
+        self._position = self._read_position_confirmed()
 
     # ------------------------------------------------------------------ facts
 
@@ -222,22 +223,28 @@ class FW102C(FilterChanger):
 
     # ------------------------------------------------------------------ FilterChanger hooks
 
+    def _read_position_confirmed(self) -> int:
+        """``pos?``, trusted at once only when it agrees with the last known position.
+
+        A bit flip can turn one digit into another and pass every check, so a
+        reading that is new (after open, after a failed move, or different from
+        the last known position; the front-panel buttons can turn the wheel) is
+        taken only once two successive reads agree.
+        """
+        pos = self._read_position()
+        if pos == self._position:
+            return pos
+        for _ in range(self.retries + 1):
+            again = self._read_position()
+            if again == pos:
+                return pos
+            pos = again
+        raise ProtocolError("successive position reads disagree", device=self.device_name)
+
     def _do_current(self) -> int:
         with self._lock:
-            pos = self._read_position()
-            # A bit flip can turn one digit into another and pass every check, so a
-            # reading that contradicts the last known position is taken only once
-            # two reads agree (the wheel's front-panel buttons can move it).
-            if self._position is not None and pos != self._position:
-                for _ in range(self.retries + 1):
-                    again = self._read_position()
-                    if again == pos:
-                        break
-                    pos = again
-                else:
-                    raise ProtocolError("successive position reads disagree", device=self.device_name)
-            self._position = pos
-            return pos
+            self._position = self._read_position_confirmed()
+            return self._position
 
     def _do_select(self, position: int, timeout_s: float | None) -> None:
         if position > self._pcount:
@@ -259,7 +266,7 @@ class FW102C(FilterChanger):
                     self._link.reset_input()
                     self._note(f"select {position}: attempt {attempt + 1} failed ({e}); reading back")
                     try:
-                        self._position = self._read_position()
+                        self._position = self._read_position_confirmed()
                     except DeviceError:
                         raise last from None
                     if self._position == position:
