@@ -314,8 +314,10 @@ class AltaCamera(Camera):
             t_start = time.time()
             self._write_reg(ap.Reg.CMD_A, ap.CMD_A_DARK if dark else ap.CMD_A_EXPOSE)
             self._wait_image_done(deadline, seconds)
+            t_done = time.monotonic()
             raw = self._read_image(g)
             t_end = time.time()
+            download_s = time.monotonic() - t_done
         except DeviceError as e:
             self._abort(e)
             raise
@@ -333,7 +335,7 @@ class AltaCamera(Camera):
             roi=roi,
             camera=self.identity(),
             extra={"requested_exposure_s": seconds, "ccd_temp_end_c": temp_end, "shutter": self._shutter.value,
-                   "timer_ticks": ticks},
+                   "timer_ticks": ticks, "download_s": download_s},
         )
 
     def _wait_image_done(self, deadline: float, seconds: float) -> None:

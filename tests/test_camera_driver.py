@@ -89,6 +89,32 @@ def test_descriptors_seen_through_pyusb(backend):
     assert dev.serial_number == "SIM0001"
 
 
+def test_twin_answers_the_documented_requests_byte_for_byte(backend):
+    """Raw pyusb, no driver: the request table of device-protocols.md section 2."""
+    import errno
+
+    dev = usb.core.find(idVendor=0x125C, idProduct=0x0010, backend=backend)
+    assert bytes(dev.ctrl_transfer(0xC0, 0xC2, 0, 100, 2)) == b"\x02\x00"  # camera id 2: KAF-0261E
+    assert bytes(dev.ctrl_transfer(0xC0, 0xC2, 0, 101, 2)) == b"\x0e\x00"  # firmware 14
+    status = bytes(dev.ctrl_transfer(0xC0, 0xC0, 0, 0, 21))
+    assert len(status) == 21 and ap.parse_status(status).ccd_temp_c == pytest.approx(AMBIENT_C, abs=0.03)
+    assert dev.ctrl_transfer(0x40, 0xC2, 0, 55, b"\x7f\x06") == 2  # set-point -20 C
+    assert bytes(dev.ctrl_transfer(0xC0, 0xC2, 0, 55, 2)) == b"\x7f\x06"
+    # a 16 x 8 dark frame by hand: arm 8*(16+1) pixels, ROI, timer, CMD_A dark
+    assert dev.ctrl_transfer(0x40, 0xC9, 0, 8 * 17, None) == 0
+    for reg, val in ap.geometry_registers(ap.Geometry(0, 0, 16, 8)) + ap.timer_writes(ap.exposure_ticks(1e-3)):
+        dev.ctrl_transfer(0x40, 0xC2, 0, int(reg), int(val).to_bytes(2, "little"))
+    dev.ctrl_transfer(0x40, 0xC2, 0, 0, b"\x02\x00")
+    wait_for(lambda: ap.parse_status(bytes(dev.ctrl_transfer(0xC0, 0xC0, 0, 0, 21))).image_done, 1.0, "image done")
+    data = bytes(dev.read(0x86, 8 * 17 * 2, 1000))
+    assert len(data) == 8 * 17 * 2
+    with pytest.raises(usb.core.USBTimeoutError):
+        dev.read(0x86, 2, 20)  # transfer complete: nothing more
+    with pytest.raises(usb.core.USBError) as e:
+        dev.ctrl_transfer(0xC0, 0xEE, 0, 0, 2)  # unknown vendor request: stall
+    assert e.value.errno == errno.EPIPE
+
+
 def test_select_by_serial_number(bench_name):
     be = AltaBackend(bench_name, time_scale=FAST, serial_number="B7")
     with pytest.raises(DeviceConnectionError, match="serial number 'A1'"):
