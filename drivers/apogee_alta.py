@@ -119,8 +119,10 @@ class AltaCamera(Camera):
                 dev = d
                 break
         if dev is None:
+            unreadable = " (unreadable serial numbers usually mean no permission: " + UDEV_HINT + ")" \
+                if None in serials else ""
             raise DeviceConnectionError(
-                f"no Alta-U with serial number {serial_number!r}; found {', '.join(map(str, serials))}",
+                f"no Alta-U with serial number {serial_number!r}; found {', '.join(map(str, serials))}{unreadable}",
                 device=self.device_name)
         self._serial = sn
         try:

@@ -423,3 +423,9 @@ def test_nonlinearity_hook_compresses_the_response():
     assert soft < linear
     e = 1.5e5 + CcdModel().dark_rate(-20.0)
     assert soft - S.bias_adu == pytest.approx(e / (1 + e / 4.0e5) / S.gain_e_per_adu, rel=0.01)
+
+
+def test_unreadable_serial_numbers_point_at_permissions(backend):
+    backend.access_denied = True
+    with pytest.raises(DeviceConnectionError, match="udev"):
+        AltaCamera(backend=backend, serial_number="SIM0001")
