@@ -43,6 +43,11 @@ from drivers.serial_link import SerialLink
 T = TypeVar("T")
 
 
+def _text(e: DeviceError) -> str:
+    """The message of an error without its device prefix (for nesting in another)."""
+    return str(e.args[0]) if e.args else str(e)
+
+
 class FW102C(FilterChanger):
     """A Thorlabs FW102C (6 positions) or FW212C (12 positions) filter wheel.
 
@@ -120,7 +125,7 @@ class FW102C(FilterChanger):
             idn = self._query(proto.idn_query(), proto.parse_identity, "identity")
         except (DeviceTimeout, ProtocolError) as e:
             raise DeviceConnectionError(
-                f"nothing on port {self.url} answers as a FW102C filter wheel ({e}); "
+                f"nothing on port {self.url} answers as a FW102C filter wheel ({_text(e)}); "
                 "check the port, the cable and that the wheel is switched on", device=self.device_name
             ) from None
         if not proto.is_fw102c(idn):
@@ -215,7 +220,7 @@ class FW102C(FilterChanger):
                     last = e
                     self._note(f"{what}: attempt {attempt + 1} garbled ({e})")
             assert last is not None
-            raise type(last)(f"{what}: no valid answer after {self.retries + 1} attempts; last: {last}",
+            raise type(last)(f"{what}: no valid answer after {self.retries + 1} attempts; last: {_text(last)}",
                              device=self.device_name) from None
 
     def _read_position(self) -> int:
@@ -247,9 +252,6 @@ class FW102C(FilterChanger):
             return self._position
 
     def _do_select(self, position: int, timeout_s: float | None) -> None:
-        if position > self._pcount:
-            raise LimitError(f"position {position} does not exist on a {self._pcount}-position wheel",
-                             device=self.device_name)
         with self._lock:
             self._check_open()
             cmd = proto.pos_set(position)
@@ -278,7 +280,7 @@ class FW102C(FilterChanger):
                 return
             assert last is not None
             raise type(last)(
-                f"wheel did not reach position {position} after {self.retries + 1} attempts; last: {last}",
+                f"wheel did not reach position {position} after {self.retries + 1} attempts; last: {_text(last)}",
                 device=self.device_name) from None
 
     def close(self) -> None:
