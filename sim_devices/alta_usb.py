@@ -383,7 +383,8 @@ class AltaBackend(usb.backend.IBackend):
 
     Args:
         bench: name of the :class:`Bench` (shared with the stage and filter twins).
-        time_scale: simulated seconds per real second (100: a 1 s exposure takes 10 ms).
+        time_scale: simulated seconds per real second (100: a 1 s exposure takes 10 ms);
+            None takes the bench's ``time_scale``, as the serial twins do.
         faults: seeded fault plan (kinds ``pipe``, ``disconnect``, ``short``).
         seed: seed of the sensor noise.
         serial_number: string descriptor 3.
@@ -395,11 +396,11 @@ class AltaBackend(usb.backend.IBackend):
         transfers: count of control and bulk transfers served (for tests).
     """
 
-    def __init__(self, bench: str = "default", *, time_scale: float = 1.0, faults: FaultPlan | None = None,
+    def __init__(self, bench: str = "default", *, time_scale: float | None = None, faults: FaultPlan | None = None,
                  seed: int = 0, serial_number: str = "SIM0001", firmware: int = 14) -> None:
         super().__init__()
         self.bench_name = bench
-        self.clock = SimClock(time_scale)
+        self.clock = SimClock(time_scale if time_scale is not None else get_bench(bench).time_scale)
         self.faults = faults or FaultPlan()
         self.rng = np.random.default_rng(seed)
         self.ccd = CcdModel()

@@ -429,3 +429,9 @@ def test_unreadable_serial_numbers_point_at_permissions(backend):
     backend.access_denied = True
     with pytest.raises(DeviceConnectionError, match="udev"):
         AltaCamera(backend=backend, serial_number="SIM0001")
+
+
+def test_time_scale_defaults_to_the_benchs(bench_name):
+    set_bench(bench_name, Bench(time_scale=250.0))
+    assert AltaBackend(bench_name).clock.time_scale == 250.0
+    assert AltaBackend(bench_name, time_scale=3.0).clock.time_scale == 3.0
