@@ -206,15 +206,17 @@ def _read_strings(dev: Any) -> tuple[dict[str, str | None], str, str]:
 
     strings: dict[str, str | None] = {"manufacturer": None, "product": None, "serial_number": None}
     try:
+        # Opens the device: the access test. Called directly because pyusb's
+        # get_string() turns a refused open into a ValueError without the errno.
+        usb.util.get_langids(dev)
         for key, index in (("manufacturer", dev.iManufacturer), ("product", dev.iProduct),
                            ("serial_number", dev.iSerialNumber)):
             if index:
                 strings[key] = usb.util.get_string(dev, index)
-        if not any((dev.iManufacturer, dev.iProduct, dev.iSerialNumber)):
-            usb.util.get_langids(dev)  # still opens the device: the access test
         return strings, "ok", ""
     except Exception as e:  # noqa: BLE001 - every failure is reported, none is fatal to a scan
-        return strings, _usb_error_kind(e), f"{e.__class__.__name__}: {e}"
+        num = getattr(e, "errno", None)
+        return strings, _usb_error_kind(e), f"{e.__class__.__name__}{f' errno {num}' if num else ''}: {e}"
     finally:
         try:
             usb.util.dispose_resources(dev)

@@ -208,6 +208,9 @@ _RENDER_PROBE = textwrap.dedent("""\
 """)
 
 
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+
+
 @dataclass(frozen=True)
 class ProbeResult:
     """Outcome of a render in a child process: ``detail`` is the most telling output line."""
@@ -231,10 +234,11 @@ def render_probe(variant: str, libllvm: str | None = None, *, python: str = sys.
                             timeout=timeout_s, env=env)
     except subprocess.TimeoutExpired:
         return ProbeResult(False, None, f"no result within {timeout_s:g} s")
-    out = (cp.stdout or "") + (cp.stderr or "")
-    if cp.returncode == 0 and "RENDER-OK" in cp.stdout:
-        return ProbeResult(True, 0, cp.stdout.strip().splitlines()[-1])
+    out = _ANSI.sub("", (cp.stdout or "") + (cp.stderr or ""))  # Mitsuba colours its log lines
     lines = [ln.strip() for ln in out.splitlines() if ln.strip()]
+    done = [ln[ln.index("RENDER-OK"):] for ln in lines if "RENDER-OK" in ln]
+    if cp.returncode == 0 and done:
+        return ProbeResult(True, 0, done[-1])
     llvm_errors = [ln for ln in lines if "LLVM ERROR" in ln]
     errors = [ln for ln in lines if "Error" in ln or "error" in ln]
     # LLVM prints its reason once, then a long dump; a Python failure ends with its exception.
@@ -349,7 +353,7 @@ def check_camera(devices: Sequence[UsbDeviceInfo] | None, *, required: bool,
     d = cams[0]
     where = f"{d.kind} {d.usb_id} on bus {d.bus} address {d.address}"
     if d.access == "denied":
-        return Check("camera", "fail", f"{where} is not accessible without root (errno 13, access denied)",
+        return Check("camera", "fail", f"{where} is not accessible without root ({d.error or 'access denied'})",
                      UDEV_FIX)
     if d.access == "error":
         return Check("camera", "fail", f"{where} could not be opened: {d.error}",
