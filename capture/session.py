@@ -32,7 +32,7 @@ from typing import Any, Iterator, Mapping, Sequence
 import numpy as np
 import yaml
 
-from capture.atomic import atomic_write_bytes, atomic_write_text, remove_stale_temps, sha256_file
+from capture.atomic import atomic_write_bytes, atomic_write_text, fsync_dir, remove_stale_temps, sha256_file
 from capture.errors import SessionError
 from capture.exr_io import ExrImage, read_exr, read_frames, write_exr, write_frames
 from capture.hdr import HdrResult, NoiseModel
@@ -230,6 +230,8 @@ class Session:
             probe.unlink()
             for d in (RAW_DIR, HDR_DIR):
                 (p / d).mkdir(exist_ok=True)
+            fsync_dir(p)  # the new entries survive a power cut
+            fsync_dir(p.parent)
         except OSError as e:
             if made:
                 shutil.rmtree(p, ignore_errors=True)
