@@ -126,7 +126,7 @@ def open_changer(cfg: RigConfig, *, sim: bool = False, transcript: Transcript | 
     if _is_sim(port, sim):
         import sim_devices  # noqa: F401
 
-        port = _sim_url(f.driver, port, cfg, pcount=max(6, max(f.positions.values())))
+        port = _sim_url(f.driver, port, cfg, pcount=6 if max(f.positions.values()) <= 6 else 12)
     return FW102C(port, positions=f.positions, transcript=transcript)  # type: ignore[arg-type]
 
 

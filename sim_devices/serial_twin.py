@@ -60,15 +60,18 @@ class SerialTwin(ABC):
             self.consume(self._inbuf)
 
     def read_ready(self, size: int | None = None) -> bytes:
+        """Bytes whose time has come, in queue order; at most ``size`` bytes."""
         with self.lock:
             now = self.clock.now()
             out = bytearray()
             while self._out and self._out[0][0] <= now and (size is None or len(out) < size):
-                _, _, chunk = heapq.heappop(self._out)
+                t, seq, chunk = heapq.heappop(self._out)
+                if size is not None and len(out) + len(chunk) > size:
+                    take = size - len(out)
+                    # the rest keeps its own place in the queue (same time and sequence)
+                    heapq.heappush(self._out, (t, seq, chunk[take:]))
+                    chunk = chunk[:take]
                 out += chunk
-            if size is not None and len(out) > size:  # push back the excess, readable at once
-                heapq.heappush(self._out, (now, -1, bytes(out[size:])))
-                out = out[:size]
             return bytes(out)
 
     def pending(self) -> int:
@@ -83,7 +86,11 @@ class SerialTwin(ABC):
     # -- twin side
     def reply(self, data: bytes, delay_s: float = 0.0) -> None:
         """Queue ``data`` to become readable ``delay_s`` simulated seconds from now."""
-        heapq.heappush(self._out, (self.clock.now() + delay_s, next(self._seq), data))
+        self.reply_at(self.clock.now() + delay_s, data)
+
+    def reply_at(self, t_sim: float, data: bytes) -> None:
+        """Queue ``data`` to become readable at simulated time ``t_sim``; equal times keep call order."""
+        heapq.heappush(self._out, (t_sim, next(self._seq), data))
 
     @abstractmethod
     def consume(self, buf: bytearray) -> None:
