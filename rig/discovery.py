@@ -80,9 +80,10 @@ class SerialPortInfo:
 class UsbDeviceInfo:
     """One USB device of a known vendor.
 
-    ``access`` is ``ok`` (opened and read its strings), ``denied`` (the user may not
-    open it: udev permissions), ``error`` (another failure, in ``error``) or
-    ``not-tried`` (a serial adapter: it is used through its tty, not over libusb).
+    ``access`` is ``ok`` (opened, read its strings, claimed interface 0), ``denied``
+    (the user may not open it: udev permissions), ``busy`` (another program holds it),
+    ``error`` (another failure, in ``error``) or ``not-tried`` (a serial adapter: it is
+    used through its tty, not over libusb).
     """
 
     vendor_id: int
@@ -193,6 +194,8 @@ def _usb_error_kind(exc: BaseException) -> str:
     """``denied`` for a permission problem, ``error`` otherwise."""
     if getattr(exc, "errno", None) == _errno.EACCES or getattr(exc, "backend_error_code", None) == -3:
         return "denied"  # -3 is LIBUSB_ERROR_ACCESS
+    if getattr(exc, "errno", None) == _errno.EBUSY or getattr(exc, "backend_error_code", None) == -6:
+        return "busy"  # -6 is LIBUSB_ERROR_BUSY
     # pyusb raises ValueError("The device has no langid (permission issue, ...)")
     # when it may open the device but the kernel refuses the string request.
     if isinstance(exc, ValueError) and "permission" in str(exc).lower():
@@ -201,7 +204,7 @@ def _usb_error_kind(exc: BaseException) -> str:
 
 
 def _read_strings(dev: Any) -> tuple[dict[str, str | None], str, str]:
-    """Open a device by reading its string descriptors; (strings, access, error)."""
+    """Open a device, read its string descriptors and try its interface 0; (strings, access, error)."""
     import usb.util
 
     strings: dict[str, str | None] = {"manufacturer": None, "product": None, "serial_number": None}
@@ -213,6 +216,10 @@ def _read_strings(dev: Any) -> tuple[dict[str, str | None], str, str]:
                            ("serial_number", dev.iSerialNumber)):
             if index:
                 strings[key] = usb.util.get_string(dev, index)
+        # A program using the camera holds interface 0; claiming it then fails with
+        # EBUSY. Claiming a free interface and releasing it at once changes nothing.
+        usb.util.claim_interface(dev, 0)
+        usb.util.release_interface(dev, 0)
         return strings, "ok", ""
     except Exception as e:  # noqa: BLE001 - every failure is reported, none is fatal to a scan
         num = getattr(e, "errno", None)
@@ -281,9 +288,16 @@ def scan(
     return ScanResult(ports=ports, usb=usb_devs, usb_error=usb_error)
 
 
+def usb_node(d: UsbDeviceInfo) -> str:
+    """The device node of a USB device on Linux: /dev/bus/usb/BBB/DDD."""
+    return f"/dev/bus/usb/{d.bus or 0:03d}/{d.address or 0:03d}"
+
+
 def _camera_fix(d: UsbDeviceInfo) -> str:
     if d.access == "denied":
         return f"  -> no permission: install {UDEV_RULES} (see docs/udev.md), then re-plug the camera"
+    if d.access == "busy":
+        return f"  -> in use by another program: {usb_node(d)} (see `fuser -v {usb_node(d)}`)"
     if d.access == "error":
         return f"  -> could not open it: {d.error}"
     return ""

@@ -25,7 +25,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Literal, Mapping, Sequence
 
-from rig.discovery import APOGEE_VID, UDEV_RULES, UsbDeviceInfo
+from rig.discovery import APOGEE_VID, UDEV_RULES, UsbDeviceInfo, usb_node
 
 Status = Literal["ok", "warn", "fail"]
 
@@ -355,9 +355,12 @@ def check_camera(devices: Sequence[UsbDeviceInfo] | None, *, required: bool,
     if d.access == "denied":
         return Check("camera", "fail", f"{where} is not accessible without root ({d.error or 'access denied'})",
                      UDEV_FIX)
+    if d.access == "busy":
+        return Check("camera", "fail", f"{where} is in use by another program ({d.error})",
+                     f"stop the program holding it (`fuser -v {usb_node(d)}` names it), or re-plug the camera")
     if d.access == "error":
         return Check("camera", "fail", f"{where} could not be opened: {d.error}",
-                     "close other programs using the camera (lsof /dev/bus/usb/*/*), then re-plug it")
+                     "power-cycle the camera and re-plug its USB cable; then run `rig doctor` again")
     serial = f", serial {d.serial_number}" if d.serial_number else ""
     return Check("camera", "ok", f"{where} opens without root{serial}")
 
@@ -417,7 +420,8 @@ def _listed_in_group(user: str, gid: int) -> bool:
     return primary or user in g.gr_mem
 
 
-def check_serial_port(role: str, port: str | None, who: Identity | None = None) -> Check:
+def check_serial_port(role: str, port: str | None, who: Identity | None = None,
+                      taken: Mapping[str, str | None] | None = None) -> Check:
     """A configured serial port exists and the user may read and write it.
 
     Args:
@@ -425,6 +429,7 @@ def check_serial_port(role: str, port: str | None, who: Identity | None = None) 
         port: the configured port (a device path, or a ``sim-*://`` URL).
         who: identity to check the permission bits for; None checks the running process
             with ``os.access`` (which also honours ACLs, e.g. udev's uaccess).
+        taken: ports of the other devices (role -> port): one port cannot serve two devices.
     """
     name = f"serial-{role}"
     if port is None:
@@ -435,6 +440,10 @@ def check_serial_port(role: str, port: str | None, who: Identity | None = None) 
         return Check(name, "fail", f"{role} port {port} does not exist",
                      "plug the adapter in, run `rig devices --scan` and put the port it lists in rig.yaml")
     real = os.path.realpath(port)
+    for other, other_port in (taken or {}).items():
+        if other_port and "://" not in other_port and os.path.realpath(other_port) == real:
+            return Check(name, "fail", f"{role} port {port} is also the {other}'s port ({other_port})",
+                         "run `rig devices --scan` and give each device its own port in rig.yaml")
     st = os.stat(real)
     want = os.R_OK | os.W_OK
     allowed = os.access(real, want) if who is None else mode_allows(st, want, who)
@@ -618,7 +627,7 @@ def run_checks(
     checks.append(check_camera(devices, required=real_rig, serial_number=cfg.camera.serial_number,
                                usb_error=usb_error))
     checks.append(check_serial_port("stage", stage_port, who))
-    checks.append(check_serial_port("filter", filter_port, who))
+    checks.append(check_serial_port("filter", filter_port, who, taken={"stage": stage_port}))
     need, _ = session_bytes(plan, cfg, filter_names)
     checks.append(check_disk_space(out_dir, plan, who=who, need_bytes=need))
     return checks

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import pytest
 import usb.backend
 import usb.core
+import usb.util
 import yaml
 from serial.tools.list_ports_common import ListPortInfo
 
@@ -86,6 +87,12 @@ class _Bus(usb.backend.IBackend):
     def close_device(self, handle):
         return self._owner(handle.dev).close_device(handle)
 
+    def claim_interface(self, handle, intf):
+        return self._owner(handle.dev).claim_interface(handle, intf)
+
+    def release_interface(self, handle, intf):
+        return self._owner(handle.dev).release_interface(handle, intf)
+
 
 OTHERS = [_Desc(0x0403, 0x6001, bus=1, address=7), _Desc(0x046D, 0xC52B, bus=1, address=2)]
 
@@ -149,6 +156,20 @@ def test_usb_access_denied_is_reported_with_the_udev_fix():
     assert d.access == "denied" and "Access denied" in d.error
     text = "\n".join(discovery.format_scan(result))
     assert "access=denied" in text and discovery.UDEV_RULES in text
+
+
+def test_camera_held_by_another_program_is_busy():
+    backend = AltaBackend()
+    other = usb.core.find(idVendor=discovery.APOGEE_VID, backend=backend)  # "another program"
+    usb.util.claim_interface(other, 0)
+    try:
+        (cam,) = discovery.list_usb_devices(backend)
+        assert cam.access == "busy" and "errno 16" in cam.error
+        assert "fuser -v /dev/bus/usb/001/004" in "\n".join(discovery.format_scan(discovery.ScanResult(usb=[cam])))
+    finally:
+        usb.util.dispose_resources(other)
+    (cam,) = discovery.list_usb_devices(backend)
+    assert cam.access == "ok"  # the scan itself released what it claimed
 
 
 def test_usb_listing_failure_is_reported_not_raised():

@@ -191,9 +191,24 @@ def test_camera_absent_or_not_needed():
     assert d.check_camera(None, required=False).status == "ok"
     other = UsbDeviceInfo(vendor_id=0x0403, product_id=0x6001, kind="FTDI")
     assert d.check_camera([other], required=True).status == "fail"
-    busy = UsbDeviceInfo(vendor_id=APOGEE_VID, product_id=0x10, kind="Apogee Alta-U", access="error",
-                         error="USBError errno 16: Resource busy")
-    assert "Resource busy" in d.check_camera([busy], required=True).message
+    broken = UsbDeviceInfo(vendor_id=APOGEE_VID, product_id=0x10, kind="Apogee Alta-U", access="error",
+                           error="USBError errno 5: Input/Output Error")
+    assert "Input/Output Error" in d.check_camera([broken], required=True).message
+
+
+def test_camera_busy_in_another_program_names_its_node():
+    import usb.core
+    import usb.util
+
+    backend = AltaBackend()
+    other = usb.core.find(idVendor=APOGEE_VID, backend=backend)
+    usb.util.claim_interface(other, 0)
+    try:
+        c = d.check_camera(list_usb_devices(backend), required=True)
+    finally:
+        usb.util.dispose_resources(other)
+    assert c.status == "fail" and "in use by another program" in c.message
+    assert c.fix.startswith("stop the program holding it (`fuser -v /dev/bus/usb/001/004`")
 
 
 # ----------------------------------------------------------------- serial ports
@@ -245,6 +260,16 @@ def test_serial_port_character_device_ok(tmp_path):
     link.symlink_to(node)
     c = d.check_serial_port("stage", str(link), d.Identity(1000, frozenset({0}), "operator"))
     assert c.status == "ok" and str(node) in c.message
+
+
+def test_one_port_cannot_serve_stage_and_wheel(tmp_path):
+    port = tmp_path / "ttyUSB0"
+    port.write_bytes(b"")
+    link = tmp_path / "usb-FTDI-if00-port0"
+    link.symlink_to(port)
+    c = d.check_serial_port("filter", str(link), taken={"stage": str(port)})
+    assert c.status == "fail" and "also the stage's port" in c.message
+    assert d.check_serial_port("filter", str(link), taken={"stage": "sim-shot702://x"}).status != "fail"
 
 
 def test_serial_port_missing_sim_and_manual(tmp_path):
