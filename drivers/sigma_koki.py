@@ -218,8 +218,9 @@ class SigmaKokiStage(RotationStage):
     def _do_home(self) -> None:
         with self._lock:
             self._target = 0
+            before = self._status(confirm=True).positions[self._axis - 1]
             dirs = (self._home_dir,) if self._model.home_needs_direction else ()
-            self._command(sp.Home((self._axis,), dirs), resolve=self._resolve_home)
+            self._command(sp.Home((self._axis,), dirs), resolve=lambda: self._resolve_home(before))
 
     def _do_stop(self) -> None:
         with self._lock:
@@ -314,9 +315,11 @@ class SigmaKokiStage(RotationStage):
         self._arm(target)
         return False
 
-    def _resolve_home(self) -> bool:
-        """After a lost reply to H:: homing is running, or H: is sent again (it is idempotent)."""
-        return self._status(confirm=True).busy
+    def _resolve_home(self, count_before: int) -> bool:
+        """After a lost reply to H:: True if homing runs or has ended (the count, not 0
+        before, reads 0 now); otherwise H: is sent again, which is harmless (homing is idempotent)."""
+        st = self._status(confirm=True)
+        return st.busy or self._axis in st.limits or (count_before != 0 and st.positions[self._axis - 1] == 0)
 
     # ------------------------------------------------------------------ exchanges
     def _link_or_fail(self) -> SerialLink:

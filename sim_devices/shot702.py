@@ -18,6 +18,7 @@ The physical angle of the rotation axis is
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 from drivers import shot_protocol as sp
@@ -186,7 +187,8 @@ class Shot702Twin(SerialTwin):
                      for _ in range(self.model.axes)]
         self.accepted = True
         self.armed: sp.Arm | sp.Jog | None = None
-        self.commands: list[bytes] = []  # every complete line received, for tests and debugging
+        #: The latest complete lines received (for tests and debugging; bounded).
+        self.commands: deque[bytes] = deque(maxlen=10_000)
         self._sync(self.clock.now())
 
     # ------------------------------------------------------------ physical state
