@@ -233,6 +233,9 @@ class Executor:
             "bracket": status.to_dict(),
             "n_darks_per_exposure": len(darks) // max(1, len(set(status.exposures_s))),
             "ccd_temp_c": [min(temps), max(temps)],
+            # darks are taken seconds after the light frames at the regulated set-point; a
+            # drift here means the dark level (dark current doubles every ~6 C) may not match
+            "dark_temp_delta_c": abs(float(np.mean([f.ccd_temp_c for f in darks])) - float(np.mean([f.ccd_temp_c for f in light]))),
             "roi": light[0].roi,
             "started": light[0].start_time,
             "finished": darks[-1].end_time if darks else light[-1].end_time,

@@ -573,6 +573,13 @@ class Session:
             raise SessionError(f"stack {rec.id} of {self.path} is not captured yet")
         return read_exr(self.path / rec.files["hdr"].file)
 
+    def find(self, angle_deg: float, filter: str) -> StackRecord:
+        """The stack planned at ``angle_deg`` (degrees, within 1e-6) through ``filter``."""
+        for rec in self.stacks():
+            if rec.key.filter == filter and math.isclose(rec.angle_deg, angle_deg, abs_tol=1e-6):
+                return rec
+        raise SessionError(f"{self.path} has no stack at {angle_deg:g} deg through filter {filter!r}")
+
     def load_raw(self, key: StackKey | str) -> list[Frame]:
         """The raw frames (light, then matched darks) of a done stack."""
         rec = self.stack(key)

@@ -70,6 +70,9 @@ def test_create_open_round_trip(tmp_path, plan):
     raw = r.load_raw(StackKey(0, "r"))
     assert all(np.array_equal(a.data, b.data) for a, b in zip(frames, raw))
     assert [rec.id for rec, _ in r.iter_hdr(filter="r")] == ["a00_r"]
+    assert r.find(plan.angles_deg[1], "g").id == "a01_g"
+    with pytest.raises(SessionError, match="no stack at"):
+        r.find(plan.angles_deg[1], "b")
     assert r.verify() == []
     with pytest.raises(SessionError, match="not captured yet"):
         r.load_hdr("a01_g")
