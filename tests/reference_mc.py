@@ -206,16 +206,35 @@ def beam_strip_power(u1: np.ndarray, u2: np.ndarray, beam_radius_mm: float, half
     raise ValueError(f"beam_profile must be one of {BEAM_PROFILES}, got {beam_profile!r}")
 
 
-def _sample_beam(rng: np.random.Generator, n: int, beam_radius_mm: float,
-                 beam_profile: str) -> tuple[np.ndarray, np.ndarray]:
+def _sample_beam_u(rng: np.random.Generator, n: int, beam_radius_mm: float,
+                   beam_profile: str) -> tuple[np.ndarray, np.ndarray]:
+    """Cross-section coordinate u of n beam rays and the y-spread of the beam given u.
+
+    The y coordinate is not sampled: the Monte Carlo scores its expectation (see
+    :func:`_row_fraction`). The second array is the Gaussian's standard deviation in y or the
+    disk's half chord sqrt(R^2 - u^2).
+    """
     if beam_profile == "gaussian":
         s = beam_radius_mm / 2.0
-        return rng.normal(0.0, s, n), rng.normal(0.0, s, n)
+        return rng.normal(0.0, s, n), np.full(n, s)
     if beam_profile == "disk":
+        # u-marginal of a uniform disk: density 2 sqrt(R^2-u^2)/(pi R^2), sampled via a point in the disk
         rad = beam_radius_mm * np.sqrt(rng.random(n))
-        ang = 2.0 * np.pi * rng.random(n)
-        return rad * np.cos(ang), rad * np.sin(ang)
+        u = rad * np.cos(2.0 * np.pi * rng.random(n))
+        return u, np.sqrt(np.clip(beam_radius_mm**2 - u * u, 0.0, None))
     raise ValueError(f"beam_profile must be one of {BEAM_PROFILES}, got {beam_profile!r}")
+
+
+def _row_fraction(dy: np.ndarray, spread: np.ndarray, half_height_mm: float, beam_profile: str) -> np.ndarray:
+    """P(y0 + dy in [-h/2, h/2]) over the beam's entry y0 given u (spread from :func:`_sample_beam_u`)."""
+    lo, hi = -half_height_mm - dy, half_height_mm - dy
+    if beam_profile == "gaussian":
+        from scipy.special import erf
+
+        k = 1.0 / (np.sqrt(2.0) * spread)
+        return 0.5 * (erf(hi * k) - erf(lo * k))
+    overlap = np.clip(np.minimum(hi, spread) - np.maximum(lo, -spread), 0.0, None)
+    return np.where(spread > 0, overlap / np.maximum(2.0 * spread, 1e-300), 0.0)
 
 
 @dataclass(frozen=True)
@@ -471,6 +490,10 @@ def mc_slab_profile(
     w * albedo * [p(uz) e^{-sigma_t s} + R0 p(-uz) e^{-sigma_t (2d - s)}] * (1-R0) / (n^2 (1 - R0^2 e^{-2 tau})),
     divided by the pixel area; s is the vertex depth, uz the photon's z direction cosine before
     scattering, R0 the normal-incidence Fresnel reflectance (see the module notes for the 1/n^2).
+    Variance reduction (unbiased): only the beam coordinate u (across the plane of incidence) is
+    sampled; since the slab is invariant along y, each score is multiplied by the probability that
+    the entry y0 puts the vertex inside the row, instead of sampling y0 (a large gain for rows much
+    thinner than the beam).
 
     Args:
         sigma_t: extinction coefficient, 1/mm.
@@ -512,15 +535,19 @@ def mc_slab_profile(
     specular = 1.0 - geo.t_entry
     lit_is_front = geo.front_lit
 
-    def pixel_of(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def pixel_of(x: np.ndarray, dy: np.ndarray, spread: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        # the walk relative to its entry point does not depend on the entry y0 (the slab is
+        # y-invariant), so the row membership is scored by its expectation over y0 given u
         ix = np.floor((x - x_left) / pixel_pitch_mm).astype(np.int64)
-        ok = (ix >= 0) & (ix < n_pixels) & (np.abs(y) <= half_h)
-        return ix, ok
+        ok = (ix >= 0) & (ix < n_pixels)
+        frac = _row_fraction(dy[ok], spread[ok], half_h, beam_profile)
+        return ix, ok, frac
 
     done_total = 0
     while done_total < n_photons:
         b = min(batch_size, n_photons - done_total)
-        u, y = _sample_beam(rng, b, beam_radius_mm, beam_profile)
+        u, spread = _sample_beam_u(rng, b, beam_radius_mm, beam_profile)
+        y = np.zeros(b)  # displacement in y from the (unsampled) entry y0
         pid = np.arange(b)
         x = geo.x_entry + u / geo.cos_i
         z = np.full(b, 0.0 if geo.front_lit else -d)
@@ -557,8 +584,8 @@ def mc_slab_profile(
                     sin2 = n_index**2 * (ux[fo] ** 2 + uy[fo] ** 2)
                     in_cone = np.sqrt(np.clip(1.0 - sin2, 0.0, None)) >= cos_cone
                     fo = fo[in_cone]
-                    ix, ok = pixel_of(x[fo], y[fo])
-                    esc.add(pid[fo][ok], ix[ok], w[fo][ok])
+                    ix, ok, frac = pixel_of(x[fo], y[fo], spread[fo])
+                    esc.add(pid[fo][ok], ix[ok], w[fo][ok] * frac)
             # ---- interaction
             c = np.nonzero(~hit)[0]
             alive = np.ones(pid.size, dtype=bool)
@@ -569,10 +596,10 @@ def mc_slab_profile(
                 y[c] += uy[c] * step[c]
                 z[c] += uz[c] * step[c]
                 s = -z[c]
-                ix, ok = pixel_of(x[c], y[c])
+                ix, ok, frac = pixel_of(x[c], y[c], spread[c])
                 if ok.any():
                     cc = c[ok]
-                    val = w[cc] * albedo * k_exit * (
+                    val = frac * w[cc] * albedo * k_exit * (
                         phase_eval(uz[cc]) * np.exp(-sigma_t * s[ok])
                         + r0 * phase_eval(-uz[cc]) * np.exp(-sigma_t * (2 * d - s[ok])))
                     nee.add(pid[cc], ix[ok], val / area)
@@ -598,7 +625,8 @@ def mc_slab_profile(
                     psi = 2.0 * np.pi * rng.random(go.size)
                     ux[go], uy[go], uz[go] = _rotate(ux[go], uy[go], uz[go], mu, psi)
             keep = np.nonzero(alive)[0]
-            pid, x, y, z, ux, uy, uz, w, order = (a[keep] for a in (pid, x, y, z, ux, uy, uz, w, order))
+            pid, x, y, z, ux, uy, uz, w, order, spread = (
+                a[keep] for a in (pid, x, y, z, ux, uy, uz, w, order, spread))
         e_unf += float(np.sum(w))
         nee.flush()
         esc.flush()
