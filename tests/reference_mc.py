@@ -315,6 +315,7 @@ def single_scattering_profile(
     n_index: float = 1.0,
     beam_profile: str = "gaussian",
     n_depth: int = 256,
+    max_beam_passes: int | None = None,
 ) -> np.ndarray:
     """First-order scattered radiance toward +z, pixel-averaged, per unit beam power.
 
@@ -326,7 +327,9 @@ def single_scattering_profile(
     too), and the exit factors of :func:`_normal_exit_factors`. For n_index = 1 these reduce to
     the plain index-matched formula. Exact for the single-scattered light; the whole profile
     only when sigma_t * d << 1. Depth integral: composite Gauss-Legendre with ``n_depth`` nodes
-    per pass; the pixel integral is analytic (:func:`beam_strip_power`).
+    per pass; the pixel integral is analytic (:func:`beam_strip_power`). ``max_beam_passes``
+    keeps only the first passes of the beam through the slab (1: no internal reflection of the
+    beam), for comparison with a model that truncates them; None keeps all.
 
     Returns:
         Radiance per pixel, W/(mm^2 sr) per W of beam power, shape (n_pixels,).
@@ -351,7 +354,7 @@ def single_scattering_profile(
     x_start = geo.x_entry
     going_down = geo.front_lit
     path_per_pass = d / geo.cos_t
-    for k in range(10000):
+    for k in range(10000 if max_beam_passes is None else max_beam_passes):
         if amp < 1e-15:
             break
         uz = -geo.cos_t if going_down else geo.cos_t
@@ -474,6 +477,7 @@ def mc_slab_profile(
     seed: int = 0,
     beam_profile: str = "gaussian",
     max_scattering_order: int | None = None,
+    max_beam_passes: int | None = None,
     escape_cone_deg: float | None = None,
     batch_size: int = 50_000,
     roulette_weight: float = 1e-3,
@@ -508,6 +512,9 @@ def mc_slab_profile(
         seed: seed of the numpy generator.
         beam_profile: "gaussian" or "disk".
         max_scattering_order: stop packets after this many interactions (1: single scattering).
+        max_beam_passes: stop unscattered packets when they would start pass number
+            max_beam_passes + 1 through the slab (1: the beam is not internally reflected);
+            None: no limit. Stopped weight is booked as ``unfinished``.
         escape_cone_deg: also bin photons escaping the front face within this cone of +z
             (:attr:`McStats.escape_profile`).
 
@@ -556,6 +563,7 @@ def mc_slab_profile(
         uz = np.full(b, geo.uz0)
         w = np.full(b, geo.t_entry)
         order = np.zeros(b, dtype=np.int64)
+        passes = np.ones(b, dtype=np.int64)
         front_w = np.zeros(b)
         back_w = np.zeros(b)
 
@@ -575,6 +583,13 @@ def mc_slab_profile(
                 z[h] = np.where(up, 0.0, -d)
                 refl = rng.random(h.size) < fresnel_unpolarized(np.abs(uz[h]), n_index, 1.0)
                 uz[h[refl]] *= -1.0
+                if max_beam_passes is not None:
+                    hr = h[refl]
+                    beam = hr[order[hr] == 0]
+                    passes[beam] += 1
+                    cut = beam[passes[beam] > max_beam_passes]
+                    e_unf += float(np.sum(w[cut]))
+                    w[cut] = 0.0  # scores nothing more; removed below
                 out = h[~refl]
                 out_up = up[~refl]
                 np.add.at(front_w, pid[out[out_up]], w[out[out_up]])
@@ -591,6 +606,8 @@ def mc_slab_profile(
             alive = np.ones(pid.size, dtype=bool)
             if h.size:
                 alive[h[~refl]] = False
+                if max_beam_passes is not None:
+                    alive[h[refl][w[h[refl]] == 0.0]] = False
             if c.size:
                 x[c] += ux[c] * step[c]
                 y[c] += uy[c] * step[c]
@@ -625,8 +642,8 @@ def mc_slab_profile(
                     psi = 2.0 * np.pi * rng.random(go.size)
                     ux[go], uy[go], uz[go] = _rotate(ux[go], uy[go], uz[go], mu, psi)
             keep = np.nonzero(alive)[0]
-            pid, x, y, z, ux, uy, uz, w, order, spread = (
-                a[keep] for a in (pid, x, y, z, ux, uy, uz, w, order, spread))
+            pid, x, y, z, ux, uy, uz, w, order, spread, passes = (
+                a[keep] for a in (pid, x, y, z, ux, uy, uz, w, order, spread, passes))
         e_unf += float(np.sum(w))
         nee.flush()
         esc.flush()

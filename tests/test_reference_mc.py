@@ -148,6 +148,21 @@ def test_mc_first_order_equals_single_scattering(phi: float, n: float) -> None:
     assert mc.sum() == pytest.approx(ref.sum(), abs=4 * np.sqrt(np.sum(err**2)))
 
 
+def test_beam_pass_truncation_agrees_between_references() -> None:
+    """Front-lit at n = 1.45 the internally reflected beam adds a few % to the single-scattered
+    light; both references drop it alike with max_beam_passes=1."""
+    p, ps = hg_eval(0.5), hg_sample(0.5)
+    geo = (30.0, 0.2, 0.05, 40, 0.1)
+    full = single_scattering_profile(SIG, 0.9, 1.0, p, *geo, n_index=1.45)
+    one = single_scattering_profile(SIG, 0.9, 1.0, p, *geo, n_index=1.45, max_beam_passes=1)
+    mc, err, st = mc_slab_profile(SIG, 0.9, 1.0, ps, p, *geo, n_index=1.45, n_photons=200_000, seed=21,
+                                  max_scattering_order=1, max_beam_passes=1)
+    total_err = np.sqrt(np.sum(err**2))
+    assert full.sum() - one.sum() > 10 * total_err  # the beam's reflection is resolved
+    assert mc.sum() == pytest.approx(one.sum(), abs=4 * total_err)
+    assert st.unfinished > 0
+
+
 @pytest.mark.parametrize("phi", [30.0, 150.0])
 def test_mc_optically_thin_slab_approaches_single_scattering(phi: float) -> None:
     p, ps = isotropic_eval, isotropic_sample
