@@ -84,8 +84,20 @@ def _rig_requirements() -> tuple[str | None, list[str]]:
         return project.get("requires-python"), list(project.get("dependencies", []))
 
 
+def _no_packaging(name: str) -> Check | None:
+    """A fail check when the ``packaging`` library (version rules) is missing."""
+    try:
+        import packaging.requirements  # noqa: F401
+    except ImportError:
+        return Check(name, "fail", "the 'packaging' library is missing, versions cannot be compared",
+                     f"{sys.executable} -m pip install packaging")
+    return None
+
+
 def check_python(version: Sequence[int] | None = None, requires: str | None = None) -> Check:
     """The interpreter satisfies ``requires-python`` (default: from rig's metadata)."""
+    if (broken := _no_packaging("python")) is not None:
+        return broken
     from packaging.specifiers import SpecifierSet
 
     v = ".".join(str(x) for x in (version or sys.version_info)[:3])
@@ -108,6 +120,8 @@ def check_packages(
         version_of: installed version of a distribution; raises PackageNotFoundError.
         python: the interpreter named in the fix.
     """
+    if (broken := _no_packaging("packages")) is not None:
+        return broken
     from packaging.requirements import Requirement
 
     reqs = [Requirement(r) for r in (requirements if requirements is not None else _rig_requirements()[1])]
@@ -297,16 +311,40 @@ def detect_gpu(which: Callable[[str], str | None] = shutil.which,
     return " and ".join(x for x in (f"nvidia-smi at {smi}" if smi else "", f"libcuda ({cuda})" if cuda else "") if x)
 
 
-def check_cuda(gpu: str | None, probe: Callable[[str, str | None], ProbeResult] = render_probe) -> Check:
-    """With a GPU, the ``cuda_ad_mono`` variant renders; without one, CPU only is fine."""
+def check_cuda(
+    gpu: str | None,
+    probe: Callable[[str, str | None], ProbeResult] = render_probe,
+    *,
+    forced_variant: str | None = None,
+    libllvm: str | None = None,
+) -> Check:
+    """With a GPU, the ``cuda_ad_mono`` variant renders; without one, CPU only is fine.
+
+    rig picks ``cuda_ad_mono`` whenever ``nvidia-smi`` answers, unless
+    ``RIG_MITSUBA_VARIANT`` (``forced_variant``) says otherwise, so a GPU that is
+    present but cannot render blocks estimation.
+
+    Args:
+        gpu: how the GPU shows itself (:func:`detect_gpu`), None without one.
+        probe: renders with a variant and a libLLVM path.
+        forced_variant: the value of ``RIG_MITSUBA_VARIANT``, if set.
+        libllvm: the libLLVM the child process loads (Dr.Jit loads it for every variant).
+    """
+    forced_cpu = bool(forced_variant) and not forced_variant.startswith("cuda")
     if gpu is None:
+        if forced_variant and not forced_cpu:
+            return Check("mitsuba-cuda", "fail", f"RIG_MITSUBA_VARIANT={forced_variant} but no NVIDIA GPU is present",
+                         "unset RIG_MITSUBA_VARIANT (or set it to llvm_ad_mono)")
         return Check("mitsuba-cuda", "ok", "no NVIDIA GPU (no nvidia-smi, no libcuda): CPU only")
-    res = probe("cuda_ad_mono", None)
+    res = probe("cuda_ad_mono", libllvm)
     if res.ok:
         return Check("mitsuba-cuda", "ok", f"cuda_ad_mono renders ({gpu})")
-    return Check("mitsuba-cuda", "warn", f"GPU present ({gpu}) but cuda_ad_mono failed: {res.detail}; "
-                 "estimation falls back to the CPU",
-                 "check `nvidia-smi` works and the NVIDIA driver is >= 535; or RIG_MITSUBA_VARIANT=llvm_ad_mono")
+    fix = ("make `nvidia-smi` list the GPU (install or update the NVIDIA driver), "
+           "or export RIG_MITSUBA_VARIANT=llvm_ad_mono to estimate on the CPU")
+    if forced_cpu:
+        return Check("mitsuba-cuda", "warn", f"GPU present ({gpu}) but cuda_ad_mono failed: {res.detail}; "
+                     f"RIG_MITSUBA_VARIANT={forced_variant} keeps estimation on the CPU", fix)
+    return Check("mitsuba-cuda", "fail", f"GPU present ({gpu}) but cuda_ad_mono failed: {res.detail}", fix)
 
 
 # --------------------------------------------------------------------------- USB
@@ -338,7 +376,9 @@ def check_camera(devices: Sequence[UsbDeviceInfo] | None, *, required: bool,
     if not required:
         return Check("camera", "ok", "simulated camera: no USB device needed")
     if devices is None:
-        return Check("camera", "fail", f"cannot list USB devices: {usb_error}", "sudo apt-get install libusb-1.0-0")
+        fix = ("sudo apt-get install libusb-1.0-0" if "libusb" in (usb_error or "")
+               else "re-plug the camera and check that `lsusb` lists the USB bus")
+        return Check("camera", "fail", f"cannot list USB devices: {usb_error}", fix)
     cams = [d for d in devices if d.vendor_id == APOGEE_VID]
     if serial_number is not None:
         others = [d for d in cams if d.serial_number not in (None, serial_number)]
@@ -607,8 +647,10 @@ def run_checks(
     checks = [check_python(), check_packages()]
     libs = find_libllvm_all(llvm_globs)
     checks.append(check_llvm_versions(libs))
-    checks.append(check_mitsuba_cpu(libs, rig_libllvm(), probe))
-    checks.append(check_cuda(detect_gpu() if gpu == "detect" else gpu, probe))
+    selected = rig_libllvm()
+    checks.append(check_mitsuba_cpu(libs, selected, probe))
+    checks.append(check_cuda(detect_gpu() if gpu == "detect" else gpu, probe,
+                             forced_variant=os.environ.get("RIG_MITSUBA_VARIANT"), libllvm=selected))
 
     stage_port = cfg.stage.port
     filter_port = cfg.filter.port if cfg.filter.driver == "fw102c" else None

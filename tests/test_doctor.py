@@ -17,7 +17,7 @@ import yaml
 from capture.errors import PlanError
 from rig import doctor as d
 from rig.cli import main
-from rig.config import load_config
+from rig.config import load_config, parse_config
 from rig.discovery import APOGEE_VID, UsbDeviceInfo, list_usb_devices
 from sim_devices.alta_usb import AltaBackend
 
@@ -153,9 +153,19 @@ def test_cuda_check():
     c = d.check_cuda(None, _never)
     assert c.status == "ok" and "CPU only" in c.message
     seen = []
-    failed = d.check_cuda(gpu, lambda v, p: seen.append(v) or d.ProbeResult(False, 1, "cuda_init failed"))
-    assert seen == ["cuda_ad_mono"] and failed.status == "warn" and "cuda_init failed" in failed.message
+
+    def broken(variant, lib):
+        seen.append((variant, lib))
+        return d.ProbeResult(False, 1, "cuda_init failed")
+
+    # rig would pick the GPU (nvidia-smi answers), so a GPU that cannot render blocks estimation
+    failed = d.check_cuda(gpu, broken, libllvm="/l/libLLVM.so.19.1")
+    assert seen == [("cuda_ad_mono", "/l/libLLVM.so.19.1")]
+    assert failed.status == "fail" and "cuda_init failed" in failed.message
+    assert "RIG_MITSUBA_VARIANT=llvm_ad_mono" in failed.fix
+    assert d.check_cuda(gpu, broken, forced_variant="llvm_ad_mono").status == "warn"
     assert d.check_cuda(gpu, lambda v, p: d.ProbeResult(True, 0, "RENDER-OK 1.0")).status == "ok"
+    assert d.check_cuda(None, _never, forced_variant="cuda_ad_mono").status == "fail"
 
 
 # ----------------------------------------------------------------- USB
@@ -329,6 +339,29 @@ def test_disk_space_unwritable_dir(tmp_path):
 
 
 # ----------------------------------------------------------------- the command
+
+
+def test_run_checks_on_a_real_config_with_fakes_only(tmp_path):
+    cfg_data = yaml.safe_load((ROOT / "configs" / "rig-real.yaml").read_text())
+    stage, wheel = tmp_path / "ttyUSB0", tmp_path / "ttyUSB1"
+    for port in (stage, wheel):
+        port.write_bytes(b"")
+        os.chown(port, 0, 20)
+        port.chmod(0o660)
+    cfg_data["stage"]["port"], cfg_data["filter"]["port"] = str(stage), str(wheel)
+    cfg = parse_config(cfg_data, "rig.yaml")
+    probed = []
+    checks = d.run_checks(cfg, tmp_path, d.SessionSizePlan(), usb_backend=AltaBackend(), llvm_globs=[],
+                          probe=lambda v, lib: probed.append(v) or d.ProbeResult(True, 0, "RENDER-OK 1"),
+                          gpu=None, who=OPERATOR)
+    by = {c.name: c for c in checks}
+    assert by["camera"].status == "ok"  # the simulated camera on the given backend
+    assert by["serial-stage"].status == "fail" and "usermod" in by["serial-stage"].fix
+    assert by["serial-filter"].status == "fail"
+    assert by["llvm-versions"].message.endswith("none")
+    # rendered (by the fake probe) exactly when rig's loader found a libLLVM to render with
+    assert probed in ([], ["llvm_ad_mono"]) and (by["mitsuba-cpu"].status == "ok") == bool(probed)
+    assert [c.name for c in checks][-1] == "disk-space" and by["disk-space"].status == "ok"
 
 
 def test_cli_json_shape_on_the_simulated_rig(tmp_path, capsys):
