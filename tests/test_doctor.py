@@ -361,7 +361,9 @@ def test_run_checks_on_a_real_config_with_fakes_only(tmp_path):
     assert by["llvm-versions"].message.endswith("none")
     # rendered (by the fake probe) exactly when rig's loader found a libLLVM to render with
     assert probed in ([], ["llvm_ad_mono"]) and (by["mitsuba-cpu"].status == "ok") == bool(probed)
-    assert [c.name for c in checks][-1] == "disk-space" and by["disk-space"].status == "ok"
+    # tmp_path belongs to root (mode 700): the operator could not write a session there
+    assert [c.name for c in checks][-1] == "disk-space" and by["disk-space"].status == "fail"
+    assert "not writable by operator" in by["disk-space"].message
 
 
 def test_cli_json_shape_on_the_simulated_rig(tmp_path, capsys):
