@@ -32,12 +32,15 @@ subtracts their mean per exposure time and accounts for its noise. This is
 preferred over a fitted dark model because it captures per-pixel bias
 structure, hot pixels and any non-linearity of dark current in time with no
 model assumptions; it costs the dark exposure time once more per stack.
+:class:`capture.hdr.FittedDark` (per-pixel bias + dark rate fitted to darks at
+several exposure times) is the alternative for a dark library made once, e.g.
+by the calibration; the merge takes either.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -47,13 +50,17 @@ from capture.hdr import NoiseModel, NominalDark, merge_hdr
 from drivers.interfaces import Camera, Frame
 
 
+DEFAULT_FIRST_EXPOSURE_S = 0.001
+DEFAULT_MAX_EXPOSURE_S = 60.0
+
+
 @dataclass(frozen=True)
 class BracketPolicy:
     """Parameters of the automatic bracket (times in seconds).
 
     Attributes:
-        first_exposure_s: the first (short) exposure.
-        max_exposure_s: no exposure is longer.
+        first_exposure_s: the first (short) exposure; None = the camera's shortest.
+        max_exposure_s: no exposure is longer; None = the shorter of 60 s and the camera's longest.
         max_exposures: no bracket has more light frames.
         ratio: factor between successive exposure times (> 1).
         target_snr: SNR the dimmest pixels that matter must reach.
@@ -63,8 +70,8 @@ class BracketPolicy:
         n_darks: dark frames per exposure time (matched darks).
     """
 
-    first_exposure_s: float = 0.001
-    max_exposure_s: float = 60.0
+    first_exposure_s: float | None = None
+    max_exposure_s: float | None = None
     max_exposures: int = 6
     ratio: float = 4.0
     target_snr: float = 20.0
@@ -73,8 +80,26 @@ class BracketPolicy:
     profile_halfwidth_rows: int = 1
     n_darks: int = 2
 
+    def resolved(self, exposure_range_s: tuple[float, float] | None = None) -> "BracketPolicy":
+        """The policy with its exposure limits filled in from the camera's range, checked.
+
+        Without a range, the defaults are 1 ms and 60 s.
+
+        Raises:
+            PlanError: inconsistent values, or exposures outside the camera's range.
+        """
+        lo, hi = exposure_range_s if exposure_range_s is not None else (DEFAULT_FIRST_EXPOSURE_S, DEFAULT_MAX_EXPOSURE_S)
+        first = self.first_exposure_s if self.first_exposure_s is not None else float(lo)
+        longest = self.max_exposure_s if self.max_exposure_s is not None else float(min(hi, DEFAULT_MAX_EXPOSURE_S))
+        out = replace(self, first_exposure_s=float(first), max_exposure_s=float(longest))
+        out.check(exposure_range_s)
+        return out
+
     def check(self, exposure_range_s: tuple[float, float] | None = None) -> None:
         """Raise PlanError if the policy is inconsistent or outside the camera's exposure range."""
+        if self.first_exposure_s is None or self.max_exposure_s is None:
+            self.resolved(exposure_range_s)
+            return
         errs = []
         if not (self.first_exposure_s > 0 and math.isfinite(self.first_exposure_s)):
             errs.append(f"first exposure must be > 0 s, got {self.first_exposure_s}")
@@ -135,8 +160,7 @@ class BracketController:
     """Decides the next exposure from the frames so far (no device access; see :func:`acquire_bracket`)."""
 
     def __init__(self, policy: BracketPolicy, noise: NoiseModel, exposure_range_s: tuple[float, float]) -> None:
-        policy.check(exposure_range_s)
-        self.policy = policy
+        self.policy = policy.resolved(exposure_range_s)
         self.noise = noise
         self.t_min = float(exposure_range_s[0])
         self._rows: slice | None = None
@@ -144,6 +168,7 @@ class BracketController:
         self.status = BracketStatus()
 
     def first(self) -> float:
+        assert self.policy.first_exposure_s is not None  # resolved in __init__
         return self.policy.first_exposure_s
 
     def _profile_rows(self, data: np.ndarray) -> slice:
@@ -189,6 +214,7 @@ class BracketController:
         if min_snr >= p.target_snr:
             self.status.reason = "peak saturated at the shortest exposure"
             return None
+        assert p.max_exposure_s is not None  # resolved in __init__
         if longest >= p.max_exposure_s * (1 - 1e-9):
             self.status.reason = "maximum exposure time"
             return None

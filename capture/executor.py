@@ -158,12 +158,13 @@ class Executor:
         return summary
 
     def _cleanup(self) -> list[BaseException]:
-        """Stop the stage and close the shutter; each attempted even if the other fails."""
+        """Stop the stage and close the shutter; each attempted even if the other fails
+        (also when a second Ctrl-C lands in the middle of the first)."""
         problems: list[BaseException] = []
         for action in (self.stage.stop, lambda: self.camera.set_shutter(ShutterMode.CLOSED)):
             try:
                 action()
-            except Exception as e:  # reported after the other action ran
+            except BaseException as e:  # reported after the other action ran
                 problems.append(e)
         return problems
 

@@ -165,6 +165,55 @@ class MatchedDarks:
         return float(self.noise.frame_variance_e2(0.0, t)) / (self.counts[t] * g * g)
 
 
+@dataclass
+class FittedDark:
+    """A per-pixel dark model ``D(t) = bias + rate * t`` (ADU) fitted to dark frames.
+
+    The alternative to matched darks when darks cannot be taken at every
+    exposure time (e.g. a dark library made once per cooler set-point by the
+    calibration). Least squares per pixel over darks at >= 2 distinct exposure
+    times; the prediction variance assumes the frames' noise at the mean
+    exposure time for every frame (good when dark current is small next to
+    read noise, as on the cooled KAF-0261E). Assumes dark current linear in
+    time and the temperature of the fit.
+    """
+
+    bias_adu: np.ndarray
+    rate_adu_per_s: np.ndarray
+    times_s: tuple[float, ...]
+    noise: NoiseModel
+
+    @classmethod
+    def fit(cls, frames: Sequence[Frame], noise: NoiseModel) -> "FittedDark":
+        """Fit bias and dark rate per pixel to the dark frames among ``frames``.
+
+        Raises:
+            ValueError: fewer than two distinct exposure times among the darks.
+        """
+        darks = [f for f in frames if f.dark]
+        t = np.array([f.exposure_s for f in darks], dtype=np.float64)
+        if len(set(t.tolist())) < 2:
+            raise ValueError("a dark model needs dark frames at two or more exposure times")
+        tm = t.mean()
+        stt = float(((t - tm) ** 2).sum())
+        mean = np.mean([f.data.astype(np.float64) for f in darks], axis=0)
+        cov = np.zeros_like(mean)
+        for ti, f in zip(t, darks):
+            cov += (ti - tm) * (f.data - mean)
+        rate = cov / stt
+        return cls((mean - rate * tm).astype(np.float32), rate.astype(np.float32), tuple(t.tolist()), noise)
+
+    def level_adu(self, exposure_s: float) -> np.ndarray:
+        return self.bias_adu + self.rate_adu_per_s * np.float32(exposure_s)
+
+    def variance_adu2(self, exposure_s: float) -> float:
+        t = np.asarray(self.times_s)
+        tm = float(t.mean())
+        g = self.noise.gain_e_per_adu
+        sigma2 = float(self.noise.frame_variance_e2(0.0, tm)) / (g * g)
+        return sigma2 * (1.0 / t.size + (exposure_s - tm) ** 2 / float(((t - tm) ** 2).sum()))
+
+
 @dataclass(frozen=True)
 class NominalDark:
     """Dark level predicted by the noise model alone (uniform bias + mean dark current).

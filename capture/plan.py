@@ -141,16 +141,16 @@ def make_plan(
         spec: angle count, split, ranges, camera cone, filters.
         available_filters: names the filter changer knows (``FilterChanger.names()``).
         stage_range: the stage's allowed range (``RotationStage.allowed_range``).
-        bracket: exposure policy (default :class:`BracketPolicy`).
-        exposure_range_s: the camera's exposure range, to check the policy.
+        bracket: exposure policy (default :class:`BracketPolicy`); its open exposure
+            limits are filled in from ``exposure_range_s``.
+        exposure_range_s: the camera's exposure range (``Camera.exposure_range_s``).
 
     Raises:
         PlanError: the count or a range cannot be planned, a filter is unknown or
             repeated, an angle is outside the stage's allowed range, or the
             bracket policy is inconsistent.
     """
-    bracket = bracket or BracketPolicy()
-    bracket.check(exposure_range_s)
+    bracket = (bracket or BracketPolicy()).resolved(exposure_range_s)
     if not isinstance(spec.n_angles, int) or spec.n_angles < 1:
         raise PlanError(f"the number of angles must be a positive integer, got {spec.n_angles!r}")
     cone = spec.cone_half_angle_deg

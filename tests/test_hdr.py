@@ -8,7 +8,7 @@ import pytest
 from capture.bracket import BracketController, BracketPolicy
 from capture.errors import PlanError
 from capture.exr_io import read_exr, read_frames, write_exr, write_frames
-from capture.hdr import MatchedDarks, NoiseModel, merge_hdr, optimal_reference, saturation_mask
+from capture.hdr import FittedDark, MatchedDarks, NoiseModel, merge_hdr, optimal_reference, saturation_mask
 from drivers.interfaces import ROI, Frame
 from fakes import TEST_SENSOR, simulate_frame
 
@@ -127,6 +127,29 @@ def test_pixel_saturated_in_every_exposure_is_flagged():
     assert res.channels()["mask"][4, 4] == 0.0
 
 
+def test_fitted_dark_model_removes_bias_structure_and_dark_current():
+    rng = np.random.default_rng(9)
+    shape = (24, 24)
+    bias_map = TEST_SENSOR.bias_adu + rng.normal(0, 6.0, shape)
+    times = [0.01, 1.0, 10.0, 30.0]
+    frames = [
+        Frame(simulate_frame(rng, 0.0, t, TEST_SENSOR, dark=True, shape=shape, bias_map=bias_map), t, True, -20.0, 0, t, ROI())
+        for t in times
+        for _ in range(4)
+    ]
+    model = FittedDark.fit(frames, NOISE)
+    g = TEST_SENSOR.gain_e_per_adu
+    assert np.std(model.bias_adu - bias_map) < 3.0  # the fixed pattern (6 ADU) is learnt
+    assert abs(float(model.rate_adu_per_s.mean()) * g - TEST_SENSOR.dark_current_e_per_s) < 0.2
+    truth = np.full(shape, 3000.0)
+    light = _stack(rng, truth, bias_map=bias_map)
+    res = merge_hdr(light, EXPOSURES, model, NOISE)
+    z = (res.radiance - truth) / np.sqrt(res.variance)
+    assert abs(float(z.mean())) < 0.3 and 0.8 < float(z.std()) < 1.2
+    with pytest.raises(ValueError, match="two or more"):
+        FittedDark.fit(frames[:4], NOISE)
+
+
 def test_matched_darks_must_cover_every_exposure():
     rng = np.random.default_rng(8)
     truth = np.full((4, 4), 100.0)
@@ -162,7 +185,7 @@ def test_bracket_stops_when_dim_pixels_reach_target_snr_with_peak_measured():
     st = _run_bracket(_profile(3e6, 1.0), policy)
     assert st.reason == "target SNR reached"
     assert st.peak_unsaturated and st.min_snr >= 20.0
-    assert st.exposures_s[0] == policy.first_exposure_s
+    assert st.exposures_s[0] == 0.001  # the camera's shortest
     assert st.exposures_s == sorted(st.exposures_s)
     assert st.profile_rows == (3, 6)
     # a stricter target needs longer exposures
@@ -194,6 +217,14 @@ def test_bracket_is_bounded():
 def test_bad_bracket_policy_is_a_plan_error(kw):
     with pytest.raises(PlanError):
         BracketPolicy(**kw).check((0.001, 3600.0))
+
+
+def test_open_exposure_limits_come_from_the_camera():
+    p = BracketPolicy().resolved((0.03, 3600.0))
+    assert (p.first_exposure_s, p.max_exposure_s) == (0.03, 60.0)
+    p = BracketPolicy(first_exposure_s=0.05).resolved((0.03, 10.0))
+    assert (p.first_exposure_s, p.max_exposure_s) == (0.05, 10.0)
+    assert BracketPolicy.from_dict(p.to_dict()) == p
 
 
 def test_bracket_outside_the_camera_range_is_a_plan_error():

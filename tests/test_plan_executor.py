@@ -86,7 +86,12 @@ def test_angle_outside_the_stage_range_is_a_plan_error():
 
 def test_bracket_beyond_the_camera_is_a_plan_error():
     with pytest.raises(PlanError, match="camera's range"):
-        make_plan(AngleSpec(2), available_filters=FILTERS, stage_range=STAGE, exposure_range_s=(0.01, 3600.0))
+        make_plan(
+            AngleSpec(2), available_filters=FILTERS, stage_range=STAGE,
+            bracket=BracketPolicy(first_exposure_s=0.001), exposure_range_s=(0.01, 3600.0),
+        )
+    p = make_plan(AngleSpec(2), available_filters=FILTERS, stage_range=STAGE, exposure_range_s=(0.01, 30.0))
+    assert (p.bracket.first_exposure_s, p.bracket.max_exposure_s) == (0.01, 30.0)
 
 
 def test_parse_filters():
