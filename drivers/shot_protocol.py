@@ -590,7 +590,7 @@ def parse_info(line: bytes) -> str:
     if not text:
         raise _err("empty information reply")
     if text == "NG":
-        raise _err("information query refused (NG)")
+        raise _err("information query refused (NG; the controller refuses ?: while an axis moves)")
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9 ._/()+-]*", text):
         raise _err(f"garbled information reply {bytes(line)!r}")
     return text

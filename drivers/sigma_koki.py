@@ -327,8 +327,19 @@ class SigmaKokiStage(RotationStage):
             raise StateError("the stage connection is closed", device=self.device_name)
         return self._link
 
+    def _flush(self) -> None:
+        """Discard unread input. A vanished pty or USB adapter makes the flush itself
+        fail (``termios.error``, not an OSError), which is reported as a lost connection."""
+        link = self._link_or_fail()
+        try:
+            link.reset_input()
+        except Exception as e:  # noqa: BLE001 - re-raised as the typed error below
+            raise DeviceConnectionError(f"port {link.url!r} failed: {e!r}", device=self.device_name) from None
+
     def _exchange(self, cmd: sp.Command) -> bytes:
         link = self._link_or_fail()
+        # A reply that came after its timeout must not be taken for this command's.
+        self._flush()
         link.write(sp.format_command(self._model, cmd))
         return link.read_until(sp.TERMINATOR, self._reply_timeout_s)
 
@@ -336,8 +347,6 @@ class SigmaKokiStage(RotationStage):
         """A query with resends after a timeout or a malformed reply."""
         last: DeviceError | None = None
         for attempt in range(self._retries + 1):
-            if attempt:
-                self._link_or_fail().reset_input()
             try:
                 return parse(self._exchange(cmd))
             except (DeviceTimeout, ProtocolError) as e:
@@ -373,7 +382,7 @@ class SigmaKokiStage(RotationStage):
         last: DeviceError | None = None
         for attempt in range(self._retries + 1):
             if attempt:
-                self._link_or_fail().reset_input()
+                self._flush()
                 if rebuild is not None:
                     cmd = rebuild()
                     text = _text(self._model, cmd)
@@ -387,7 +396,7 @@ class SigmaKokiStage(RotationStage):
                 ok = sp.parse_ack(self._exchange(cmd))
             except (DeviceTimeout, ProtocolError) as e:
                 last = e
-                self._link_or_fail().reset_input()
+                self._flush()
                 if resolve is not None and resolve():
                     return
                 continue

@@ -404,3 +404,57 @@ def test_unmodified_pyserial_client_in_another_thread(bench_name):
         assert time.monotonic() < deadline
         time.sleep(0.01)
     assert twin.angle_deg() == pytest.approx(10.0)  # 4000 counts x 0.0025 deg
+
+
+def test_twin_jog_division_change_and_electrical_zero(bench_name):
+    port = serial.serial_for_url(url(bench_name, timescale=1000.0, limits="-8000:8000"), timeout=0.2)
+    model = sp.MODELS["SHOT-702"]
+
+    def ask(line: bytes) -> bytes:
+        port.write(line + b"\r\n")
+        return port.readline()
+
+    def wait_ready() -> sp.StatusReply:
+        deadline = time.monotonic() + 5.0
+        while (st := sp.parse_status(model, ask(b"Q:"))).busy:
+            assert time.monotonic() < deadline
+            time.sleep(0.005)
+        return st
+
+    try:
+        twin = port.twin
+        assert ask(b"J:1+") == b"OK\r\n" and ask(b"G") == b"OK\r\n"
+        st = wait_ready()  # a jog runs at the start speed until the +20 deg switch
+        assert st.positions[0] == 8000 and st.limits == {1}
+        assert twin.angle_deg() == pytest.approx(HOME_DEG + 20.0)
+        assert ask(b"S:120") == b"OK\r\n"  # finer division: same count, same place
+        assert wait_ready().positions[0] == 8000 and twin.angle_deg() == pytest.approx(HOME_DEG + 20.0)
+        assert ask(b"A:1+P0") == b"OK\r\n" and ask(b"G:") == b"OK\r\n"
+        assert wait_ready().positions[0] == 0
+        # 8000 counts at division 20 are 2 deg: back at +18 deg, off the switch.
+        assert twin.angle_deg() == pytest.approx(HOME_DEG + 18.0)
+        assert ask(b"R:1") == b"OK\r\n"
+        assert wait_ready().positions[0] == 0 and twin.angle_deg() == pytest.approx(HOME_DEG + 18.0)
+        assert ask(b"H:1") == b"OK\r\n"
+        st = wait_ready()
+        assert st.positions[0] == 0 and st.limits == frozenset()
+        assert twin.angle_deg() == pytest.approx(HOME_DEG)
+        assert get_bench(bench_name).stage_angle_deg == pytest.approx(HOME_DEG)
+    finally:
+        port.close()
+
+
+def test_twin_emergency_stop_halts_at_once(bench_name):
+    port = serial.serial_for_url(url(bench_name, timescale=1.0), timeout=0.2)
+    try:
+        for line in (b"A:1+P40000", b"G:"):
+            port.write(line + b"\r\n")
+            assert port.readline() == b"OK\r\n"
+        time.sleep(0.05)
+        port.write(b"L:E\r\n")
+        assert port.readline() == b"OK\r\n"
+        port.write(b"!:\r\n")
+        assert port.readline() == b"R\r\n"  # no deceleration ramp
+        assert 0 < port.twin.angle_deg() - HOME_DEG < 1.0
+    finally:
+        port.close()
