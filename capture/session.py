@@ -32,7 +32,7 @@ from typing import Any, Iterator, Mapping, Sequence
 import numpy as np
 import yaml
 
-from capture.atomic import atomic_write_bytes, atomic_write_text, fsync_dir, remove_stale_temps, sha256_file
+from capture.atomic import atomic_write_bytes, atomic_write_text, fsync_dir, is_temp_name, remove_stale_temps, sha256_file
 from capture.errors import SessionError
 from capture.exr_io import ExrImage, read_exr, read_frames, write_exr, write_frames
 from capture.hdr import HdrResult, NoiseModel
@@ -214,7 +214,7 @@ class Session:
             entries = [e.name for e in p.iterdir()]
             if MANIFEST_NAME in entries:
                 raise SessionError(f"{p} already holds a session; continue it with --resume {p} or choose a new directory")
-            if entries:
+            if entries and not cls._is_unborn(p):
                 raise SessionError(f"{p} is not empty and is not a session; choose a new or empty directory")
         existing = p
         while not existing.exists() and existing != existing.parent:
@@ -260,6 +260,7 @@ class Session:
         s = cls(p, manifest, stacks, writable=True)
         s._lock()
         try:
+            remove_stale_temps(p)  # of a create interrupted before its manifest
             if calibration is not None:
                 s.attach_calibration(calibration, _save=False)
             s._save()
@@ -267,6 +268,18 @@ class Session:
             s.close()
             raise
         return s
+
+    @staticmethod
+    def _is_unborn(path: Path) -> bool:
+        """True for what a create interrupted before its first manifest leaves: empty
+        ``raw/`` and ``hdr/``, the lock, the write probe and temporary files only."""
+        for e in path.iterdir():
+            if e.name in (RAW_DIR, HDR_DIR) and e.is_dir():
+                if any(not is_temp_name(f.name) for f in e.iterdir()):
+                    return False
+            elif not (e.name in (LOCK_NAME, ".write-probe") or is_temp_name(e.name)):
+                return False
+        return True
 
     @staticmethod
     def _check_space(path: Path, need: int) -> None:

@@ -253,3 +253,55 @@ def test_progress_bar_renders_with_eta(tmp_path):
         run_capture(s, stage, cam, wheel, progress=console)
     out = buf.getvalue()
     assert "2/2" in out and "ETA" in out
+
+
+class _Killed(BaseException):
+    """Stands for the process dying (kill -9, power cut) at a file rename."""
+
+
+def test_crash_at_every_file_write_then_resume_completes_without_losing_a_stack(tmp_path, monkeypatch):
+    import os
+
+    import capture.atomic as atomic
+    from capture.session import MANIFEST_NAME
+
+    plan = _plan(2, ("r", "g"))
+    real_replace = os.replace
+    n_writes = 1 + 3 * len(plan.keys())  # manifest at create, then raw + hdr + manifest per stack
+    for k in range(n_writes):
+        d = tmp_path / f"s{k}"
+        calls = [0]
+
+        def replace(src, dst, *a, _k=k, **kw):
+            calls[0] += 1
+            if calls[0] == _k + 1:
+                raise _Killed
+            return real_replace(src, dst, *a, **kw)
+
+        monkeypatch.setattr(atomic.os, "replace", replace)
+        bench, stage, cam, wheel = make_rig(seed=10 + k)
+        s = None
+        with pytest.raises(_Killed):
+            s = _session(tmp_path, plan, cam, name=d.name)
+            run_capture(s, stage, cam, wheel, progress=False)
+        if s is not None:
+            s.close()  # the kernel would release the lock of a dead process
+        monkeypatch.undo()
+        assert bench.log == [] or bench.log[-2:] == [("stop",), ("shutter", "closed")]
+
+        bench2, stage2, cam2, wheel2 = make_rig(seed=100 + k)
+        if (d / MANIFEST_NAME).exists():
+            done = sorted(x.id for x in Session.open(d).done_keys())
+            before = _files(d, done)
+            s2 = Session.resume(d, plan=plan)
+        else:  # died before the first manifest: the directory is still usable for a new session
+            done, before = [], {}
+            s2 = _session(tmp_path, plan, cam2, name=d.name)
+        with s2:
+            summary = run_capture(s2, stage2, cam2, wheel2, progress=False)
+        assert summary.complete, k
+        assert sorted(summary.skipped) == done
+        assert _files(d, done) == before
+        r = Session.open(d)
+        assert r.verify() == [] and r.complete
+        assert not [p for p in d.rglob("*") if ".tmp-" in p.name]
