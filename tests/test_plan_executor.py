@@ -272,9 +272,9 @@ def test_crash_at_every_file_write_then_resume_completes_without_losing_a_stack(
         d = tmp_path / f"s{k}"
         calls = [0]
 
-        def replace(src, dst, *a, _k=k, **kw):
-            calls[0] += 1
-            if calls[0] == _k + 1:
+        def replace(src, dst, *a, _k=k, _calls=calls, **kw):
+            _calls[0] += 1
+            if _calls[0] == _k + 1:
                 raise _Killed
             return real_replace(src, dst, *a, **kw)
 
