@@ -20,7 +20,6 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass
-from typing import Union
 
 from drivers.errors import ProtocolError
 
@@ -220,7 +219,7 @@ class Info:
     what: str
 
 
-Command = Union[Home, Arm, Jog, Go, Stop, SetZero, SetSpeed, SetDivision, Excite, Status, Ready, Info]
+Command = Home | Arm | Jog | Go | Stop | SetZero | SetSpeed | SetDivision | Excite | Status | Ready | Info
 
 #: Commands that are answered with data, never with OK/NG.
 QUERIES = (Status, Ready, Info)
@@ -522,7 +521,7 @@ def _format_ack2(model: ShotModel, limits: frozenset[int]) -> str:
             return "K"
         if mask == (1 << model.axes) - 1:
             return "W"
-        return "%X" % mask
+        return f"{mask:X}"
     for letter, axes in _ACK2_LETTERS.items():
         if axes == limits and (model.axes > 1 or letter in "KL"):
             return letter
@@ -603,7 +602,9 @@ def format_info(text: str) -> bytes:
 def same_product(reported: str, model: ShotModel) -> bool:
     """True if a ``?:N`` reply names this model (spaces, hyphens and case ignored;
     suffixes such as ``SHOT-702H`` accepted)."""
-    norm = lambda s: re.sub(r"[^A-Z0-9]", "", s.upper())  # noqa: E731
+    def norm(s: str) -> str:
+        return re.sub(r"[^A-Z0-9]", "", s.upper())
+
     return norm(reported).startswith(norm(model.name))
 
 
@@ -611,4 +612,4 @@ def round_pulses(value: float) -> int:
     """Nearest integer count; ProtocolError for NaN or infinity."""
     if not math.isfinite(value):
         raise _err(f"pulse count {value} is not finite")
-    return int(round(value))
+    return round(value)

@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import math
 import threading
-from typing import Callable, TypeVar
+from collections.abc import Callable
+from typing import TypeVar
 
 from drivers import shot_protocol as sp
 from drivers.errors import (
@@ -203,6 +204,9 @@ class SigmaKokiStage(RotationStage):
         c = sp.round_pulses((angle_deg - self._zero) / self.degrees_per_count)
         if self.angle_of_count(c) not in self._allowed:
             c += 1 if self.angle_of_count(c) < self._allowed.lo else -1
+            if self.angle_of_count(c) not in self._allowed:  # range narrower than one count
+                raise LimitError(f"no position count lies inside [{self._allowed.lo}, {self._allowed.hi}] deg",
+                                 device=self.device_name)
         if abs(c) > self._model.pulse_limit:
             raise LimitError(f"{angle_deg:.4f} deg is count {c}, beyond the controller's +/-{self._model.pulse_limit}",
                              device=self.device_name)
@@ -269,7 +273,7 @@ class SigmaKokiStage(RotationStage):
     def _speed_table(self, deg_per_s: float) -> sp.Speed:
         m = self._model
         step = m.speed_step_pps
-        f = int(round(deg_per_s / self.degrees_per_count / step)) * step
+        f = round(deg_per_s / self.degrees_per_count / step) * step
         lo, hi = m.speed_range_pps
         if not lo <= f <= hi:
             raise LimitError(
@@ -355,7 +359,9 @@ class SigmaKokiStage(RotationStage):
 
     def _status(self, *, confirm: bool = False) -> sp.StatusReply:
         """``Q:``; with ``confirm``, an idle status must be read twice identically."""
-        parse = lambda line: sp.parse_status(self._model, line)  # noqa: E731
+        def parse(line: bytes) -> sp.StatusReply:
+            return sp.parse_status(self._model, line)
+
         st = self._query(sp.Status(), parse)
         if not confirm:
             return st

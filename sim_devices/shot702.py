@@ -128,7 +128,7 @@ class AxisState:
         return self.profile.position(now) if self.profile is not None else self.steps
 
     def count(self, now: float) -> int:
-        return int(round((self.position(now) - self.zero_steps) * self.division))
+        return round((self.position(now) - self.zero_steps) * self.division)
 
     def busy(self, now: float) -> bool:
         return self.profile is not None and now < self.profile.end_time

@@ -16,7 +16,13 @@ import time
 
 import pytest
 
-from drivers.errors import DeviceError, DeviceTimeout, LimitError, ParameterError, StateError
+from drivers.errors import (
+    DeviceError,
+    DeviceTimeout,
+    LimitError,
+    ParameterError,
+    StateError,
+)
 from drivers.interfaces import AngleRange, RotationStage
 
 ALLOWED = AngleRange(15.0, 185.0)

@@ -27,7 +27,6 @@ from drivers.interfaces import AngleRange
 from drivers.iolog import Transcript
 from drivers.sigma_koki import SigmaKokiStage
 from sim_devices.bench import drop_bench, get_bench
-from sim_devices.faults import FaultPlan
 from sim_devices.serial_twin import SimClock, serve_on_pty
 from sim_devices.shot702 import Profile, Shot702Twin, trapezoid
 from tests.stage_suite import ALLOWED, RotationStageSuite
@@ -113,7 +112,7 @@ def test_trapezoid_profile_timing():
     assert p.duration == pytest.approx(0.4 + (10000 - 2 * 550) / 5000)
     assert p.end_position == pytest.approx(10000)
     xs = [p.position(t) for t in [i * p.duration / 50 for i in range(51)]]
-    assert all(b >= a for a, b in zip(xs, xs[1:])) and xs[-1] == pytest.approx(10000)
+    assert all(b >= a for a, b in itertools.pairwise(xs)) and xs[-1] == pytest.approx(10000)
     tri = Profile(0.0, 0.0, -1, trapezoid(100, 500, 5000, 0.2))  # too short to reach top speed
     assert len(tri.segments) == 2 and tri.end_position == pytest.approx(-100)
 
@@ -369,7 +368,7 @@ def test_lost_reply_to_home_does_not_home_twice(pty_twin):
 
 
 def test_controller_that_goes_silent_mid_session_times_out(pty_twin):
-    twin, s, stop = pty_twin()
+    _, s, stop = pty_twin()
     s.move_to(100.0)
     stop.set()  # the cable is pulled
     time.sleep(0.02)
@@ -458,3 +457,9 @@ def test_twin_emergency_stop_halts_at_once(bench_name):
         assert 0 < port.twin.angle_deg() - HOME_DEG < 1.0
     finally:
         port.close()
+
+
+def test_range_narrower_than_one_count_refuses_every_move(opened, bench_name):
+    s = open_stage(opened, bench_name, allowed=AngleRange(90.0011, 90.0019))
+    with pytest.raises(LimitError, match="no position count"):
+        s.move_to(90.0015)

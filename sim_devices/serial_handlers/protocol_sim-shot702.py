@@ -1,3 +1,4 @@
+# ruff: noqa: N999 - pyserial finds handlers as protocol_<scheme>, and the scheme has a hyphen
 """pyserial URL handler ``sim-shot702://<bench>?<options>``: a simulated Sigma Koki
 controller (:class:`~sim_devices.shot702.Shot702Twin`) behind a serial port.
 
