@@ -37,8 +37,8 @@ at normal incidence becomes L_air = (1 - F0) L_in / n^2 in air, F0 = ((n-1)/(n+1
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 

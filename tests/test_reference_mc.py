@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from reference_mc import (
     beam_strip_power,
     chandrasekhar_h,
@@ -116,7 +115,8 @@ def test_single_scattering_integral_has_closed_form(profile: str, phi: float) ->
     if phi < 90:
         closed = ALB * p(np.array(mu)) * (1 - np.exp(-tau * (1 + 1 / c))) / (c + 1)
     else:  # depth s, path in = (d - s)/c
-        closed = ALB * p(np.array(mu)) / c * SIG * np.exp(-tau / c) * np.expm1(-tau * (1 - 1 / c)) / (-SIG * (1 - 1 / c))
+        k = 1 - 1 / c
+        closed = ALB * p(np.array(mu)) / c * np.exp(-tau / c) * -np.expm1(-tau * k) / k
     assert prof.sum() * pitch * h == pytest.approx(float(closed), rel=1e-9)
 
 
@@ -277,8 +277,8 @@ def test_mc_is_seeded_and_pixel_grid_centred() -> None:
                                           ({"thickness_mm": 0.0}, "thickness_mm"), ({"albedo": 1.2}, "albedo"),
                                           ({"n_index": 0.9}, "n_index"), ({"phi_deg": 90.0}, "phi_deg")])
 def test_bad_input_names_the_parameter(kw: dict, name: str) -> None:
-    args = dict(sigma_t=1.0, albedo=0.5, thickness_mm=1.0, phase_eval=isotropic_eval, phi_deg=30.0,
-                beam_radius_mm=0.2, pixel_pitch_mm=0.1, n_pixels=4, row_height_mm=0.1)
+    args = {"sigma_t": 1.0, "albedo": 0.5, "thickness_mm": 1.0, "phase_eval": isotropic_eval, "phi_deg": 30.0,
+            "beam_radius_mm": 0.2, "pixel_pitch_mm": 0.1, "n_pixels": 4, "row_height_mm": 0.1}
     args.update(kw)
     with pytest.raises(ValueError, match=name):
         single_scattering_profile(**args)
