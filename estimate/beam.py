@@ -25,6 +25,10 @@ beams (unfolded straight lines), each chosen with probability 1/(reflections + 1
 the Fresnel reflectance F(theta_t) per bounce and the analytic attenuation of the
 completed passes exp(-sigma_t d / cos_t) each.
 
+Several slab copies side by side along y (spacing `spacing_mm`, copy k centred at
+y = k * spacing) can be lit at different angles `angle_deg[k]` in one render: the emitter
+finds a point's copy from its y. This renders all stage angles in one kernel launch.
+
 The optional halo (extension `beam_halo`) adds a Gaussian of relative power
 `halo_fraction` and standard deviation `halo_sigma_mm` around the map's centroid.
 """
@@ -162,7 +166,10 @@ def _make_plugin_class(mi: Any, dr: Any) -> type:
             mi.Emitter.__init__(self, props)
             self.m_flags = mi.EmitterFlags.DeltaDirection
             self.reflections = int(props.get("reflections", 0))
-            self.angle_deg = mi.Float(props.get("angle_deg", 45.0))
+            # Slab copies side by side along y (one per stage angle of a batched render).
+            self.copies = int(props.get("copies", 1))
+            self.spacing = float(props.get("spacing_mm", 0.0))
+            self.angle_deg = mi.Float([float(props.get("angle_deg", 45.0))] * self.copies)
             self.eta = mi.Float(props.get("eta", 1.0))
             self.thickness = mi.Float(props.get("thickness", 1.0))
             self.sigma_t = mi.Float(props.get("sigma_t", 0.0))
@@ -215,7 +222,13 @@ def _make_plugin_class(mi: Any, dr: Any) -> type:
             return dr.select(inside, val, 0.0)
 
         def sample_direction(self, it: Any, sample: Any, active: Any = True) -> tuple[Any, Any]:
-            phi = self.angle_deg * (math.pi / 180.0)
+            p = mi.Point3f(it.p)
+            if self.copies > 1:
+                copy = mi.UInt32(dr.clip(dr.round(p.y / self.spacing), 0, self.copies - 1))
+                p.y = p.y - mi.Float(copy) * self.spacing
+            else:
+                copy = mi.UInt32(0)
+            phi = dr.gather(mi.Float, self.angle_deg, copy, active) * (math.pi / 180.0)
             sin_p, cos_p = dr.sincos(phi)
             front = cos_p > 0.0
             sgn_x = dr.select(sin_p >= 0.0, 1.0, -1.0)
@@ -225,7 +238,6 @@ def _make_plugin_class(mi: Any, dr: Any) -> type:
             sin_t = dr.safe_sqrt(1.0 - cos_t * cos_t)
             tan_t = sin_t / dr.maximum(cos_t, 1e-6)
             d = self.thickness
-            p = it.p
             n_img = self.reflections + 1
             if n_img > 1:
                 k = mi.UInt32(dr.minimum(sample.x * n_img, n_img - 1))
@@ -263,7 +275,7 @@ def _make_plugin_class(mi: Any, dr: Any) -> type:
             dist = dr.maximum(partial, 0.0) / dr.maximum(cos_t, 1e-6)
             valid = active & (partial >= 0.0) & (partial <= d)
             ds = dr.zeros(mi.DirectionSample3f)
-            ds.p = p + dvec * dist
+            ds.p = it.p + dvec * dist
             ds.n = -dvec
             ds.d = dvec
             ds.dist = dist

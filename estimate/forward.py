@@ -11,6 +11,7 @@ Parameters are a flat mapping name -> float:
     "sigma_t", "albedo",
     "phase.b1" .. "phase.bM"                        (phase "exp<M>"),
     "phase.g_forward", "phase.g_backward", "phase.w_forward"   (phase "tthg"),
+    "phase.g"                                       (phase "hg"),
     "<extension>.<parameter>"                       (see `ForwardModel.parameter_names`).
 
 All angles of a call are rendered with the same compiled kernels: angles and parameters
@@ -43,6 +44,8 @@ from estimate.mitsuba_phase import exp_phase_dict, tthg_phase_dict
 __all__ = ["ForwardModel", "render_seed", "BASE_SPECS", "phase_specs"]
 
 _INF = float("inf")
+#: Largest number of paths (pixels x spp) traced in one launch; bounds memory (~0.2 kB each).
+_MAX_LANES = 2 ** 22
 
 #: Base parameters of every model.
 BASE_SPECS: dict[str, ParameterSpec] = {
@@ -53,19 +56,21 @@ BASE_SPECS: dict[str, ParameterSpec] = {
 
 
 def phase_specs(phase: str) -> dict[str, ParameterSpec]:
-    """Parameter specs of a phase model name: "exp<M>" (M >= 0) or "tthg"."""
+    """Parameter specs of a phase model name: "exp<M>" (M >= 0), "hg" or "tthg"."""
     m = re.fullmatch(r"exp(\d+)", phase)
     if m:
         return {f"phase.b{i}": ParameterSpec(f"b{i}", 0.0, -1000.0, 1000.0, "", "ad", 0.05,
                                              f"exponential phase coefficient of mu^{i}")
                 for i in range(1, int(m.group(1)) + 1)}
+    if phase == "hg":
+        return {"phase.g": ParameterSpec("g", 0.5, -0.999, 0.999, "", "ad", 0.01, "Henyey-Greenstein g")}
     if phase == "tthg":
         return {
             "phase.g_forward": ParameterSpec("g_forward", 0.5, -0.999, 0.999, "", "ad", 0.01, "forward lobe g"),
             "phase.g_backward": ParameterSpec("g_backward", -0.3, -0.999, 0.999, "", "ad", 0.01, "backward lobe g"),
             "phase.w_forward": ParameterSpec("w_forward", 0.9, 0.0, 1.0, "", "ad", 0.01, "forward lobe weight"),
         }
-    raise ModelParameterError(f"unknown phase model {phase!r}; use 'exp<M>' (e.g. exp3) or 'tthg'")
+    raise ModelParameterError(f"unknown phase model {phase!r}; use 'exp<M>' (e.g. exp3), 'hg' or 'tthg'")
 
 
 def render_seed(seed: int, angle_index: int, band_index: int = 0) -> int:
@@ -79,7 +84,8 @@ class ForwardModel:
     Args:
         geometry: slab and camera geometry.
         beam: calibrated beam map for this channel.
-        phase: "exp<M>" (exponential, monomial basis, degree M) or "tthg".
+        phase: "exp<M>" (exponential plugin, monomial basis, degree M), "hg" (built-in
+            Henyey-Greenstein) or "tthg" (two built-in `hg` lobes in `blendphase`).
         extensions: names of the extensions to include (see `estimate.extensions`).
         variant: Mitsuba variant; None = automatic (`estimate.mitsuba_env`).
         max_depth: path length limit of `prbvolpath`.
@@ -107,8 +113,9 @@ class ForwardModel:
         self.max_depth = int(max_depth)
         self.rr_depth = int(rr_depth)
         self._lock = threading.Lock()
-        self._sensors: dict[PixelWindow, Any] = {}
-        self._build_scene()
+        self._bundles: dict[int, _SceneBundle] = {}
+        self._refractive = "refractive_boundary" in self.extensions
+        self._bundle(1)
 
     # ------------------------------------------------------------------ parameters
     @property
@@ -155,146 +162,18 @@ class ForwardModel:
         return out
 
     # ------------------------------------------------------------------ scene
-    def _build_scene(self) -> None:
-        mi = self.mi
-        T = mi.ScalarTransform4f
-        g = self.geometry
-        d = g.thickness_mm
-        hw = g.half_width_mm
-        if self.phase == "tthg":
-            ps = self.specs
-            phase = tthg_phase_dict(ps["phase.g_forward"].neutral, ps["phase.g_backward"].neutral,
-                                    ps["phase.w_forward"].neutral)
-        else:
-            phase = exp_phase_dict([0.0] * sum(1 for k in self.specs if k.startswith("phase.b")))
-        refractive = "refractive_boundary" in self.extensions
-        bsdf = {"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0} if refractive else {"type": "null"}
-        self._refractive = refractive
-        scene_dict = {
-            "type": "scene",
-            "integrator": {"type": "prbvolpath", "max_depth": self.max_depth, "rr_depth": self.rr_depth},
-            "slab": {
-                "type": "cube",
-                "to_world": T().translate([0.0, 0.0, -0.5 * d]).scale([hw, hw, 0.5 * d]),
-                "bsdf": bsdf,
-                "interior": {"type": "homogeneous", "sigma_t": 1.0, "albedo": 0.5, "phase": phase},
-            },
-            "beam": {"type": "collimated_beam", "thickness": d,
-                     "reflections": INTERNAL_REFLECTIONS if refractive else 0},
-        }
-        self.scene = mi.load_dict(scene_dict)
-        beam = [e for e in self.scene.emitters()][0]
-        beam.set_profile(self.beam_profile)
-        self._beam = beam
-        self.params = mi.traverse(self.scene)
-        keys = list(self.params.keys())
+    def _bundle(self, copies: int) -> "_SceneBundle":
+        """The scene with `copies` slab copies (one per angle of a batched render)."""
+        bundle = self._bundles.get(copies)
+        if bundle is None:
+            bundle = _SceneBundle(self, copies)
+            self._bundles[copies] = bundle
+        return bundle
 
-        def key(suffix: str) -> str:
-            hits = [k for k in keys if k.endswith(suffix)]
-            if len(hits) != 1:
-                raise RuntimeError(f"scene parameter *{suffix} not found uniquely: {hits}")
-            return hits[0]
-
-        self._k_sigma_t = key("interior_medium.sigma_t.value.value")
-        self._k_albedo = key("interior_medium.albedo.value.value")
-        self._k_vertices = key("slab.vertex_positions")
-        self._base_vertices = np.array(self.params[self._k_vertices], dtype=np.float64)
-        self._current_thickness = d
-        if self.phase == "tthg":
-            self._k_phase = {
-                "weight": key("phase_function.weight.value.value"),
-                "g0": key("phase_function.phase_0.g"),
-                "g1": key("phase_function.phase_1.g"),
-            }
-        else:
-            self._k_phase = {n: key(f"phase_function.{n.split('.')[1]}") for n in self.specs if n.startswith("phase.b")}
-        self._k_beam = {n: key(f"beam.{n}") for n in ("angle_deg", "eta", "thickness", "sigma_t",
-                                                      "halo_fraction", "halo_sigma_mm")}
-        self._current_eta = 1.5
-        if refractive:
-            self._k_eta = key("slab.bsdf.eta")
-
-    def _sensor(self, window: PixelWindow) -> Any:
-        s = self._sensors.get(window)
-        if s is None:
-            mi = self.mi
-            T = mi.ScalarTransform4f
-            g = self.geometry
-            p = g.pixel_mm
-            x, y = g.window_center_mm(window)
-            z = 10.0 + 2.0 * g.thickness_mm
-            # Mitsuba's orthographic film spans [-1, 1] in x and [-1/aspect, 1/aspect] in y.
-            half = 0.5 * window.width * p
-            s = mi.load_dict({
-                "type": "orthographic",
-                "near_clip": 1e-3, "far_clip": 1e4,
-                "to_world": T().look_at([x, y, z], [x, y, 0.0], [0.0, 1.0, 0.0]).scale([half, half, 1.0]),
-                "film": {"type": "hdrfilm", "width": window.width, "height": window.height,
-                         "rfilter": {"type": "box"}, "pixel_format": "luminance",
-                         "sample_border": False},
-                "sampler": {"type": "independent", "sample_count": 1},
-            })
-            self._sensors[window] = s
-        return s
-
-    def _set_index(self, n: float) -> None:
-        """Set the dielectric boundary's relative index (a non-differentiable Mitsuba parameter)."""
-        if n == self._current_eta:
-            return
-        self.params[self._k_eta] = float(n)
-        self._current_eta = n
-
-    def _set_thickness(self, d: float) -> None:
-        if d == self._current_thickness:
-            return
-        v = self._base_vertices.reshape(-1, 3).copy()
-        v[:, 2] *= d / self.geometry.thickness_mm
-        self.params[self._k_vertices] = self.mi.Float(v.ravel().astype(np.float32))
-        self._current_thickness = d
-
-    def _assign(self, values: Mapping[str, float], leaves: Mapping[str, Any], angle_deg: float,
-                band_x: float) -> None:
-        """Write one render's parameters into the scene (fresh AD expressions each time)."""
-        dr = self.dr
-        mi = self.mi
-
-        def val(name: str) -> Any:
-            if name in leaves:
-                return leaves[name]
-            return dr.opaque(mi.Float, values[name])
-
-        sigma_t = val("sigma_t")
-        if "filter_bandwidth" in self.extensions:
-            sigma_t = sigma_t * (1.0 + val("filter_bandwidth.spread") * band_x)
-        else:
-            sigma_t = sigma_t * 1.0
-        p = self.params
-        p[self._k_sigma_t] = sigma_t
-        p[self._k_albedo] = val("albedo") * 1.0
-        if self.phase == "tthg":
-            p[self._k_phase["weight"]] = 1.0 - val("phase.w_forward")
-            p[self._k_phase["g0"]] = val("phase.g_forward") * 1.0
-            p[self._k_phase["g1"]] = val("phase.g_backward") * 1.0
-        else:
-            for name, k in self._k_phase.items():
-                p[k] = val(name) * 1.0
-                p.set_dirty(k)
-        delta = values.get("angle_offset.delta_deg", 0.0)
-        e = values.get("thickness_error.e", 0.0)
-        n = values.get("refractive_boundary.n", 1.0)
-        d = self.geometry.thickness_mm * (1.0 + e)
-        if self._refractive:
-            self._set_index(n)
-        self._set_thickness(d)
-        kb = self._k_beam
-        p[kb["angle_deg"]] = dr.opaque(mi.Float, angle_deg + delta)
-        p[kb["eta"]] = dr.opaque(mi.Float, n)
-        p[kb["thickness"]] = dr.opaque(mi.Float, d)
-        p[kb["sigma_t"]] = sigma_t
-        if "beam_halo" in self.extensions:
-            p[kb["halo_fraction"]] = val("beam_halo.fraction") * 1.0
-            p[kb["halo_sigma_mm"]] = val("beam_halo.sigma_mm") * 1.0
-        p.update()
+    @property
+    def spacing_mm(self) -> float:
+        """Distance along y between slab copies of a batched render."""
+        return 3.0 * self.geometry.half_width_mm + 10.0
 
     def _bands(self) -> list[tuple[float, float]]:
         if "filter_bandwidth" in self.extensions:
@@ -303,19 +182,40 @@ class ForwardModel:
         return [(0.0, 1.0)]
 
     # ------------------------------------------------------------------ rendering
+    def _groups(self, n_angles: int, window: PixelWindow, spp: int) -> tuple[list[range], int]:
+        """Angle groups rendered in one launch each, and the number of sample passes."""
+        lanes_per_angle = window.width * window.height * int(spp)
+        per_group = max(1, min(n_angles, _MAX_LANES // max(1, lanes_per_angle)))
+        passes = max(1, math.ceil(lanes_per_angle / _MAX_LANES))
+        groups = [range(i, min(n_angles, i + per_group)) for i in range(0, n_angles, per_group)]
+        return groups, passes
+
+    def _launch(self, bundle: "_SceneBundle", window: PixelWindow, spp: int, seed: int, first: int,
+                band: int, pass_index: int, ad: bool) -> Any:
+        """One mi.render of a group; returns the (H, copies * W) image (Dr.Jit, unevaluated)."""
+        kwargs = {"params": bundle.params} if ad else {}
+        return self.mi.render(bundle.scene, sensor=bundle.sensor(window), spp=int(spp),
+                              seed=render_seed(seed, first + 1000 * pass_index, band), **kwargs)
+
     def _render_radiance(self, values: Mapping[str, float], angles: Sequence[float],
                          window: PixelWindow, spp: int, seed: int, first_index: int = 0) -> np.ndarray:
         """Scene radiance (before image-space extensions), shape (N, H, W)."""
-        mi = self.mi
-        sensor = self._sensor(window)
-        out = np.zeros((len(angles), window.height, window.width))
+        groups, passes = self._groups(len(angles), window, spp)
+        spp_pass = max(1, math.ceil(int(spp) / passes))
+        pending = []
         with self.dr.suspend_grad():
-            for k, phi in enumerate(angles):
+            for grp in groups:
+                bundle = self._bundle(len(grp))
                 for j, (x, w) in enumerate(self._bands()):
-                    self._assign(values, {}, float(phi), x)
-                    img = mi.render(self.scene, sensor=sensor, spp=int(spp),
-                                    seed=render_seed(seed, first_index + k, j))
-                    out[k] += w * np.array(img, dtype=np.float64).reshape(window.height, window.width)
+                    bundle.assign(values, {}, [angles[i] for i in grp], x)
+                    for q in range(passes):
+                        img = self._launch(bundle, window, spp_pass, seed, first_index + grp.start, j, q, False)
+                        # No sync here: Dr.Jit runs this launch while Python traces the next.
+                        pending.append((grp, w / passes, img))
+        out = np.zeros((len(angles), window.height, window.width))
+        for grp, w, img in pending:
+            a = np.array(img, dtype=np.float64).reshape(window.height, len(grp), window.width)
+            out[grp.start:grp.stop] += w * a.transpose(1, 0, 2)
         return out
 
     def _image_exts(self) -> list[type[ImageExtension]]:
@@ -393,35 +293,43 @@ class ForwardModel:
         grads = {n: 0.0 for n in self.specs}
         ad_names = [n for n, s in self.specs.items() if s.derivative == "ad"]
         image_exts = self._image_exts()
-        sensor = self._sensor(window)
         bands = self._bands()
         linear = "sensor_nonlinearity" not in self.extensions
+        groups, passes = self._groups(len(angles), window, spp)
+        spp_pass = max(1, math.ceil(int(spp) / passes))
         with self._lock:
-            for k, phi in enumerate(angles):
-                cot_k = cot[k:k + 1]
+            for grp in groups:
+                cot_g = cot[grp.start:grp.stop]
+                ang = [angles[i] for i in grp]
+                bundle = self._bundle(len(grp))
                 cot_rad: np.ndarray | None = None
                 if not linear and len(bands) > 1:
                     # The nonlinear pull-back needs the band mixture before any adjoint.
-                    full = self._render_radiance(values, [phi], window, spp, seed, first_index=k)
-                    cot_rad = self._pullback(full, cot_k, values, window)[0]
+                    full = self._render_radiance(values, ang, window, spp, seed, first_index=grp.start)
+                    cot_rad = self._pullback(full, cot_g, values, window)[0]
                 elif linear:
-                    cot_rad = self._pullback(np.zeros_like(cot_k), cot_k, values, window)[0]
+                    cot_rad = self._pullback(np.zeros_like(cot_g), cot_g, values, window)[0]
                 leaves = {n: dr.opaque(mi.Float, values[n]) for n in ad_names}
                 for leaf in leaves.values():
                     dr.enable_grad(leaf)
-                rad = np.zeros((1, window.height, window.width))
+                rad = np.zeros((len(grp), window.height, window.width))
                 for j, (x, w) in enumerate(bands):
-                    self._assign(values, leaves, float(phi), x)
-                    img = mi.render(self.scene, params=self.params, sensor=sensor, spp=int(spp),
-                                    seed=render_seed(seed, k, j))
-                    r = np.array(dr.detach(img), dtype=np.float64).reshape(window.height, window.width)
-                    rad[0] += w * r
-                    c_rad = cot_rad if cot_rad is not None else self._pullback(rad, cot_k, values, window)[0]
-                    c = mi.TensorXf(np.ascontiguousarray(w * c_rad[0]).astype(np.float32).reshape(img.shape))
-                    # Adjoint now, while the scene still holds this render's parameters.
-                    dr.backward(img * c)
+                    bundle.assign(values, leaves, ang, x)
+                    for q in range(passes):
+                        img = self._launch(bundle, window, spp_pass, seed, grp.start, j, q, True)
+                        r = np.array(dr.detach(img), dtype=np.float64).reshape(
+                            window.height, len(grp), window.width).transpose(1, 0, 2)
+                        rad += (w / passes) * r
+                        if cot_rad is None:  # single band, nonlinear chain: radiance complete
+                            c_rad = self._pullback(r, cot_g, values, window)[0]
+                        else:
+                            c_rad = cot_rad
+                        c_img = (w / passes) * c_rad.transpose(1, 0, 2).reshape(window.height, len(grp) * window.width)
+                        c = mi.TensorXf(np.ascontiguousarray(c_img, dtype=np.float32).reshape(img.shape))
+                        # Adjoint now, while the scene still holds this render's parameters.
+                        dr.backward(img * c)
                 if image_exts:
-                    for name, gv in self._pullback(rad, cot_k, values, window)[1].items():
+                    for name, gv in self._pullback(rad, cot_g, values, window)[1].items():
                         grads[name] += gv
                 for n, leaf in leaves.items():
                     g = dr.grad(leaf)
@@ -536,3 +444,170 @@ class ForwardModel:
                 return d[:, 0, :]
             img = ext.apply(img, v, pixel_mm=pm, profile_only=profile_only)
         raise ModelParameterError(f"{name!r} is not an image-space parameter of this model")
+
+
+class _SceneBundle:
+    """One Mitsuba scene of the model with `copies` slab copies along y (copy k at
+    y = k * spacing, lit at the k-th angle of a batched render), its parameters and its
+    batch sensors (one orthographic sub-sensor per copy)."""
+
+    def __init__(self, model: ForwardModel, copies: int) -> None:
+        self.model = model
+        self.copies = copies
+        mi = model.mi
+        T = mi.ScalarTransform4f
+        g = model.geometry
+        d = g.thickness_mm
+        hw = g.half_width_mm
+        self.spacing = model.spacing_mm
+        if model.phase == "tthg":
+            ps = model.specs
+            phase = tthg_phase_dict(ps["phase.g_forward"].neutral, ps["phase.g_backward"].neutral,
+                                    ps["phase.w_forward"].neutral)
+        elif model.phase == "hg":
+            phase = {"type": "hg", "g": model.specs["phase.g"].neutral}
+        else:
+            phase = exp_phase_dict([0.0] * sum(1 for k in model.specs if k.startswith("phase.b")))
+        refractive = model._refractive
+        scene_dict: dict[str, Any] = {
+            "type": "scene",
+            "integrator": {"type": "prbvolpath", "max_depth": model.max_depth, "rr_depth": model.rr_depth},
+            "medium": {"type": "homogeneous", "sigma_t": 1.0, "albedo": 0.5, "phase": phase},
+            "boundary": ({"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0} if refractive
+                         else {"type": "null"}),
+            "beam": {"type": "collimated_beam", "thickness": d, "copies": copies,
+                     "spacing_mm": self.spacing,
+                     "reflections": INTERNAL_REFLECTIONS if refractive else 0},
+        }
+        for k in range(copies):
+            scene_dict[f"slab{k}"] = {
+                "type": "cube",
+                "to_world": T().translate([0.0, k * self.spacing, -0.5 * d]).scale([hw, hw, 0.5 * d]),
+                "bsdf": {"type": "ref", "id": "boundary"},
+                "interior": {"type": "ref", "id": "medium"},
+            }
+        self.scene = mi.load_dict(scene_dict)
+        beam = [e for e in self.scene.emitters()][0]
+        beam.set_profile(model.beam_profile)
+        self.params = mi.traverse(self.scene)
+        keys = list(self.params.keys())
+
+        def key(suffix: str) -> str:
+            hits = [k for k in keys if k.endswith(suffix)]
+            if not hits:
+                raise RuntimeError(f"scene parameter *{suffix} not found among {keys}")
+            return hits[0]
+
+        self.k_sigma_t = key("sigma_t.value.value")
+        self.k_albedo = key("albedo.value.value")
+        # Mitsuba may merge the copies into one mesh: scale whatever meshes there are.
+        self.k_vertices = [k for k in keys if k.endswith("vertex_positions")]
+        self.base_vertices = [np.array(self.params[k], dtype=np.float64) for k in self.k_vertices]
+        self.thickness = d
+        if model.phase == "tthg":
+            self.k_phase = {
+                "weight": key("phase_function.weight.value.value"),
+                "g0": key("phase_function.phase_0.g"),
+                "g1": key("phase_function.phase_1.g"),
+            }
+        elif model.phase == "hg":
+            self.k_phase = {"g": key("phase_function.g")}
+        else:
+            self.k_phase = {n: key(f"phase_function.{n.split('.')[1]}") for n in model.specs
+                            if n.startswith("phase.b")}
+        self.k_beam = {n: key(f"beam.{n}") for n in ("angle_deg", "eta", "thickness", "sigma_t",
+                                                     "halo_fraction", "halo_sigma_mm")}
+        self.eta = 1.5
+        self.k_eta = key("eta") if refractive else None
+        self.sensors: dict[PixelWindow, Any] = {}
+
+    def sensor(self, window: PixelWindow) -> Any:
+        """Batch sensor: copy k's orthographic camera sees the window on slab copy k."""
+        s = self.sensors.get(window)
+        if s is None:
+            mi = self.model.mi
+            T = mi.ScalarTransform4f
+            g = self.model.geometry
+            p = g.pixel_mm
+            x, y = g.window_center_mm(window)
+            z = 10.0 + 2.0 * g.thickness_mm
+            half = 0.5 * window.width * p  # the film spans [-1, 1] in x, [-1/aspect, 1/aspect] in y
+            film = {"type": "hdrfilm", "width": window.width, "height": window.height,
+                    "rfilter": {"type": "box"}, "pixel_format": "luminance", "sample_border": False}
+            subs = {}
+            for k in range(self.copies):
+                yk = y + k * self.spacing
+                subs[f"cam{k:03d}"] = {
+                    "type": "orthographic", "near_clip": 1e-3, "far_clip": 1e4,
+                    "to_world": T().look_at([x, yk, z], [x, yk, 0.0], [0.0, 1.0, 0.0]).scale([half, half, 1.0]),
+                    "film": dict(film),
+                }
+            batch_film = dict(film)
+            batch_film["width"] = window.width * self.copies
+            s = mi.load_dict({"type": "batch", "film": batch_film,
+                              "sampler": {"type": "independent", "sample_count": 1}, **subs})
+            self.sensors[window] = s
+        return s
+
+    def _set_thickness(self, d: float) -> None:
+        if d == self.thickness:
+            return
+        scale = d / self.model.geometry.thickness_mm
+        for k, base in zip(self.k_vertices, self.base_vertices):
+            v = base.reshape(-1, 3).copy()
+            v[:, 2] *= scale  # the front face z = 0 stays, the back face moves to -d
+            self.params[k] = self.model.mi.Float(v.ravel().astype(np.float32))
+        self.thickness = d
+
+    def assign(self, values: Mapping[str, float], leaves: Mapping[str, Any],
+               angles: Sequence[float], band_x: float) -> None:
+        """Write one render's parameters (fresh AD expressions each time, so the graph
+        from the leaves survives earlier adjoint passes)."""
+        model = self.model
+        dr = model.dr
+        mi = model.mi
+
+        def val(name: str) -> Any:
+            if name in leaves:
+                return leaves[name]
+            return dr.opaque(mi.Float, values[name])
+
+        sigma_t = val("sigma_t")
+        if "filter_bandwidth" in model.extensions:
+            sigma_t = sigma_t * (1.0 + val("filter_bandwidth.spread") * band_x)
+        else:
+            sigma_t = sigma_t * 1.0
+        p = self.params
+        p[self.k_sigma_t] = sigma_t
+        p[self.k_albedo] = val("albedo") * 1.0
+        if model.phase == "tthg":
+            p[self.k_phase["weight"]] = 1.0 - val("phase.w_forward")
+            p[self.k_phase["g0"]] = val("phase.g_forward") * 1.0
+            p[self.k_phase["g1"]] = val("phase.g_backward") * 1.0
+        elif model.phase == "hg":
+            p[self.k_phase["g"]] = val("phase.g") * 1.0
+        else:
+            for name, k in self.k_phase.items():
+                p[k] = val(name) * 1.0
+                p.set_dirty(k)  # recompute the normalisation from the new b's
+        delta = values.get("angle_offset.delta_deg", 0.0)
+        e = values.get("thickness_error.e", 0.0)
+        n = values.get("refractive_boundary.n", 1.0)
+        d = model.geometry.thickness_mm * (1.0 + e)
+        if self.k_eta is not None and n != self.eta:
+            p[self.k_eta] = float(n)
+            self.eta = n
+        self._set_thickness(d)
+        kb = self.k_beam
+        a = [float(x) + delta for x in angles]
+        a += [a[-1]] * (self.copies - len(a))
+        angle_arr = mi.Float(a)
+        dr.make_opaque(angle_arr)
+        p[kb["angle_deg"]] = angle_arr
+        p[kb["eta"]] = dr.opaque(mi.Float, n)
+        p[kb["thickness"]] = dr.opaque(mi.Float, d)
+        p[kb["sigma_t"]] = sigma_t
+        if "beam_halo" in model.extensions:
+            p[kb["halo_fraction"]] = val("beam_halo.fraction") * 1.0
+            p[kb["halo_sigma_mm"]] = val("beam_halo.sigma_mm") * 1.0
+        p.update()

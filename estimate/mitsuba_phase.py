@@ -6,9 +6,13 @@ exp(sum b_i mu^i) dmu) fixed by normalisation over the sphere. The normalisation
 computed in Dr.Jit from the b's each time they change, so it is part of the
 differentiated computation (detaching it gives wrong, even sign-flipped, gradients).
 
-Sampling draws mu from a piecewise-linear table of p on nodes clustered at mu = +-1
-(uniform in the scattering angle, good for peaked lobes) and returns the weight
-exact / table-pdf, which keeps the estimator unbiased whatever the table's error.
+Sampling inverts a tabulated CDF: the inverse CDF is tabulated at `_INV_CDF_SIZE` equally
+spaced probabilities (computed in numpy, detached, each time the b's change) and
+interpolated linearly, so a sample costs two gathers (no binary search) and its density
+is exactly the piecewise-constant 1 / ((K - 1) (mu_{i+1} - mu_i)). The weight is
+exact value / that density, which keeps the estimator unbiased whatever the table's
+error. `eval_pdf` reports the exact phase value as the pdf: it only enters multiple
+importance sampling weights against area emitters, and the rig's beam is a delta emitter.
 
 Mitsuba's convention: ``mi.wi`` points back towards where the light came from, so the
 scattering cosine is mu = -dot(wo, wi).
@@ -37,8 +41,10 @@ __all__ = [
 PLUGIN_NAME = "exponential_phase"
 #: Simpson nodes in the scattering angle for b_0 (odd); 1025 keeps b_0 to ~1e-7 for b_1 ~ 300.
 _NORM_NODES = 1025
-#: Nodes of the sampling table.
-_TABLE_NODES = 1025
+#: Entries of the tabulated inverse CDF.
+_INV_CDF_SIZE = 2048
+#: Nodes (in the scattering angle) of the numpy CDF that is inverted.
+_CDF_NODES = 16385
 #: |b_i| above this overflows float32 in exp(); refuse rather than render NaNs.
 MAX_ABS_B = 1000.0
 
@@ -58,6 +64,26 @@ def exp_normalisation_nodes(n: int = _NORM_NODES) -> tuple[np.ndarray, np.ndarra
     simpson[2:-1:2] = 2.0
     weights = simpson * h / 3.0 * np.sin(theta)
     return np.cos(theta), weights
+
+
+def inverse_cdf_table(b: Sequence[float], size: int = _INV_CDF_SIZE) -> np.ndarray:
+    """mu at probabilities 0, 1/(size-1), ..., 1 of exp(sum b_i mu^i) (increasing)."""
+    theta = np.linspace(math.pi, 0.0, _CDF_NODES)
+    mu = np.cos(theta)
+    poly = np.zeros_like(mu)
+    for bi in reversed(list(b)):
+        poly = (poly + bi) * mu
+    w = np.exp(poly - poly.max())
+    # Trapezoid CDF in mu; the theta-uniform nodes resolve peaks at mu = +-1.
+    seg = 0.5 * (w[1:] + w[:-1]) * np.diff(mu)
+    cdf = np.concatenate(([0.0], np.cumsum(seg)))
+    cdf /= cdf[-1]
+    u = np.linspace(0.0, 1.0, size)
+    # Invert the piecewise-linear-density CDF segment by segment (linear in mu is enough
+    # at this resolution).
+    table = np.interp(u, cdf, mu)
+    table[0], table[-1] = -1.0, 1.0
+    return table
 
 
 def _check_b(b: Sequence[float]) -> list[float]:
@@ -100,7 +126,6 @@ def tthg_phase_dict(g_forward: float, g_backward: float, w_forward: float) -> di
 def _make_plugin_class(mi: Any, dr: Any) -> type:
     """Build the plugin class for the current variant (Mitsuba types are per variant)."""
     mu_np, w_np = exp_normalisation_nodes()
-    table_mu_np = np.cos(np.linspace(math.pi, 0.0, _TABLE_NODES))  # increasing
 
     class ExponentialPhaseFunction(mi.PhaseFunction):
         """exp(b_0 + sum b_i mu^i); parameters 'b1'..'bM' differentiable."""
@@ -116,7 +141,6 @@ def _make_plugin_class(mi: Any, dr: Any) -> type:
             self.m_flags = mi.PhaseFunctionFlags.Anisotropic
             self._norm_mu = mi.Float(mu_np)
             self._norm_w = mi.Float(w_np)
-            self._table_mu = mi.Float(table_mu_np)
             self._update()
 
         # --- parameters -------------------------------------------------------
@@ -144,13 +168,10 @@ def _make_plugin_class(mi: Any, dr: Any) -> type:
             z = dr.sum(self._norm_w * dr.exp(poly - m))
             self.log_norm = m + dr.log(z) + math.log(2.0 * math.pi)
             dr.make_opaque(self.log_norm)
-            # Sampling table (detached: it only shapes the importance sampling).
-            with dr.suspend_grad():
-                tpoly = self._poly(self._table_mu)
-                tm = dr.max(tpoly)
-                tpdf = dr.exp(tpoly - tm)
-                dr.eval(tpdf)
-                self.table = mi.IrregularContinuousDistribution(mi.Float(self._table_mu), tpdf)
+            # Inverse-CDF table (detached: it only shapes the importance sampling).
+            coeffs = [float(dr.detach(bi)[0]) for bi in self.b]
+            self.inv_cdf = mi.Float(inverse_cdf_table(coeffs).astype(np.float32))
+            dr.make_opaque(self.inv_cdf)
 
         @property
         def b0(self) -> float:
@@ -162,22 +183,25 @@ def _make_plugin_class(mi: Any, dr: Any) -> type:
             return dr.exp(self._poly(mu) - self.log_norm)
 
         def eval_pdf(self, ctx: Any, mei: Any, wo: Any, active: Any = True) -> tuple[Any, Any]:
-            mu = -dr.dot(wo, mei.wi)
-            mu = dr.clip(mu, -1.0, 1.0)
-            value = self._value(mu)
-            pdf = self.table.eval_pdf_normalized(dr.detach(mu), active) * (0.5 / math.pi)
-            return mi.Spectrum(dr.select(active, value, 0.0)), dr.select(active, pdf, 0.0)
+            mu = dr.clip(-dr.dot(wo, mei.wi), -1.0, 1.0)
+            value = dr.select(active, self._value(mu), 0.0)
+            return mi.Spectrum(value), dr.detach(value)
 
         def sample(self, ctx: Any, mei: Any, sample1: Any, sample2: Any, active: Any = True) -> tuple[Any, Any, Any]:
-            mu = dr.clip(self.table.sample(sample2.x, active), -1.0, 1.0)
-            pdf = self.table.eval_pdf_normalized(mu, active) * (0.5 / math.pi)
+            k = _INV_CDF_SIZE - 1
+            x = dr.clip(sample2.x, 0.0, 1.0) * k
+            i = mi.UInt32(dr.clip(dr.floor(x), 0, k - 1))
+            f = x - mi.Float(i)
+            mu0 = dr.gather(mi.Float, self.inv_cdf, i, active)
+            mu1 = dr.gather(mi.Float, self.inv_cdf, i + 1, active)
+            mu = dr.clip(dr.lerp(mu0, mu1, f), -1.0, 1.0)
+            pdf = dr.rcp(k * dr.maximum(mu1 - mu0, 1e-7) * (2.0 * math.pi))
             sin_t = dr.safe_sqrt(1.0 - mu * mu)
             s, c = dr.sincos(2.0 * math.pi * sample2.y)
-            local = mi.Vector3f(sin_t * c, sin_t * s, mu)
-            wo = mi.Frame3f(-mei.wi).to_world(local)
+            wo = mi.Frame3f(-mei.wi).to_world(mi.Vector3f(sin_t * c, sin_t * s, mu))
             value = self._value(mu)
             ok = active & (pdf > 0.0)
-            weight = dr.select(ok, value / dr.maximum(pdf, 1e-30), 0.0)
+            weight = dr.select(ok, value / pdf, 0.0)
             return wo, mi.Spectrum(weight), dr.select(ok, pdf, 0.0)
 
         def to_string(self) -> str:

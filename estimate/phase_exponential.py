@@ -78,23 +78,33 @@ def monomial_to_legendre(b: Sequence[float] | np.ndarray) -> np.ndarray:
     return np.asarray(_leg.poly2leg(b), dtype=float)[: b.size]
 
 
+@lru_cache(maxsize=32)
+def _leg2mono_matrix(n: int) -> np.ndarray:
+    """Matrix T (n x n) with monomial coefficients = T @ Legendre coefficients."""
+    t = np.zeros((n, n))
+    for j in range(n):
+        e = np.zeros(n)
+        e[j] = 1.0
+        col = np.asarray(_leg.leg2poly(e), dtype=float)
+        t[: col.size, j] = col
+    t.setflags(write=False)
+    return t
+
+
 def legendre_to_monomial(c: Sequence[float] | np.ndarray) -> np.ndarray:
     """Coefficients b_0..b_M with sum b_i mu^i == sum c_i P_i(mu) (full vectors)."""
     c = np.asarray(c, dtype=float)
     if c.size == 0:
         return c.copy()
-    out = np.zeros(c.size)
-    m = np.asarray(_leg.leg2poly(c), dtype=float)
-    out[: m.size] = m
-    return out
+    return _leg2mono_matrix(c.size) @ c
 
 
 def _full_monomial(coeffs: np.ndarray, basis: str) -> np.ndarray:
-    """[0, b_1, ..., b_M] in the monomial basis (b_0 left at 0)."""
+    """Monomial coefficients of sum_{i=1..M} b_i Q_i(mu) (b_0 excluded; in the Legendre
+    basis the constant term is not zero, e.g. P_2 = (3 mu^2 - 1)/2)."""
     full = np.concatenate([[0.0], coeffs])
     if basis == "legendre":
         full = legendre_to_monomial(full)
-        full[0] = 0.0  # P_0 = 1; the constant of the higher P_i stays in the exponent
     return full
 
 
@@ -148,7 +158,10 @@ def quadrature_nodes(
     its midpoint and both halves are graded geometrically towards their outer end.
     """
     _check_basis(basis)
-    mono = _full_monomial(_as_coeffs(coeffs), basis)
+    return _nodes_for(_full_monomial(_as_coeffs(coeffs), basis), n_nodes)
+
+
+def _nodes_for(mono: np.ndarray, n_nodes: int = _GL_NODES) -> tuple[np.ndarray, np.ndarray]:
     bp = _breakpoints(mono)
     t, wt = _graded_unit(n_nodes)
     mus, ws = [], []
@@ -188,7 +201,7 @@ def log_norm(coeffs: Sequence[float] | np.ndarray, basis: Basis = "monomial") ->
     if c.size == 0 or not np.any(c):
         return -math.log(4.0 * math.pi)
     mono = _full_monomial(c, basis)
-    mu, w = quadrature_nodes(c, basis)
+    mu, w = _nodes_for(mono)
     lse, _ = _logsumexp(_exponent(mono, mu), w)
     return -(math.log(2.0 * math.pi) + lse)
 
@@ -203,7 +216,7 @@ def log_norm_and_grad(
     if m == 0:
         return -math.log(4.0 * math.pi), np.zeros(0)
     mono = _full_monomial(c, basis)
-    mu, w = quadrature_nodes(c, basis)
+    mu, w = _nodes_for(mono)
     lse, pw = _logsumexp(_exponent(mono, mu), w)
     q = _basis_matrix(mu, m, basis)[:, 1:]
     return -(math.log(2.0 * math.pi) + lse), -(pw @ q)
@@ -238,7 +251,7 @@ class ExponentialPhase:
             raise ModelParameterError(
                 f"coefficients too large (max |b_i| = {np.max(np.abs(self._mono)):.3g} > 1e6)")
         self.b0: float = log_norm(self._c, basis)
-        self._mono[0] = self.b0
+        self._mono[0] += self.b0
         self._cdf_cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     # -- construction -------------------------------------------------------------------
