@@ -7,6 +7,7 @@ through ``serial.serial_for_url`` — no code patches ``serial.Serial``.
 
 from __future__ import annotations
 
+import termios
 import time
 
 import serial
@@ -80,8 +81,9 @@ class SerialLink:
         self._buf.clear()
         try:
             self._port.reset_input_buffer()
-        except (serial.SerialException, OSError):
-            pass
+        except (serial.SerialException, OSError, termios.error) as e:
+            # termios.error is what a vanished pty / USB adapter raises on flush
+            raise DeviceConnectionError(f"port {self.url} is gone: {e}", device=self.device) from None
 
     def close(self) -> None:
         try:
