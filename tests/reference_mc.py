@@ -21,7 +21,8 @@ Geometry and conventions (``/work/shared/DESIGN.md``; full notes in ``docs/refer
 * Beam cross-section (plane perpendicular to v, unit total power): ``"disk"`` uniform of
   radius R, E = 1/(pi R^2); ``"gaussian"`` with 1/e^2 radius R, E = 2/(pi R^2) exp(-2 r^2/R^2).
 * Pixels: ``n_pixels`` of pitch ``pixel_pitch_mm`` centred on x = 0 (see :func:`pixel_centers`),
-  each integrating x over its pitch and y over [-h/2, h/2] with h = ``row_height_mm``.
+  each integrating x over its pitch and y over [c - h/2, c + h/2] with h = ``row_height_mm``
+  and c = ``row_center_mm`` (default 0).
 * Output: average radiance over each pixel footprint leaving the front face toward +z, in air,
   in W / (mm^2 sr) per W of beam power (i.e. 1/(mm^2 sr)). This is what an orthographic
   camera with a box filter measures, given an emitter of unit power.
@@ -175,34 +176,35 @@ def pixel_centers(n_pixels: int, pixel_pitch_mm: float) -> np.ndarray:
     return (np.arange(n_pixels) - 0.5 * (n_pixels - 1)) * pixel_pitch_mm
 
 
-def beam_strip_power(u1: np.ndarray, u2: np.ndarray, beam_radius_mm: float, half_height_mm: float,
-                     beam_profile: str) -> np.ndarray:
-    """Power of a unit-power beam through the cross-section rectangle [u1,u2] x [-a,a] (a = half height).
+def beam_rect_power(u1: np.ndarray, u2: np.ndarray, y1: np.ndarray, y2: np.ndarray, beam_radius_mm: float,
+                    beam_profile: str) -> np.ndarray:
+    """Power of a unit-power beam through the cross-section rectangle [u1, u2] x [y1, y2] (mm).
 
-    u is the in-plane cross-section coordinate, y the one along the rotation axis.
+    u is the cross-section coordinate in the plane of incidence, y the one along the rotation
+    axis (world y). Closed forms: erf for the Gaussian, disk-quadrant areas for the disk.
     """
     r = beam_radius_mm
-    a = half_height_mm
-    u1 = np.asarray(u1, dtype=float)
-    u2 = np.asarray(u2, dtype=float)
+    u1, u2, y1, y2 = (np.asarray(a, dtype=float) for a in (u1, u2, y1, y2))
     if beam_profile == "gaussian":
         from scipy.special import erf
 
-        s = r / 2.0  # 1/e^2 radius R -> standard deviation R/2
-        return 0.5 * (erf(u2 / (s * np.sqrt(2))) - erf(u1 / (s * np.sqrt(2)))) * erf(a / (s * np.sqrt(2)))
+        k = 1.0 / (np.sqrt(2.0) * r / 2.0)  # 1/e^2 radius R -> standard deviation R/2
+        return 0.25 * (erf(u2 * k) - erf(u1 * k)) * (erf(y2 * k) - erf(y1 * k))
     if beam_profile == "disk":
-        def g(t: np.ndarray) -> np.ndarray:  # antiderivative of 2 sqrt(R^2 - t^2)
+        def g(t: np.ndarray) -> np.ndarray:  # antiderivative of the chord 2 sqrt(R^2 - t^2)
             return t * np.sqrt(np.clip(r * r - t * t, 0.0, None)) + r * r * np.arcsin(np.clip(t / r, -1, 1))
 
-        ta = np.sqrt(max(r * r - a * a, 0.0))  # |t| > ta: the chord is shorter than the strip
+        def quadrant(u: np.ndarray, y: np.ndarray) -> np.ndarray:  # area of the disk with t < u, s < y
+            u = np.clip(u, -r, r)
+            yc = np.clip(y, -r, r)
+            ty = np.sqrt(r * r - yc * yc)  # |t| < ty: the line s = y cuts the chord
+            um = np.clip(u, -ty, ty)
+            middle = 0.5 * (g(um) - g(-ty)) + yc * (um + ty)
+            outer = g(np.clip(u, -r, -ty)) - g(-r) + g(np.clip(u, ty, r)) - g(ty)
+            return middle + np.where(yc >= 0, outer, 0.0)
 
-        def cum(t: np.ndarray) -> np.ndarray:  # int_{-R}^{t} 2 min(sqrt(R^2-t'^2), a) dt'
-            t = np.clip(t, -r, r)
-            return (g(np.clip(t, -r, -ta)) - g(-r)
-                    + 2.0 * min(a, r) * (np.clip(t, -ta, ta) + ta)
-                    + g(np.clip(t, ta, r)) - g(ta))
-
-        return (cum(u2) - cum(u1)) / (np.pi * r * r)
+        area = quadrant(u2, y2) - quadrant(u1, y2) - quadrant(u2, y1) + quadrant(u1, y1)
+        return area / (np.pi * r * r)
     raise ValueError(f"beam_profile must be one of {BEAM_PROFILES}, got {beam_profile!r}")
 
 
@@ -225,9 +227,9 @@ def _sample_beam_u(rng: np.random.Generator, n: int, beam_radius_mm: float,
     raise ValueError(f"beam_profile must be one of {BEAM_PROFILES}, got {beam_profile!r}")
 
 
-def _row_fraction(dy: np.ndarray, spread: np.ndarray, half_height_mm: float, beam_profile: str) -> np.ndarray:
-    """P(y0 + dy in [-h/2, h/2]) over the beam's entry y0 given u (spread from :func:`_sample_beam_u`)."""
-    lo, hi = -half_height_mm - dy, half_height_mm - dy
+def _row_fraction(dy: np.ndarray, spread: np.ndarray, y1: float, y2: float, beam_profile: str) -> np.ndarray:
+    """P(y0 + dy in [y1, y2]) over the beam's entry y0 given u (spread from :func:`_sample_beam_u`)."""
+    lo, hi = y1 - dy, y2 - dy
     if beam_profile == "gaussian":
         from scipy.special import erf
 
@@ -316,6 +318,7 @@ def single_scattering_profile(
     beam_profile: str = "gaussian",
     n_depth: int = 256,
     max_beam_passes: int | None = None,
+    row_center_mm: float = 0.0,
 ) -> np.ndarray:
     """First-order scattered radiance toward +z, pixel-averaged, per unit beam power.
 
@@ -327,7 +330,7 @@ def single_scattering_profile(
     too), and the exit factors of :func:`_normal_exit_factors`. For n_index = 1 these reduce to
     the plain index-matched formula. Exact for the single-scattered light; the whole profile
     only when sigma_t * d << 1. Depth integral: composite Gauss-Legendre with ``n_depth`` nodes
-    per pass; the pixel integral is analytic (:func:`beam_strip_power`). ``max_beam_passes``
+    per pass; the pixel integral is analytic (:func:`beam_rect_power`). ``max_beam_passes``
     keeps only the first passes of the beam through the slab (1: no internal reflection of the
     beam), for comparison with a model that truncates them; None keeps all.
 
@@ -362,9 +365,10 @@ def single_scattering_profile(
         x_axis = x_start + geo.sx * delta * geo.tan_t
         # beam power through the pixel column at this depth: footprint displacement xi on a
         # horizontal plane maps to the cross-section coordinate u = xi cos_i
-        strip = beam_strip_power((x1[None, :] - x_axis[:, None]) * geo.cos_i,
-                                 (x2[None, :] - x_axis[:, None]) * geo.cos_i,
-                                 beam_radius_mm, 0.5 * row_height_mm, beam_profile)
+        strip = beam_rect_power((x1[None, :] - x_axis[:, None]) * geo.cos_i,
+                                (x2[None, :] - x_axis[:, None]) * geo.cos_i,
+                                row_center_mm - 0.5 * row_height_mm, row_center_mm + 0.5 * row_height_mm,
+                                beam_radius_mm, beam_profile)
         # power through the column per unit length along the beam -> per unit depth: / cos_t
         atten = amp * np.exp(-sigma_t * delta / geo.cos_t)
         src = sigma_s * (phase_eval(np.array(uz)) * np.exp(-sigma_t * s)
@@ -479,6 +483,7 @@ def mc_slab_profile(
     max_scattering_order: int | None = None,
     max_beam_passes: int | None = None,
     escape_cone_deg: float | None = None,
+    row_center_mm: float = 0.0,
     batch_size: int = 50_000,
     roulette_weight: float = 1e-3,
     max_steps: int = 1_000_000,
@@ -506,7 +511,7 @@ def mc_slab_profile(
         phase_sample, phase_eval: the phase function (module docstring).
         phi_deg: stage angle, degrees.
         beam_radius_mm: disk radius or Gaussian 1/e^2 radius.
-        pixel_pitch_mm, n_pixels, row_height_mm: the camera row (centred on x = 0).
+        pixel_pitch_mm, n_pixels, row_height_mm: the camera row (pixels centred on x = 0).
         n_index: refractive index of the slab (1: index-matched, no Fresnel).
         n_photons: photon packets launched.
         seed: seed of the numpy generator.
@@ -517,6 +522,7 @@ def mc_slab_profile(
             None: no limit. Stopped weight is booked as ``unfinished``.
         escape_cone_deg: also bin photons escaping the front face within this cone of +z
             (:attr:`McStats.escape_profile`).
+        row_center_mm: world y of the row's centre (the row spans row_center_mm +- h/2).
 
     Returns:
         (profile, stderr, stats): radiance per pixel in W/(mm^2 sr) per W of beam power, its
@@ -531,7 +537,7 @@ def mc_slab_profile(
     d = thickness_mm
     k_exit, r0, _ = _normal_exit_factors(sigma_t, d, n_index)
     x_left = -0.5 * n_pixels * pixel_pitch_mm
-    half_h = 0.5 * row_height_mm
+    y1, y2 = row_center_mm - 0.5 * row_height_mm, row_center_mm + 0.5 * row_height_mm
     area = pixel_pitch_mm * row_height_mm
     cos_cone = np.cos(np.deg2rad(escape_cone_deg)) if escape_cone_deg is not None else 2.0
 
@@ -547,7 +553,7 @@ def mc_slab_profile(
         # y-invariant), so the row membership is scored by its expectation over y0 given u
         ix = np.floor((x - x_left) / pixel_pitch_mm).astype(np.int64)
         ok = (ix >= 0) & (ix < n_pixels)
-        frac = _row_fraction(dy[ok], spread[ok], half_h, beam_profile)
+        frac = _row_fraction(dy[ok], spread[ok], y1, y2, beam_profile)
         return ix, ok, frac
 
     done_total = 0

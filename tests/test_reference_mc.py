@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from reference_mc import (
-    beam_strip_power,
+    beam_rect_power,
     chandrasekhar_h,
     fresnel_amplitudes,
     fresnel_unpolarized,
@@ -76,18 +76,19 @@ def test_chandrasekhar_h_textbook() -> None:
 
 
 @pytest.mark.parametrize("profile", ["gaussian", "disk"])
-def test_beam_strip_power_against_grid(profile: str) -> None:
-    r, a = 0.3, 0.1
-    assert beam_strip_power(-2.0, 2.0, r, 2.0, profile) == pytest.approx(1.0, abs=1e-12)
+def test_beam_rect_power_against_grid(profile: str) -> None:
+    r = 0.3
+    assert beam_rect_power(-2.0, 2.0, -2.0, 2.0, r, profile) == pytest.approx(1.0, abs=1e-12)
     g = np.linspace(-1, 1, 4001)
     uu, yy = np.meshgrid(g, g, indexing="ij")
     rr2 = uu**2 + yy**2
     e = np.where(rr2 < r * r, 1 / (np.pi * r * r), 0.0) if profile == "disk" else \
         2 / (np.pi * r * r) * np.exp(-2 * rr2 / (r * r))
     cell = (g[1] - g[0]) ** 2
-    for u1, u2 in ((-0.05, 0.12), (0.2, 0.5), (-0.4, -0.25)):
-        grid = e[(uu >= u1) & (uu < u2) & (np.abs(yy) <= a)].sum() * cell
-        assert beam_strip_power(u1, u2, r, a, profile) == pytest.approx(grid, abs=2e-3)
+    for u1, u2, y1, y2 in ((-0.05, 0.12, -0.1, 0.1), (0.2, 0.5, -0.1, 0.1), (-0.4, -0.25, -0.04, 0.0),
+                           (-0.1, 0.3, 0.15, 0.25), (-0.5, 0.5, -0.25, -0.2), (0.1, 0.2, -0.5, 0.5)):
+        grid = e[(uu >= u1) & (uu < u2) & (yy >= y1) & (yy < y2)].sum() * cell
+        assert beam_rect_power(u1, u2, y1, y2, r, profile) == pytest.approx(grid, abs=2e-3)
 
 
 def test_hg_sampler_matches_its_density() -> None:
@@ -118,6 +119,20 @@ def test_single_scattering_integral_has_closed_form(profile: str, phi: float) ->
         k = 1 - 1 / c
         closed = ALB * p(np.array(mu)) / c * np.exp(-tau / c) * -np.expm1(-tau * k) / k
     assert prof.sum() * pitch * h == pytest.approx(float(closed), rel=1e-9)
+
+
+@pytest.mark.parametrize("profile", ["gaussian", "disk"])
+def test_off_centre_row_agrees_between_references(profile: str) -> None:
+    """A row spanning y in [-0.18, -0.12], near the beam's edge, in both references."""
+    p, ps = hg_eval(0.5), hg_sample(0.5)
+    geo = (150.0, 0.2, 0.05, 40, 0.06)
+    ref = single_scattering_profile(SIG, ALB, D, p, *geo, n_index=1.45, beam_profile=profile, row_center_mm=-0.15)
+    centred = single_scattering_profile(SIG, ALB, D, p, *geo, n_index=1.45, beam_profile=profile)
+    mc, err, _ = mc_slab_profile(SIG, ALB, D, ps, p, *geo, n_index=1.45, n_photons=100_000, seed=17,
+                                 beam_profile=profile, max_scattering_order=1, row_center_mm=-0.15)
+    total_err = np.sqrt(np.sum(err**2))
+    assert abs(centred.sum() - ref.sum()) > 5 * total_err
+    assert mc.sum() == pytest.approx(ref.sum(), abs=4 * total_err)
 
 
 def test_single_scattering_mirror_symmetry() -> None:
