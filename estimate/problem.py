@@ -1,0 +1,320 @@
+"""The estimation problem of one colour channel, read from a session.
+
+`load_problem(session_dir, channel)` extracts, for every captured stack of the channel, the
+line of pixels through the scattering spot (the beam's row, `geometry.profile_row` of the
+session manifest, else the calibrated beam centre), a window of `columns` pixels centred on
+the beam's column, with the HDR radiance (e-/s per pixel) and its variance ((e-/s)^2), and
+builds the `RigGeometry` and `BeamProfile` the forward model needs:
+
+* pixel pitch in object space: `geometry.pixel_pitch_mm` (else the calibration's), times the
+  ROI binning;
+* image centre: the calibrated beam centre `center_px` (full unbinned sensor pixels, the
+  rotation axis on the front face is imaged there at phi = 180 deg);
+* beam: the calibration's beam map of this channel (`beam_<f>.exr`, radiance e-/s per
+  unbinned pixel, window origin `origin_px`), converted to irradiance per mm^2.
+
+World angles phi (the plan's angles) are what the forward model calls angles.
+Shared by `rig estimate` and `rig diagnose`.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from estimate.beam import BeamProfile
+from estimate.errors import DataError
+from estimate.geometry import RigGeometry
+
+__all__ = ["Problem", "load_problem", "DEFAULT_COLUMNS", "session_channels"]
+
+#: Default width of the profile window (pixels of the ROI, i.e. binned pixels).
+DEFAULT_COLUMNS = 256
+
+
+@dataclass
+class Problem:
+    """Measured profiles of one channel and the rig model to explain them.
+
+    Attributes:
+        angles_deg: world angles phi of the stacks used (degrees), shape (N,).
+        x_mm: world x of the profile pixels' centres (mm), shape (W,).
+        measured: radiance (e-/s per pixel), shape (N, W).
+        variance: its variance ((e-/s)^2), shape (N, W); inf where unmeasured.
+        geometry: rig geometry whose profile window is exactly these pixels (in the
+            possibly binned pixel grid of the stacks).
+        beam: calibrated beam map of this channel.
+        channel: filter name.
+        wavelength_nm: centre wavelength of the filter (None if the rig config lacks it).
+        valid: bool (N, W): pixels measured (finite variance, mask 1) to use in a fit.
+        stack_ids: the stack id of each row.
+        session_path: the session directory.
+        missing: stack ids of the channel that were missing or corrupt (allow_partial only).
+    """
+
+    angles_deg: np.ndarray
+    x_mm: np.ndarray
+    measured: np.ndarray
+    variance: np.ndarray
+    geometry: RigGeometry
+    beam: BeamProfile
+    channel: str
+    wavelength_nm: float | None
+    valid: np.ndarray = field(default=None)  # type: ignore[assignment]
+    stack_ids: list[str] = field(default_factory=list)
+    session_path: str = ""
+    missing: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if self.valid is None:
+            self.valid = np.isfinite(self.variance) & np.isfinite(self.measured)
+
+    @property
+    def n_angles(self) -> int:
+        return int(self.measured.shape[0])
+
+    @property
+    def n_px(self) -> int:
+        return int(self.measured.shape[1])
+
+    def subset(self, angle_indices: Sequence[int]) -> "Problem":
+        """The same problem restricted to some angles (for diagnosis / cross-validation)."""
+        idx = list(angle_indices)
+        return Problem(self.angles_deg[idx], self.x_mm, self.measured[idx], self.variance[idx],
+                       self.geometry, self.beam, self.channel, self.wavelength_nm,
+                       self.valid[idx], [self.stack_ids[i] for i in idx], self.session_path,
+                       list(self.missing))
+
+
+def session_channels(session_dir: str | os.PathLike[str]) -> list[str]:
+    """The filter names of a session's plan."""
+    from capture.errors import SessionError
+    from capture.session import Session
+
+    try:
+        s = Session.open(session_dir)
+    except SessionError as e:
+        raise DataError(str(e)) from None
+    return list(s.plan.filters)
+
+
+def _pair(v: Any, name: str) -> tuple[float, float]:
+    try:
+        a, b = (float(x) for x in v)
+    except (TypeError, ValueError):
+        raise DataError(f"{name}={v!r} is not a pair of numbers") from None
+    return a, b
+
+
+def _beam_origin(img: Any, entry: dict[str, Any], path: Path) -> tuple[float, float]:
+    """Full-sensor pixel of the beam map's sample [0, 0] (attribute, metadata or YAML)."""
+    for src in (img.attributes, img.meta, entry):
+        if "origin_px" in src:
+            return _pair(src["origin_px"], f"{path.name} origin_px")
+        if "origin_px_x" in src and "origin_px_y" in src:
+            return float(src["origin_px_x"]), float(src["origin_px_y"])
+    raise DataError(f"beam map {path} does not say its origin_px")
+
+
+def _load_beam(session: Any, cal: dict[str, Any], channel: str, pitch_mm: float,
+               center_px: tuple[float, float]) -> BeamProfile:
+    from capture.exr_io import read_exr
+
+    filters = ((cal.get("beam") or {}).get("filters") or {})
+    entry = filters.get(channel)
+    if not isinstance(entry, dict) or "map" not in entry:
+        raise DataError(f"the calibration of {session.path} has no beam map for channel {channel!r}")
+    path = Path(session.calibration_dir) / str(entry["map"])
+    try:
+        img = read_exr(path)
+        rad = np.asarray(img["radiance"], dtype=np.float64)
+    except (OSError, KeyError, ValueError, RuntimeError) as e:
+        raise DataError(f"cannot read beam map {path}: {str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
+    x0, y0 = _beam_origin(img, entry, path)
+    if not np.all(np.isfinite(rad)):
+        raise DataError(f"beam map {path} holds NaN or infinite radiance")
+    # Dark-subtracted noise can dip below zero off the beam; the irradiance cannot.
+    rad = np.clip(rad, 0.0, None)
+    cx, cy = center_px
+    # Pixel centre (i, j) is at x = (i + 0.5 - cx) p, y = -(j + 0.5 - cy) p (estimate.geometry).
+    axis = (cx - 0.5 - x0, cy - 0.5 - y0)
+    return BeamProfile.from_camera_image(rad / pitch_mm ** 2, pitch_mm, axis)
+
+
+def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int | None = None, *,
+                 allow_partial: bool = False) -> Problem:
+    """Read the estimation problem of one channel from a session.
+
+    Args:
+        session_dir: the session directory.
+        channel: filter name (e.g. "r").
+        columns: width of the profile window in (binned) pixels, centred on the beam
+            column; None = DEFAULT_COLUMNS (clipped to the ROI).
+        allow_partial: proceed with the stacks that are there when some are missing
+            (pending or failing their checksum); otherwise refuse.
+
+    Raises:
+        DataError (one line): the session cannot be opened, unknown channel, no
+            calibration, missing or corrupt stacks (named), NaN or negative radiance
+            (stack and pixel named), too few usable stacks.
+    """
+    from capture.errors import SessionError
+    from capture.session import Session
+
+    try:
+        s = Session.open(session_dir)
+    except SessionError as e:
+        raise DataError(str(e)) from None
+    filters = list(s.plan.filters)
+    if channel not in filters:
+        raise DataError(f"unknown channel {channel!r}; the session has {', '.join(filters)}")
+    if s.calibration_dir is None:
+        raise DataError(f"{s.path} has no beam calibration; capture with --calibration CALDIR")
+    try:
+        cal = s.load_calibration()
+    except SessionError as e:
+        raise DataError(str(e)) from None
+
+    # Stacks: done and sound, else missing.
+    problems = s.verify()
+    bad_files = {p.split(" ", 1)[0] for p in problems}
+    cal_bad = [p for p in problems if p.startswith("calibration/")]
+    if cal_bad:
+        raise DataError(f"calibration of {s.path} is damaged: {cal_bad[0]}")
+    recs = [r for r in s.stacks() if r.key.filter == channel]
+    missing: list[str] = []
+    usable = []
+    for r in recs:
+        if not r.done:
+            missing.append(f"{r.id} (not captured)")
+        elif any(f.file in bad_files for f in r.files.values() if f.file.startswith("hdr/")):
+            missing.append(f"{r.id} (corrupt)")
+        else:
+            usable.append(r)
+    if missing and not allow_partial:
+        raise DataError(f"channel {channel!r}: {len(missing)} of {len(recs)} stacks missing or corrupt: "
+                        f"{', '.join(missing)}; use --allow-partial to estimate from the rest")
+    if len(usable) < 2:
+        raise DataError(f"channel {channel!r}: only {len(usable)} usable stack(s); need at least 2")
+
+    geo = dict(s.geometry() or {})
+    beam_cal = cal.get("beam") or {}
+    sensor = s.sensor()
+    sensor_w = int(getattr(sensor, "width", 0) or 512)
+    sensor_h = int(getattr(sensor, "height", 0) or 512)
+    pixel_um = float(getattr(sensor, "pixel_size_um", 0) or 20.0)
+    pitch = geo.get("pixel_pitch_mm", cal.get("pixel_pitch_mm"))
+    if pitch is None:
+        raise DataError(f"{s.path}: neither the session geometry nor the calibration gives pixel_pitch_mm")
+    pitch = float(pitch)
+    center = geo.get("center_px", beam_cal.get("center_px"))
+    cx, cy = _pair(center, "center_px") if center is not None else (sensor_w / 2.0, sensor_h / 2.0)
+    row = int(geo["profile_row"]) if geo.get("profile_row") is not None else int(round(cy))
+    thickness = float(geo.get("thickness_mm", 1.0))
+
+    beam = _load_beam(s, cal, channel, pitch, (cx, cy))
+
+    # Read the stacks: one row each.
+    angles: list[float] = []
+    meas_rows: list[np.ndarray] = []
+    var_rows: list[np.ndarray] = []
+    mask_rows: list[np.ndarray] = []
+    ids: list[str] = []
+    roi0: dict[str, int] | None = None
+    for r in usable:
+        try:
+            img = s.load_hdr(r.key)
+            rad = np.asarray(img["radiance"], dtype=np.float64)
+            var = np.asarray(img["variance"], dtype=np.float64)
+        except (SessionError, OSError, KeyError, ValueError, RuntimeError) as e:
+            if not allow_partial:
+                raise DataError(f"stack {r.id} of {s.path} is unreadable ({type(e).__name__}); "
+                                "use --allow-partial to estimate from the rest") from None
+            missing.append(f"{r.id} (unreadable)")
+            continue
+        mask = np.asarray(img.channels.get("mask", np.ones_like(rad)), dtype=np.float64)
+        roi = dict(r.info.get("roi") or geo.get("roi") or {})
+        roi = {"x": int(roi.get("x", 0)), "y": int(roi.get("y", 0)), "bin_x": int(roi.get("bin_x", 1)),
+               "bin_y": int(roi.get("bin_y", 1))}
+        if roi0 is None:
+            roi0 = roi
+        elif roi != roi0:
+            raise DataError(f"stack {r.id} has ROI {roi}, other stacks {roi0}; one window per channel is needed")
+        j = (row - roi["y"]) // roi["bin_y"]
+        if not 0 <= j < rad.shape[0]:
+            raise DataError(f"stack {r.id}: profile row {row} lies outside its ROI rows "
+                            f"{roi['y']}..{roi['y'] + rad.shape[0] * roi['bin_y'] - 1}")
+        angles.append(float(r.angle_deg))
+        meas_rows.append(rad[j])
+        var_rows.append(var[j])
+        mask_rows.append(mask[j])
+        ids.append(r.id)
+    if len(ids) < 2 or roi0 is None:
+        raise DataError(f"channel {channel!r}: only {len(ids)} readable stack(s); need at least 2")
+
+    # The profile window in the stacks' (binned) pixel grid.
+    bx, by = roi0["bin_x"], roi0["bin_y"]
+    n_cols = meas_rows[0].shape[0]
+    width = min(int(columns or DEFAULT_COLUMNS), n_cols)
+    if width < 2:
+        raise DataError(f"columns={columns!r}: need at least 2 pixels")
+    centre_col = (cx - roi0["x"]) / bx            # continuous ROI column of the beam axis
+    c0 = int(round(centre_col - width / 2.0))
+    c0 = max(0, min(n_cols - width, c0))
+    c1 = c0 + width
+    measured = np.stack([m[c0:c1] for m in meas_rows])
+    variance = np.stack([v[c0:c1] for v in var_rows])
+    mask = np.stack([m[c0:c1] for m in mask_rows])
+
+    bad = ~np.isfinite(measured)
+    if bad.any():
+        i, k = map(int, np.argwhere(bad)[0])
+        raise DataError(f"stack {ids[i]}: radiance is NaN or infinite at column {roi0['x'] + (c0 + k) * bx} "
+                        f"(row {row}); {int(bad.sum())} such pixel(s)")
+    # A dark-subtracted pixel may dip below zero by its noise; clearly negative is broken data.
+    sd = np.sqrt(np.where(np.isfinite(variance) & (variance >= 0), variance, 0.0))
+    neg = measured < -5.0 * sd - 1e-9
+    if neg.any():
+        i, k = map(int, np.argwhere(neg)[0])
+        raise DataError(f"stack {ids[i]}: negative radiance {measured[i, k]:.4g} e-/s at column "
+                        f"{roi0['x'] + (c0 + k) * bx} (row {row}); {int(neg.sum())} such pixel(s)")
+    if np.any(np.isnan(variance)) or np.any(variance < 0):
+        i, k = map(int, np.argwhere(np.isnan(variance) | (variance < 0))[0])
+        raise DataError(f"stack {ids[i]}: variance NaN or negative at column {roi0['x'] + (c0 + k) * bx}")
+    valid = np.isfinite(variance) & (mask > 0.5) & (variance > 0)
+
+    # Geometry in the stacks' pixel grid: a binned pixel is one bigger pixel; the ROI
+    # origin shifts the continuous centre coordinate.
+    sensor_cols = max(n_cols + (roi0["x"] // bx), int(math.ceil(sensor_w / bx)))
+    sensor_rows = int(math.ceil(sensor_h / by))
+    g_cx = (cx - roi0["x"]) / bx + roi0["x"] / bx
+    g_cy = cy / by
+    magnification = pixel_um * 1e-3 / pitch
+    geometry = RigGeometry(
+        thickness_mm=thickness,
+        sensor_px=(sensor_cols, sensor_rows),
+        pixel_um=pixel_um * bx,
+        magnification=magnification,
+        image_center_px=(g_cx, g_cy),
+        profile_row=min(sensor_rows - 1, row // by),
+        profile_columns=(roi0["x"] // bx + c0, roi0["x"] // bx + c1),
+    )
+    x_mm = np.asarray(geometry.pixel_x_mm(geometry.profile_window()))
+    wl = None
+    try:
+        wl_map = (s.rig_config.get("filter") or {}).get("wavelengths_nm") or {}
+        if channel in wl_map:
+            wl = float(wl_map[channel])
+    except AttributeError:
+        wl = None
+    order = np.argsort(angles, kind="stable")
+    return Problem(
+        angles_deg=np.asarray(angles)[order], x_mm=x_mm, measured=measured[order],
+        variance=variance[order], geometry=geometry, beam=beam, channel=channel, wavelength_nm=wl,
+        valid=valid[order], stack_ids=[ids[i] for i in order], session_path=str(s.path), missing=missing,
+    )

@@ -1,0 +1,103 @@
+"""Small synthetic sessions for the estimation tests and benchmarks.
+
+A session (capture.session format) whose HDR stacks hold profiles rendered by the forward
+model at known parameters, times a known scale, plus Poisson-like sensor noise, and a
+calibration directory with a Gaussian beam map. Test data, not the simulated bench.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+import yaml
+
+from capture.exr_io import read_exr, write_exr
+from capture.hdr import HdrResult, NoiseModel
+from capture.plan import CapturePlan, StackKey
+from capture.session import Session
+from drivers.interfaces import ROI, Frame, SensorInfo
+
+SENSOR = SensorInfo("synthetic", 512, 512, 20.0, 1.5, 100.0, 10.0, 100000.0, 65535, 0.1)
+PITCH_MM = 0.020 / 0.3
+CENTER_PX = (256.3, 255.6)
+PROFILE_ROW = 256
+ROI_ROWS = (252, 8)
+
+
+def write_calibration(caldir: Path, filters: Sequence[str], beam_sigma_mm: float = 0.25,
+                      power: float = 1.0e6) -> Path:
+    """A calibration directory with a Gaussian beam map per filter (e-/s per pixel)."""
+    caldir.mkdir(parents=True, exist_ok=True)
+    n = 24
+    x0 = int(round(CENTER_PX[0])) - n // 2
+    y0 = int(round(CENTER_PX[1])) - n // 2
+    jj, ii = np.mgrid[0:n, 0:n]
+    xm = (x0 + ii + 0.5 - CENTER_PX[0]) * PITCH_MM
+    ym = -(y0 + jj + 0.5 - CENTER_PX[1]) * PITCH_MM
+    img = np.exp(-(xm ** 2 + ym ** 2) / (2 * beam_sigma_mm ** 2))
+    img *= power / img.sum()
+    entries = {}
+    for f in filters:
+        write_exr(caldir / f"beam_{f}.exr", {"radiance": img, "variance": img * 0.01},
+                  meta={"origin_px": [x0, y0]})
+        entries[f] = {"map": f"beam_{f}.exr", "power_e_per_s": float(power), "relative_power": 1.0,
+                      "centroid_mm": [0.0, 0.0], "width_mm": [beam_sigma_mm, beam_sigma_mm]}
+    cal = {"format": "rig-calibration/1", "rotation_zero_deg": 180.0, "rotation_zero_uncertainty_deg": 0.01,
+           "pixel_pitch_mm": PITCH_MM, "beam": {"center_px": list(CENTER_PX), "filters": entries}}
+    (caldir / "calibration.yaml").write_text(yaml.safe_dump(cal), encoding="utf-8")
+    return caldir
+
+
+def make_session(path: Path, truth: Mapping[str, Mapping[str, float]], *, angles: Sequence[float],
+                 phase: str = "exp3", scale: float = 5.0e3, spp: int = 2048, seed: int = 0,
+                 noise: bool = True, width: int = 512, skip: Sequence[str] = (),
+                 calibration: bool = True) -> Path:
+    """Write a session whose channel f holds profiles of `truth[f]` (ForwardModel parameters).
+
+    `skip` lists stack ids left pending. Returns the session path.
+    """
+    from estimate.beam import BeamProfile
+    from estimate.forward import ForwardModel
+    from estimate.geometry import RigGeometry
+
+    filters = tuple(truth)
+    caldir = write_calibration(path.parent / (path.name + "_cal"), filters)
+    plan = CapturePlan(angles_deg=tuple(float(a) for a in angles), filters=filters,
+                       n_front=sum(1 for a in angles if a < 90))
+    roi = {"x": 0, "y": ROI_ROWS[0], "width": width, "height": ROI_ROWS[1], "bin_x": 1, "bin_y": 1}
+    geometry = {"thickness_mm": 1.0, "pixel_pitch_mm": PITCH_MM, "magnification": 0.3,
+                "center_px": list(CENTER_PX), "profile_row": PROFILE_ROW, "roi": roi}
+    s = Session.create(path, plan=plan, frame_shape=(ROI_ROWS[1], width),
+                       rig_config={"filter": {"wavelengths_nm": {"r": 630.0, "g": 530.0, "b": 465.0}}},
+                       devices={"stage": "synthetic", "camera": "synthetic", "filter": "synthetic"},
+                       sensor=SENSOR, noise=NoiseModel.from_sensor(SENSOR), geometry=geometry,
+                       calibration=caldir if calibration else None)
+    rng = np.random.default_rng(seed)
+    with s:
+        for f in filters:
+            img = np.asarray(read_exr(path.parent / (path.name + "_cal") / f"beam_{f}.exr")["radiance"], dtype=float)
+            beam = BeamProfile.from_camera_image(
+                img / PITCH_MM ** 2, PITCH_MM,
+                (CENTER_PX[0] - 0.5 - (int(round(CENTER_PX[0])) - 12),
+                 CENTER_PX[1] - 0.5 - (int(round(CENTER_PX[1])) - 12)))
+            geo = RigGeometry(thickness_mm=1.0, magnification=0.3, image_center_px=CENTER_PX,
+                              profile_row=PROFILE_ROW, profile_columns=(0, width))
+            fm = ForwardModel(geo, beam, phase=phase)
+            prof = fm.render_profiles(dict(truth[f]), list(angles), spp=spp, seed=seed + 1000) * scale
+            t_exp = 1.0  # s: the variance of an e-/s estimate from one exposure of t seconds
+            for k, a in enumerate(angles):
+                key = StackKey(k, f)
+                if key.id in skip:
+                    continue
+                lam = np.clip(prof[k], 0, None)
+                var = (lam * t_exp + SENSOR.read_noise_e ** 2) / t_exp ** 2
+                row = lam + (rng.normal(0.0, np.sqrt(var)) if noise else 0.0)
+                band = np.repeat(row[None, :], ROI_ROWS[1], axis=0).astype(np.float32)
+                vband = np.repeat(var[None, :], ROI_ROWS[1], axis=0).astype(np.float32)
+                frames = [Frame(np.zeros((ROI_ROWS[1], width), np.uint16), t_exp, False, -20.0, 0.0, t_exp,
+                                ROI(0, ROI_ROWS[0], width, ROI_ROWS[1]))]
+                hdr = HdrResult(band, vband, np.ones(band.shape, bool), np.ones(band.shape, np.uint8))
+                s.write_stack(key, frames=frames, hdr=hdr, info={"roi": roi})
+    return path
