@@ -236,7 +236,11 @@ def acquire_bracket(camera: Camera, policy: BracketPolicy, noise: NoiseModel) ->
 def acquire_darks(camera: Camera, exposures_s: Sequence[float], n_darks: int) -> list[Frame]:
     """Take ``n_darks`` shutter-closed frames at each distinct exposure time (sorted, shortest first)."""
     frames: list[Frame] = []
+    lo = float(camera.exposure_range_s[0])
     for t in sorted(set(float(x) for x in exposures_s)):
+        # ``t`` is a light frame's *actual* exposure, which the camera's timer may have
+        # quantised below its shortest request (Alta: floor(t / 2.56 us) ticks, so a
+        # 10 us request runs 7.68 us); asking for the shortest again repeats those ticks.
         for _ in range(n_darks):
-            frames.append(camera.expose(t, dark=True))
+            frames.append(camera.expose(max(t, lo), dark=True))
     return frames
