@@ -44,10 +44,10 @@ Basis = Literal["monomial", "legendre"]
 _BASES = ("monomial", "legendre")
 
 #: Gauss-Legendre nodes per panel.
-_GL_NODES = 20
-#: Ratio of successive panel widths towards a maximum; 0.5 keeps each panel's exponent
+_GL_NODES = 12
+#: Ratio of successive panel widths towards a maximum; 0.35 keeps each panel's exponent
 #: change bounded by about its own distance from the peak.
-_GRADING = 0.5
+_GRADING = 0.35
 #: Smallest panel, relative to the half-segment it grades (covers peaks down to ~1e-13).
 _SMALLEST = 1e-13
 

@@ -335,11 +335,14 @@ def _fit_tthg(mu: np.ndarray, y: np.ndarray) -> FitResult:
         g1, g2, w = (float(np.clip(v[i], *bounds[i])) for i in range(3))
         return sad(_tthg_log(mu, g1, g2, w), y)
 
-    starts = [np.array([g1, g2, w]) for g1 in (0.2, 0.5, 0.8, 0.9, 0.97, 0.99, 0.997, 0.9995)
-              for g2 in (-0.05, -0.3, -0.6, -0.9) for w in (0.5, 0.8, 0.95, 0.995)]
+    starts = [np.array([g1, g2, w]) for g1 in (0.3, 0.7, 0.9, 0.97, 0.99, 0.998)
+              for g2 in (-0.1, -0.4, -0.8) for w in (0.6, 0.9, 0.99)]
+    hg = _fit_hg(mu, y).params["g"]          # the one-lobe optimum is a two-term start (w = 1)
+    if hg >= 0:
+        starts.append(np.array([hg, -0.3, 1.0]))
     vals = np.array([f(s) for s in starts])
     best_v, best_f = None, math.inf
-    for k in np.argsort(vals)[:4]:
+    for k in np.argsort(vals)[:3]:
         res = optimize.minimize(f, starts[k], method="Nelder-Mead", bounds=bounds,
                                 options={"xatol": 1e-9, "fatol": 1e-10, "maxiter": 3000, "maxfev": 3000})
         v, fv = (res.x, float(res.fun)) if res.fun < vals[k] else (starts[k], float(vals[k]))
