@@ -21,13 +21,13 @@ the cross-section is R cos_t / cos_i by R and the perpendicular irradiance is
 (1 - F(theta_i)) E cos_i / cos_t. The shadow ray stops at the face (no boundary crossing,
 which a `dielectric` would block), its medium attenuation is computed by the integrator.
 The beam's internal reflections between the faces are included as `reflections` image
-beams (unfolded straight lines), each chosen with probability 1/(reflections + 1), with
-the Fresnel reflectance F(theta_t) per bounce and the analytic attenuation of the
-completed passes exp(-sigma_t d / cos_t) each.
+beams (unfolded straight lines) with the Fresnel reflectance F(theta_t) per bounce and the
+analytic attenuation of the completed passes exp(-sigma_t d / cos_t) each; each
+next-event sample picks one image with probability proportional to that weight.
 
-Several slab copies side by side along y (spacing `spacing_mm`, copy k centred at
-y = k * spacing) can be lit at different angles `angle_deg[k]` in one render: the emitter
-finds a point's copy from its y. This renders all stage angles in one kernel launch.
+Several stage angles `angle_deg[k]` can be rendered in one launch: a path carries the
+index k of its sub-camera in its time (`estimate.mitsuba_integrator`) and the emitter
+lights it with the k-th angle.
 
 The optional halo (extension `beam_halo`) adds a Gaussian of relative power
 `halo_fraction` and standard deviation `halo_sigma_mm` around the map's centroid.
@@ -123,6 +123,20 @@ class BeamProfile:
         inside = (uu ** 2 + vv ** 2 <= radius_mm ** 2).mean(axis=(2, 3))
         return cls.centered(inside * irradiance, pitch, center_uv_mm)
 
+    @classmethod
+    def gaussian(cls, radius_mm: float, power: float = 1.0, pitch_mm: float | None = None,
+                 center_uv_mm: tuple[float, float] = (0.0, 0.0)) -> "BeamProfile":
+        """Gaussian beam of 1/e^2 radius `radius_mm` and total `power`:
+        E = 2 P / (pi R^2) exp(-2 r^2 / R^2), sampled to 3 R."""
+        if not (math.isfinite(radius_mm) and radius_mm > 0):
+            raise ModelParameterError(f"beam radius_mm={radius_mm!r} must be > 0")
+        pitch = pitch_mm or radius_mm / 16.0
+        n = int(math.ceil(3.0 * radius_mm / pitch))
+        c = np.arange(-n, n + 1) * pitch
+        r2 = c[None, :] ** 2 + c[:, None] ** 2
+        e = 2.0 * power / (math.pi * radius_mm ** 2) * np.exp(-2.0 * r2 / radius_mm ** 2)
+        return cls.centered(e, pitch, center_uv_mm)
+
     # --- numpy evaluation ----------------------------------------------------------------
     @property
     def shape(self) -> tuple[int, int]:
@@ -166,9 +180,8 @@ def _make_plugin_class(mi: Any, dr: Any) -> type:
             mi.Emitter.__init__(self, props)
             self.m_flags = mi.EmitterFlags.DeltaDirection
             self.reflections = int(props.get("reflections", 0))
-            # Slab copies side by side along y (one per stage angle of a batched render).
+            # Stage angles of a batched render, indexed by the path's time.
             self.copies = int(props.get("copies", 1))
-            self.spacing = float(props.get("spacing_mm", 0.0))
             self.angle_deg = mi.Float([float(props.get("angle_deg", 45.0))] * self.copies)
             self.eta = mi.Float(props.get("eta", 1.0))
             self.thickness = mi.Float(props.get("thickness", 1.0))
@@ -222,10 +235,10 @@ def _make_plugin_class(mi: Any, dr: Any) -> type:
             return dr.select(inside, val, 0.0)
 
         def sample_direction(self, it: Any, sample: Any, active: Any = True) -> tuple[Any, Any]:
-            p = mi.Point3f(it.p)
+            p = it.p
             if self.copies > 1:
-                copy = mi.UInt32(dr.clip(dr.round(p.y / self.spacing), 0, self.copies - 1))
-                p.y = p.y - mi.Float(copy) * self.spacing
+                # The path's sub-camera index, carried in time (estimate.mitsuba_integrator).
+                copy = mi.UInt32(dr.clip(dr.round(it.time), 0, self.copies - 1))
             else:
                 copy = mi.UInt32(0)
             phi = dr.gather(mi.Float, self.angle_deg, copy, active) * (math.pi / 180.0)
@@ -240,7 +253,22 @@ def _make_plugin_class(mi: Any, dr: Any) -> type:
             d = self.thickness
             n_img = self.reflections + 1
             if n_img > 1:
-                k = mi.UInt32(dr.minimum(sample.x * n_img, n_img - 1))
+                # Image k carries (R(theta_t) exp(-sigma_t d / cos_t))^k of the entering
+                # beam: pick it with that probability (normalised), so the estimate's
+                # weight is the constant sum of the image weights.
+                att = r_i * dr.exp(-self.sigma_t * d / dr.maximum(cos_t, 1e-6))
+                w_img = [mi.Float(1.0)]
+                for _ in range(n_img - 1):
+                    w_img.append(w_img[-1] * att)
+                total = w_img[0]
+                for w_i in w_img[1:]:
+                    total = total + w_i
+                u = sample.x * dr.detach(total)
+                k = mi.UInt32(0)
+                acc = mi.Float(0.0)
+                for i in range(n_img - 1):
+                    acc = acc + dr.detach(w_img[i])
+                    k = dr.select(u >= acc, mi.UInt32(i + 1), k)
             else:
                 k = mi.UInt32(0)
             odd = (k & 1) == 1
@@ -264,11 +292,11 @@ def _make_plugin_class(mi: Any, dr: Any) -> type:
             # Irradiance inside, perpendicular to the refracted beam.
             e = e * (1.0 - r_i) * cos_i / dr.maximum(cos_t, 1e-6)
             if n_img > 1:
-                kf = mi.Float(k)
-                r_pow = mi.Float(1.0)
-                for i in range(n_img - 1):
-                    r_pow = r_pow * dr.select(k > i, r_i, 1.0)
-                e = e * r_pow * dr.exp(-self.sigma_t * kf * d / dr.maximum(cos_t, 1e-6)) * n_img
+                # weight w_k / P(k) = total (w_k / detach(w_k) keeps the derivative)
+                w_k = w_img[0]
+                for i in range(1, n_img):
+                    w_k = dr.select(k == i, w_img[i], w_k)
+                e = e * w_k / dr.detach(w_k) * total
             # Direction towards where the light of this pass came from.
             dz_sign = dr.select(from_front, 1.0, -1.0)
             dvec = mi.Vector3f(sgn_x * sin_t, 0.0, dz_sign * cos_t)

@@ -49,7 +49,8 @@ _MAX_LANES = 2 ** 22
 
 #: Base parameters of every model.
 BASE_SPECS: dict[str, ParameterSpec] = {
-    "sigma_t": ParameterSpec("sigma_t", 1.0, 0.0, 1e4, "1/mm", "ad", 0.02,
+    # sigma_t: finite differences, see ForwardModel.vjp.
+    "sigma_t": ParameterSpec("sigma_t", 1.0, 0.0, 1e4, "1/mm", "fd", 0.01,
                              "extinction coefficient", open_lower=True),
     "albedo": ParameterSpec("albedo", 0.9, 0.0, 1.0, "", "ad", 0.01, "single-scattering albedo"),
 }
@@ -170,11 +171,6 @@ class ForwardModel:
             self._bundles[copies] = bundle
         return bundle
 
-    @property
-    def spacing_mm(self) -> float:
-        """Distance along y between slab copies of a batched render."""
-        return 3.0 * self.geometry.half_width_mm + 10.0
-
     def _bands(self) -> list[tuple[float, float]]:
         if "filter_bandwidth" in self.extensions:
             x, w = band_nodes()
@@ -194,6 +190,7 @@ class ForwardModel:
                 band: int, pass_index: int, ad: bool) -> Any:
         """One mi.render of a group; returns the (H, copies * W) image (Dr.Jit, unevaluated)."""
         kwargs = {"params": bundle.params} if ad else {}
+        bundle.scene.integrator().copy_width = window.width
         return self.mi.render(bundle.scene, sensor=bundle.sensor(window), spp=int(spp),
                               seed=render_seed(seed, first + 1000 * pass_index, band), **kwargs)
 
@@ -269,14 +266,19 @@ class ForwardModel:
     # ------------------------------------------------------------------ derivatives
     def vjp(self, params: Mapping[str, float], angles_deg: Sequence[float], cotangent: np.ndarray, *,
             spp: int = 128, seed: int = 0, columns: tuple[int, int] | None = None,
-            fd_parameters: bool = True) -> dict[str, float]:
+            fd_parameters: bool = True, base_profiles: np.ndarray | None = None) -> dict[str, float]:
         """Vector-Jacobian product: d/dtheta sum(cotangent * profiles(theta)) for every parameter.
 
         `cotangent` has the shape of `render_profiles` (N, W), e.g. dLoss/dprofile. "ad"
         parameters come from Dr.Jit reverse mode (one adjoint render per angle), "image"
         ones exactly through the image-space functions, "fd" ones (only if `fd_parameters`)
         from central differences with common random numbers (2 extra forward renders each).
-        Uses the same seeds as `render_profiles(..., seed=seed)`.
+        Uses the same seeds as `render_profiles(..., seed=seed)`; pass that call's result
+        as `base_profiles` to make the finite differences one-sided (one extra render per
+        "fd" parameter instead of two). "sigma_t" is always differentiated this way:
+        prbvolpath's reverse-mode sigma_t gradient came out with the wrong sign against
+        finite differences and the analytic single-scattering reference on this scene.
+        `fd_parameters=False` skips the other "fd" (extension) parameters (reported as 0).
         """
         values = self.validate(params)
         angles = self._check_call(angles_deg, spp, seed)
@@ -294,7 +296,6 @@ class ForwardModel:
         ad_names = [n for n, s in self.specs.items() if s.derivative == "ad"]
         image_exts = self._image_exts()
         bands = self._bands()
-        linear = "sensor_nonlinearity" not in self.extensions
         groups, passes = self._groups(len(angles), window, spp)
         spp_pass = max(1, math.ceil(int(spp) / passes))
         with self._lock:
@@ -302,43 +303,39 @@ class ForwardModel:
                 cot_g = cot[grp.start:grp.stop]
                 ang = [angles[i] for i in grp]
                 bundle = self._bundle(len(grp))
-                cot_rad: np.ndarray | None = None
-                if not linear and len(bands) > 1:
-                    # The nonlinear pull-back needs the band mixture before any adjoint.
-                    full = self._render_radiance(values, ang, window, spp, seed, first_index=grp.start)
-                    cot_rad = self._pullback(full, cot_g, values, window)[0]
-                elif linear:
-                    cot_rad = self._pullback(np.zeros_like(cot_g), cot_g, values, window)[0]
+                if image_exts:
+                    # The image chain's pull-back and parameter derivatives need the radiance.
+                    rad = self._render_radiance(values, ang, window, spp, seed, first_index=grp.start)
+                    cot_rad, ext_grads = self._pullback(rad, cot_g, values, window)
+                    for name, gv in ext_grads.items():
+                        grads[name] += gv
+                else:
+                    cot_rad = cot_g
                 leaves = {n: dr.opaque(mi.Float, values[n]) for n in ad_names}
                 for leaf in leaves.values():
                     dr.enable_grad(leaf)
-                rad = np.zeros((len(grp), window.height, window.width))
+                c_img = cot_rad.transpose(1, 0, 2).reshape(window.height, len(grp) * window.width)
+                integrator = bundle.scene.integrator()
+                integrator.copy_width = window.width
                 for j, (x, w) in enumerate(bands):
                     bundle.assign(values, leaves, ang, x)
                     for q in range(passes):
-                        img = self._launch(bundle, window, spp_pass, seed, grp.start, j, q, True)
-                        r = np.array(dr.detach(img), dtype=np.float64).reshape(
-                            window.height, len(grp), window.width).transpose(1, 0, 2)
-                        rad += (w / passes) * r
-                        if cot_rad is None:  # single band, nonlinear chain: radiance complete
-                            c_rad = self._pullback(r, cot_g, values, window)[0]
-                        else:
-                            c_rad = cot_rad
-                        c_img = (w / passes) * c_rad.transpose(1, 0, 2).reshape(window.height, len(grp) * window.width)
-                        c = mi.TensorXf(np.ascontiguousarray(c_img, dtype=np.float32).reshape(img.shape))
-                        # Adjoint now, while the scene still holds this render's parameters.
-                        dr.backward(img * c)
-                if image_exts:
-                    for name, gv in self._pullback(rad, cot_g, values, window)[1].items():
-                        grads[name] += gv
+                        c = mi.TensorXf(np.ascontiguousarray((w / passes) * c_img, dtype=np.float32)
+                                        .reshape(window.height, len(grp) * window.width, 1))
+                        # Path replay: its primal pass uses the same seed as the forward render.
+                        integrator.render_backward(bundle.scene, bundle.params, c, sensor=bundle.sensor(window),
+                                                   seed=render_seed(seed, grp.start + 1000 * q, j),
+                                                   spp=spp_pass)
                 for n, leaf in leaves.items():
                     g = dr.grad(leaf)
                     grads[n] += float(g[0]) if dr.width(g) else 0.0
-        if fd_parameters:
-            fd_names = [n for n, s in self.specs.items() if s.derivative == "fd"]
+        fd_names = [n for n, s in self.specs.items() if s.derivative == "fd"
+                    and (fd_parameters or n in BASE_SPECS)]
+        if fd_names:
+            jac = self.jacobian(values, angles, fd_names, spp=spp, seed=seed, columns=columns,
+                                base_profiles=base_profiles)
             for n in fd_names:
-                jac = self.jacobian(values, angles, [n], spp=spp, seed=seed, columns=columns)[n]
-                grads[n] = float(np.sum(jac * cot[:, 0, :]))
+                grads[n] = float(np.sum(jac[n] * cot[:, 0, :]))
         return grads
 
     def _pullback(self, radiance: np.ndarray, cot_out: np.ndarray, values: Mapping[str, float],
@@ -372,17 +369,21 @@ class ForwardModel:
         """
         prof = self.render_profiles(params, angles_deg, spp=spp, seed=seed)
         value, cot = loss(prof)
-        grads = self.vjp(params, angles_deg, cot, spp=spp, seed=seed, fd_parameters=fd_parameters)
+        grads = self.vjp(params, angles_deg, cot, spp=spp, seed=seed, fd_parameters=fd_parameters,
+                         base_profiles=prof)
         return float(value), prof, grads
 
     def jacobian(self, params: Mapping[str, float], angles_deg: Sequence[float], names: Sequence[str], *,
                  spp: int = 128, seed: int = 0, steps: Mapping[str, float] | None = None,
-                 columns: tuple[int, int] | None = None) -> dict[str, np.ndarray]:
+                 columns: tuple[int, int] | None = None,
+                 base_profiles: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """d profiles / d parameter for each name, arrays (N, W).
 
         "image" parameters: exact through the image-space function (one render in all).
         Others: central differences with common random numbers (same seeds), step
-        `steps[name]` or the parameter's default, shrunk to stay inside its range.
+        `steps[name]` or the parameter's default `fd_step * max(1, |value|)`, shrunk to stay
+        inside its range; one-sided (forward) differences against `base_profiles` when
+        given (the `render_profiles` result with the same parameters and seed).
         prbvolpath has no forward mode, so this is the efficient way to get a few columns
         of the Jacobian.
         """
@@ -399,8 +400,8 @@ class ForwardModel:
                         base_rad = self._render_radiance(values, angles, window, spp, seed)
                 out[name] = self._image_param_derivative(base_rad, values, name, window)
                 continue
-            h = float((steps or {}).get(name, spec.fd_step))
             x = values[name]
+            h = float((steps or {}).get(name, spec.fd_step * max(1.0, abs(x))))
             lo = x - h
             hi = x + h
             lower = spec.lower + (1e-9 if spec.open_lower else 0.0)
@@ -410,13 +411,25 @@ class ForwardModel:
                 hi = spec.upper
             if name == "thickness_error.e":
                 lo = max(lo, -0.9)
+            one_sided = base_profiles is not None
+            if one_sided:
+                lo = x
+                if hi == x:  # at the upper bound: step down instead
+                    hi, lo = x, x - h
             v_lo = dict(values)
             v_hi = dict(values)
             v_lo[name] = lo
             v_hi[name] = hi
+            profile_only = window.height == 1
             with self._lock:
-                r_hi = self._post(self._render_radiance(v_hi, angles, window, spp, seed), v_hi, window.height == 1)
-                r_lo = self._post(self._render_radiance(v_lo, angles, window, spp, seed), v_lo, window.height == 1)
+                if one_sided and lo == x:
+                    r_lo = np.asarray(base_profiles, dtype=np.float64)[:, None, :]
+                else:
+                    r_lo = self._post(self._render_radiance(v_lo, angles, window, spp, seed), v_lo, profile_only)
+                if one_sided and hi == x:
+                    r_hi = np.asarray(base_profiles, dtype=np.float64)[:, None, :]
+                else:
+                    r_hi = self._post(self._render_radiance(v_hi, angles, window, spp, seed), v_hi, profile_only)
             out[name] = ((r_hi - r_lo) / (hi - lo))[:, 0, :]
         return out
 
@@ -447,9 +460,9 @@ class ForwardModel:
 
 
 class _SceneBundle:
-    """One Mitsuba scene of the model with `copies` slab copies along y (copy k at
-    y = k * spacing, lit at the k-th angle of a batched render), its parameters and its
-    batch sensors (one orthographic sub-sensor per copy)."""
+    """One Mitsuba scene of the model rendering `copies` stage angles in one launch (the
+    path's sub-camera index, carried in its time, selects the angle), its parameters and
+    its batch sensors (`copies` identical orthographic sub-cameras)."""
 
     def __init__(self, model: ForwardModel, copies: int) -> None:
         self.model = model
@@ -459,7 +472,6 @@ class _SceneBundle:
         g = model.geometry
         d = g.thickness_mm
         hw = g.half_width_mm
-        self.spacing = model.spacing_mm
         if model.phase == "tthg":
             ps = model.specs
             phase = tthg_phase_dict(ps["phase.g_forward"].neutral, ps["phase.g_backward"].neutral,
@@ -471,21 +483,20 @@ class _SceneBundle:
         refractive = model._refractive
         scene_dict: dict[str, Any] = {
             "type": "scene",
-            "integrator": {"type": "prbvolpath", "max_depth": model.max_depth, "rr_depth": model.rr_depth},
+            "integrator": {"type": "rig_prbvolpath", "max_depth": model.max_depth, "rr_depth": model.rr_depth,
+                           "copies": copies, "copy_width": 1},
             "medium": {"type": "homogeneous", "sigma_t": 1.0, "albedo": 0.5, "phase": phase},
             "boundary": ({"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0} if refractive
                          else {"type": "null"}),
             "beam": {"type": "collimated_beam", "thickness": d, "copies": copies,
-                     "spacing_mm": self.spacing,
                      "reflections": INTERNAL_REFLECTIONS if refractive else 0},
-        }
-        for k in range(copies):
-            scene_dict[f"slab{k}"] = {
+            "slab": {
                 "type": "cube",
-                "to_world": T().translate([0.0, k * self.spacing, -0.5 * d]).scale([hw, hw, 0.5 * d]),
+                "to_world": T().translate([0.0, 0.0, -0.5 * d]).scale([hw, hw, 0.5 * d]),
                 "bsdf": {"type": "ref", "id": "boundary"},
                 "interior": {"type": "ref", "id": "medium"},
-            }
+            },
+        }
         self.scene = mi.load_dict(scene_dict)
         beam = [e for e in self.scene.emitters()][0]
         beam.set_profile(model.beam_profile)
@@ -536,10 +547,9 @@ class _SceneBundle:
                     "rfilter": {"type": "box"}, "pixel_format": "luminance", "sample_border": False}
             subs = {}
             for k in range(self.copies):
-                yk = y + k * self.spacing
                 subs[f"cam{k:03d}"] = {
                     "type": "orthographic", "near_clip": 1e-3, "far_clip": 1e4,
-                    "to_world": T().look_at([x, yk, z], [x, yk, 0.0], [0.0, 1.0, 0.0]).scale([half, half, 1.0]),
+                    "to_world": T().look_at([x, y, z], [x, y, 0.0], [0.0, 1.0, 0.0]).scale([half, half, 1.0]),
                     "film": dict(film),
                 }
             batch_film = dict(film)

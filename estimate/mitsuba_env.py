@@ -118,10 +118,11 @@ def init_mitsuba(variant: str | None = None) -> ModuleType:
             f"unknown Mitsuba variant {chosen!r}; available: {', '.join(mi.variants())}")
     mi.set_variant(chosen)
     # The plugins are registered per variant.
-    from estimate import mitsuba_phase, beam  # noqa: F401  (registration side effect)
+    from estimate import beam, mitsuba_integrator, mitsuba_phase
 
     mitsuba_phase.register_plugins()
     beam.register_plugins()
+    mitsuba_integrator.register_plugins()
     _state["variant"] = chosen
     _state["module"] = mi
     return mi

@@ -1,0 +1,225 @@
+"""The Mitsuba forward model of the rig (estimate.forward) against the independent numpy
+references of tests/reference_mc.py (same frame and angle conventions)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from reference_mc import hg_eval, hg_sample, isotropic_eval, mc_slab_profile, single_scattering_profile
+
+from estimate.beam import BeamProfile
+from estimate.errors import ModelParameterError
+from estimate.forward import ForwardModel
+from estimate.geometry import RigGeometry
+
+N_PIX = 32
+PITCH = 0.05  # mm in object space
+BEAM_R = 0.3  # 1/e^2 radius of the reference's Gaussian beam (unit power)
+
+
+def _geometry(n_pix: int = N_PIX, pitch: float = PITCH, thickness: float = 1.0) -> RigGeometry:
+    # One-row sensor whose row is centred on y = 0 and whose pixels are centred like
+    # reference_mc.pixel_centers (x = (i - (n-1)/2) * pitch).
+    return RigGeometry(thickness_mm=thickness, sensor_px=(n_pix, 1), pixel_um=20.0,
+                       magnification=0.02 / pitch, image_center_px=(n_pix / 2, 0.5))
+
+
+def _model(phase: str = "exp0", **kw) -> ForwardModel:
+    thickness = kw.pop("thickness", 1.0)
+    return ForwardModel(_geometry(thickness=thickness), BeamProfile.gaussian(BEAM_R), phase=phase, **kw)
+
+
+@pytest.fixture(scope="module")
+def single_model() -> ForwardModel:
+    return _model("exp0", max_depth=2)  # depth 2 = exactly the single-scattered light
+
+
+@pytest.mark.parametrize("sigma_t", [0.5, 3.0])
+def test_single_scattering_matches_analytic(single_model: ForwardModel, sigma_t: float) -> None:
+    angles = [35.0, 70.0, 115.0, 155.0]
+    prof = single_model.render_profiles({"sigma_t": sigma_t, "albedo": 0.7}, angles, spp=65536, seed=3)
+    for k, phi in enumerate(angles):
+        ref = single_scattering_profile(sigma_t, 0.7, 1.0, isotropic_eval, phi, BEAM_R, PITCH, N_PIX, PITCH)
+        assert prof[k].sum() == pytest.approx(ref.sum(), rel=0.01), phi
+        bright = ref > 0.2 * ref.max()
+        assert np.allclose(prof[k][bright], ref[bright], rtol=0.06), phi
+        # where the reference is dark the render is dark too (orientation, beam position)
+        assert prof[k][ref < 1e-6 * ref.max()].sum() < 1e-3 * prof[k].sum(), phi
+
+
+def test_optically_thin_slab_is_single_scattering() -> None:
+    """sigma_t d = 0.02: the whole profile (all orders) is the single-scattering one."""
+    # A wide beam and pixels, so that many camera rays meet the beam (variance).
+    model = ForwardModel(_geometry(pitch=0.1), BeamProfile.gaussian(1.0), phase="exp0")
+    angles = [40.0, 140.0]
+    prof = model.render_profiles({"sigma_t": 0.02, "albedo": 0.2}, angles, spp=65536, seed=4)
+    for k, phi in enumerate(angles):
+        ref = single_scattering_profile(0.02, 0.2, 1.0, isotropic_eval, phi, 1.0, 0.1, N_PIX, 0.1)
+        assert prof[k].sum() == pytest.approx(ref.sum(), rel=0.01), phi
+
+
+def test_multiple_scattering_albedo_one_matches_mcml_reference() -> None:
+    """Albedo 1, index-matched, forward-peaked: the whole profile (all orders) against the
+    photon Monte Carlo whose R + T + A = 1 bookkeeping tests/test_reference_mc.py checks."""
+    model = _model("hg")
+    params = {"sigma_t": 4.0, "albedo": 1.0, "phase.g": 0.5}
+    for phi in (30.0, 150.0):
+        prof = model.render_profiles(params, [phi], spp=4096, seed=5)[0]
+        ref, se, _ = mc_slab_profile(4.0, 1.0, 1.0, hg_sample(0.5), hg_eval(0.5), phi, BEAM_R, PITCH,
+                                     N_PIX, PITCH, n_photons=200_000, seed=7)
+        assert prof.sum() == pytest.approx(ref.sum(), rel=0.03), phi
+        bright = ref > 0.3 * ref.max()
+        assert np.allclose(prof[bright], ref[bright], rtol=0.08), phi
+
+
+def test_refractive_boundary_n1_equals_index_matched() -> None:
+    params = {"sigma_t": 3.0, "albedo": 0.9}
+    angles = [30.0, 150.0]
+    base = _model("exp0").render_profiles(params, angles, spp=4096, seed=6)
+    refr = _model("exp0", extensions=["refractive_boundary"]).render_profiles(
+        {**params, "refractive_boundary.n": 1.0}, angles, spp=4096, seed=6)
+    for k in range(2):
+        assert refr[k].sum() == pytest.approx(base[k].sum(), rel=0.02)
+        bright = base[k] > 0.3 * base[k].max()
+        assert np.allclose(refr[k][bright], base[k][bright], rtol=0.08)
+
+
+def test_refractive_boundary_n145_matches_mcml_reference() -> None:
+    model = _model("hg", extensions=["refractive_boundary"])
+    params = {"sigma_t": 6.0, "albedo": 0.9, "phase.g": 0.5, "refractive_boundary.n": 1.45}
+    for phi in (30.0, 150.0):
+        prof = model.render_profiles(params, [phi], spp=8192, seed=8)[0]
+        ref, se, _ = mc_slab_profile(6.0, 0.9, 1.0, hg_sample(0.5), hg_eval(0.5), phi, BEAM_R, PITCH,
+                                     N_PIX, PITCH, n_index=1.45, n_photons=200_000, seed=9)
+        assert prof.sum() == pytest.approx(ref.sum(), rel=0.03), phi
+        # 4-pixel bins (the render's per-pixel noise at this spp is several percent)
+        pb, rb = prof.reshape(-1, 4).sum(axis=1), ref.reshape(-1, 4).sum(axis=1)
+        bright = rb > 0.3 * rb.max()
+        assert np.allclose(pb[bright], rb[bright], rtol=0.08), phi
+
+
+def test_renders_are_reproducible_and_seeded(single_model: ForwardModel) -> None:
+    p = {"sigma_t": 2.0, "albedo": 0.8}
+    a = single_model.render_profiles(p, [40.0, 120.0], spp=64, seed=11)
+    b = single_model.render_profiles(p, [40.0, 120.0], spp=64, seed=11)
+    c = single_model.render_profiles(p, [40.0, 120.0], spp=64, seed=12)
+    assert np.array_equal(a, b)
+    assert not np.array_equal(a, c)
+
+
+def test_new_angles_and_parameters_reuse_compiled_kernels() -> None:
+    import drjit as dr
+
+    model = _model("exp3")
+    model.render_profiles({"sigma_t": 2.0, "albedo": 0.8, "phase.b1": 1.0}, [30.0, 60.0, 120.0], spp=16, seed=1)
+    dr.kernel_history()  # drain
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        model.render_profiles({"sigma_t": 3.0, "albedo": 0.6, "phase.b1": -2.0, "phase.b3": 0.5},
+                              [25.0, 80.0, 160.0], spp=16, seed=2)
+        history = dr.kernel_history()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    jit = [k for k in history if str(k.get("type", "")).endswith("JIT")]
+    assert jit, "no kernel launched"
+    assert all(k.get("cache_hit") for k in jit), [k.get("operation_count") for k in jit if not k.get("cache_hit")]
+
+
+def test_albedo_and_phase_gradients_match_finite_differences() -> None:
+    model = _model("exp3", max_depth=16)
+    p = {"sigma_t": 2.0, "albedo": 0.8, "phase.b1": 1.5, "phase.b2": 0.5, "phase.b3": 0.2}
+    angles = [40.0, 140.0]
+    cot = np.random.default_rng(0).random((2, N_PIX)) + 0.5
+    grads = model.vjp(p, angles, cot, spp=4096, seed=13)
+
+    def fd(name: str, h: float) -> float:
+        vals = []
+        for sign in (-1, 1):
+            q = dict(p)
+            q[name] += sign * h
+            vals.append((model.render_profiles(q, angles, spp=8192, seed=14) * cot).sum())
+        return (vals[1] - vals[0]) / (2 * h)
+
+    assert grads["albedo"] == pytest.approx(fd("albedo", 0.05), rel=0.03)
+    assert grads["phase.b1"] == pytest.approx(fd("phase.b1", 0.3), rel=0.15, abs=0.02 * abs(grads["albedo"]))
+
+
+def test_sigma_t_gradient_matches_analytic_single_scattering(single_model: ForwardModel) -> None:
+    angles = [40.0, 140.0]
+    cot = np.random.default_rng(1).random((2, N_PIX)) + 0.5
+    p = {"sigma_t": 2.0, "albedo": 0.8}
+    grads = single_model.vjp(p, angles, cot, spp=8192, seed=15)
+
+    def ref(st: float) -> np.ndarray:
+        return np.array([single_scattering_profile(st, 0.8, 1.0, isotropic_eval, a, BEAM_R, PITCH, N_PIX, PITCH)
+                         for a in angles])
+
+    h = 0.01
+    expected = ((ref(2 + h) - ref(2 - h)) * cot).sum() / (2 * h)
+    assert grads["sigma_t"] == pytest.approx(expected, rel=0.1)
+    assert grads["albedo"] == pytest.approx((ref(2.0) * cot).sum() / 0.8, rel=0.02)
+
+
+def test_geometry_pixel_mapping() -> None:
+    g = RigGeometry(thickness_mm=1.2, magnification=0.5)
+    assert g.pixel_mm == pytest.approx(0.04)
+    w = g.profile_window()
+    assert (w.col0, w.col1, w.row0, w.row1) == (0, 512, 256, 257)
+    x = g.pixel_x_mm(g.window((255, 257)))
+    assert x == pytest.approx([-0.02, 0.02])
+
+
+@pytest.mark.parametrize(
+    ("make", "match"),
+    [
+        (lambda: RigGeometry(thickness_mm=0.0), "thickness_mm"),
+        (lambda: RigGeometry(thickness_mm=-1.0), "thickness_mm"),
+        (lambda: RigGeometry(thickness_mm=1.0, magnification=float("nan")), "magnification"),
+        (lambda: _model("exp2", extensions=["fog"]), "fog"),
+        (lambda: _model("poly3"), "poly3"),
+    ],
+)
+def test_bad_construction_is_refused(make, match: str) -> None:
+    with pytest.raises(ModelParameterError, match=match):
+        make()
+
+
+@pytest.mark.parametrize(
+    ("params", "match"),
+    [
+        ({"sigma_t": -1.0}, "sigma_t"),
+        ({"sigma_t": 0.0}, "sigma_t"),
+        ({"albedo": float("nan")}, "albedo"),
+        ({"albedo": 1.5}, "albedo"),
+        ({"phase.b4": 1.0}, "phase.b4"),
+        ({"refractive_boundary.n": 0.9}, "refractive_boundary.n"),
+        ({"lens_blur.core_sigma_px": 1.0}, "lens_blur"),
+    ],
+)
+def test_bad_parameters_are_refused(single_model: ForwardModel, params: dict, match: str) -> None:
+    model = single_model
+    if "refractive_boundary.n" in params:
+        model = _model("exp0", extensions=["refractive_boundary"])
+    with pytest.raises(ModelParameterError, match=match.replace(".", r"\.")):
+        model.render_profiles(params, [30.0], spp=4, seed=0)
+
+
+def test_bad_call_arguments_are_refused(single_model: ForwardModel) -> None:
+    with pytest.raises(ModelParameterError, match="angle"):
+        single_model.render_profiles({}, [float("nan")], spp=4)
+    with pytest.raises(ModelParameterError, match="spp"):
+        single_model.render_profiles({}, [30.0], spp=0)
+    with pytest.raises(ModelParameterError, match="cotangent"):
+        single_model.vjp({}, [30.0], np.ones((2, N_PIX)), spp=4)
+
+
+def test_full_frame_band_has_spot_on_the_profile_row() -> None:
+    g = RigGeometry(thickness_mm=1.0, sensor_px=(24, 24), magnification=0.4)
+    model = ForwardModel(g, BeamProfile.disk(0.2), phase="exp0")
+    img = model.render({"sigma_t": 3.0, "albedo": 0.9}, [150.0], rows=(0, 24), columns=(0, 24), spp=64, seed=1)[0]
+    assert img.shape == (24, 24)
+    rows = img.sum(axis=1)
+    assert abs(int(np.argmax(rows)) + 0.5 - 12) <= 1.5  # the beam is centred on the image centre
+    assert math.isfinite(float(img.sum())) and img.sum() > 0
