@@ -264,6 +264,9 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
     if width < 2:
         raise DataError(f"columns={columns!r}: need at least 2 pixels")
     centre_col = (cx - roi0["x"]) / bx            # continuous ROI column of the beam axis
+    if not 0 <= centre_col < n_cols:
+        raise DataError(f"the beam centre column {cx:g} lies outside the stacks' ROI columns "
+                        f"{roi0['x']}..{roi0['x'] + n_cols * bx - 1}")
     c0 = int(round(centre_col - width / 2.0))
     c0 = max(0, min(n_cols - width, c0))
     c1 = c0 + width

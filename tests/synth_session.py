@@ -66,7 +66,8 @@ def make_session(path: Path, truth: Mapping[str, Mapping[str, float]], *, angles
     caldir = write_calibration(path.parent / (path.name + "_cal"), filters)
     plan = CapturePlan(angles_deg=tuple(float(a) for a in angles), filters=filters,
                        n_front=sum(1 for a in angles if a < 90))
-    roi = {"x": 0, "y": ROI_ROWS[0], "width": width, "height": ROI_ROWS[1], "bin_x": 1, "bin_y": 1}
+    x0 = int(round(CENTER_PX[0])) - width // 2
+    roi = {"x": x0, "y": ROI_ROWS[0], "width": width, "height": ROI_ROWS[1], "bin_x": 1, "bin_y": 1}
     geometry = {"thickness_mm": 1.0, "pixel_pitch_mm": PITCH_MM, "magnification": 0.3,
                 "center_px": list(CENTER_PX), "profile_row": PROFILE_ROW, "roi": roi}
     s = Session.create(path, plan=plan, frame_shape=(ROI_ROWS[1], width),
@@ -83,7 +84,7 @@ def make_session(path: Path, truth: Mapping[str, Mapping[str, float]], *, angles
                 (CENTER_PX[0] - 0.5 - (int(round(CENTER_PX[0])) - 12),
                  CENTER_PX[1] - 0.5 - (int(round(CENTER_PX[1])) - 12)))
             geo = RigGeometry(thickness_mm=1.0, magnification=0.3, image_center_px=CENTER_PX,
-                              profile_row=PROFILE_ROW, profile_columns=(0, width))
+                              profile_row=PROFILE_ROW, profile_columns=(x0, x0 + width))
             fm = ForwardModel(geo, beam, phase=phase)
             prof = fm.render_profiles(dict(truth[f]), list(angles), spp=spp, seed=seed + 1000) * scale
             t_exp = 1.0  # s: the variance of an e-/s estimate from one exposure of t seconds
@@ -97,7 +98,7 @@ def make_session(path: Path, truth: Mapping[str, Mapping[str, float]], *, angles
                 band = np.repeat(row[None, :], ROI_ROWS[1], axis=0).astype(np.float32)
                 vband = np.repeat(var[None, :], ROI_ROWS[1], axis=0).astype(np.float32)
                 frames = [Frame(np.zeros((ROI_ROWS[1], width), np.uint16), t_exp, False, -20.0, 0.0, t_exp,
-                                ROI(0, ROI_ROWS[0], width, ROI_ROWS[1]))]
+                                ROI(x0, ROI_ROWS[0], width, ROI_ROWS[1]))]
                 hdr = HdrResult(band, vband, np.ones(band.shape, bool), np.ones(band.shape, np.uint8))
                 s.write_stack(key, frames=frames, hdr=hdr, info={"roi": roi})
     return path

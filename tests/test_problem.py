@@ -1,0 +1,96 @@
+"""estimate.problem: profile extraction from a session and its refusals."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimate.errors import DataError
+from estimate.problem import load_problem
+from synth_session import CENTER_PX, PITCH_MM, make_session
+
+TRUTH = {"g": {"sigma_t": 3.0, "albedo": 0.85, "phase.b1": 3.0}, "r": {"sigma_t": 2.0, "albedo": 0.9, "phase.b1": 2.0}}
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    return make_session(tmp_path_factory.mktemp("p") / "s", TRUTH, angles=[30, 150], spp=64, width=96,
+                        scale=2e5, skip=["a01_r"])
+
+
+def test_profile_window_geometry_and_data(session):
+    pb = load_problem(session, "g", columns=40)
+    assert pb.measured.shape == pb.variance.shape == (2, 40)
+    assert list(pb.angles_deg) == [30.0, 150.0] and pb.stack_ids == ["a00_g", "a01_g"]
+    assert pb.wavelength_nm == 530.0
+    # Columns centred on the beam: x from about -20 to +20 pixels around the axis.
+    assert abs(pb.x_mm.mean()) < PITCH_MM
+    assert np.allclose(np.diff(pb.x_mm), PITCH_MM)
+    assert pb.geometry.center_px == CENTER_PX and pb.geometry.row == 256
+    # The spot is in the window: the brightest pixel lies near the centre.
+    assert np.all(np.abs(pb.x_mm[np.argmax(pb.measured, axis=1)]) < 1.0)
+    assert pb.valid.all() and np.all(pb.variance > 0)
+    assert abs(pb.beam.power() - 1e6 / PITCH_MM ** 2 * PITCH_MM ** 2) / 1e6 < 1e-6
+
+
+def test_missing_stack_refused_unless_partial(session):
+    with pytest.raises(DataError, match=r"a01_r \(not captured\).*--allow-partial"):
+        load_problem(session, "r")
+    with pytest.raises(DataError, match="only 1 usable"):
+        load_problem(session, "r", allow_partial=True)
+
+
+def test_unknown_channel(session):
+    with pytest.raises(DataError, match="unknown channel 'b'"):
+        load_problem(session, "b")
+
+
+def test_no_calibration(tmp_path):
+    s = make_session(tmp_path / "s", {"g": TRUTH["g"]}, angles=[30, 150], spp=16, width=64, calibration=False)
+    with pytest.raises(DataError, match="no beam calibration"):
+        load_problem(s, "g")
+
+
+def test_corrupt_stack_named(tmp_path):
+    s = make_session(tmp_path / "s", {"g": TRUTH["g"]}, angles=[30, 60, 150], spp=16, width=64)
+    (s / "hdr" / "a01_g.exr").write_bytes(b"garbage")
+    with pytest.raises(DataError, match=r"a01_g \(corrupt\)"):
+        load_problem(s, "g")
+    pb = load_problem(s, "g", allow_partial=True)
+    assert pb.stack_ids == ["a00_g", "a02_g"] and pb.missing == ["a01_g (corrupt)"]
+
+
+def test_nan_and_negative_radiance_named(tmp_path):
+    from capture.exr_io import read_exr, write_exr
+    from capture.session import Session
+
+    s = make_session(tmp_path / "s", {"g": TRUTH["g"]}, angles=[30, 150], spp=16, width=64)
+    img = read_exr(s / "hdr" / "a01_g.exr")
+    rad = img["radiance"].copy()
+    row = 256 - 252
+    rad[row, 30] = np.nan
+    _rewrite(s, "a01_g", {**img.channels, "radiance": rad})
+    with pytest.raises(DataError, match=r"stack a01_g: radiance is NaN .* column 254 \(row 256\)"):
+        load_problem(s, "g", columns=64)
+    rad[row, 30] = -1e6
+    _rewrite(s, "a01_g", {**img.channels, "radiance": rad})
+    with pytest.raises(DataError, match=r"stack a01_g: negative radiance"):
+        load_problem(s, "g", columns=64)
+    del Session, write_exr
+
+
+def _rewrite(session, sid, channels):
+    """Replace a stack's EXR and its manifest checksum (simulating a bad merge, not corruption)."""
+    import yaml
+
+    from capture.atomic import sha256_file
+    from capture.exr_io import write_exr
+
+    p = session / "hdr" / f"{sid}.exr"
+    write_exr(p, channels)
+    m = yaml.safe_load((session / "session.yaml").read_text())
+    for st in m["stacks"]:
+        if st["id"] == sid:
+            st["files"]["hdr"]["sha256"] = sha256_file(p)
+            st["files"]["hdr"]["bytes"] = p.stat().st_size
+    (session / "session.yaml").write_text(yaml.safe_dump(m, sort_keys=False))
