@@ -120,10 +120,10 @@ class ImageExtension(Extension):
     def param_derivatives(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
                           profile_only: bool) -> dict[str, np.ndarray]:
         """d output / d parameter for each parameter (central differences of this exact,
-        deterministic image function; no rendering noise involved)."""
+        deterministic image function with a small relative step; no rendering noise)."""
         out = {}
         for p in cls.parameters:
-            h = p.fd_step
+            h = 1e-4 * max(1.0, abs(values[p.name]))
             lo = dict(values)
             hi = dict(values)
             base = values[p.name]

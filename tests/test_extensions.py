@@ -1,0 +1,193 @@
+"""Model extensions (estimate.extensions): neutral values, image-space operators and their
+adjoints, scene extensions in renders, derivatives, and bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimate.beam import BeamProfile
+from estimate.errors import ModelParameterError
+from estimate.extensions import EXTENSIONS, ImageExtension, get_extension
+from estimate.extensions.refractive_boundary import omitted_fraction
+from estimate.extensions.sensor_nonlinearity import apply_raw
+from estimate.forward import ForwardModel
+from estimate.geometry import RigGeometry
+
+N_PIX = 24
+GEOM = RigGeometry(thickness_mm=1.0, sensor_px=(N_PIX, 1), magnification=0.4, image_center_px=(N_PIX / 2, 0.5))
+BEAM = BeamProfile.gaussian(0.3)
+BASE = {"sigma_t": 3.0, "albedo": 0.9}
+
+IMAGE_CASES = {
+    "lens_blur": {"core_sigma_px": 1.3, "tail_fraction": 0.05, "tail_scale_px": 6.0},
+    "stray_light": {"offset": 0.01, "slope_per_mm": 0.002},
+    # full well above the test images' values: no pixel sits on the clip's kink
+    "sensor_nonlinearity": {"compression": 0.1, "full_well_radiance": 1.5},
+}
+
+
+def test_registry_has_the_stable_names() -> None:
+    assert set(EXTENSIONS) == {"refractive_boundary", "lens_blur", "stray_light", "angle_offset",
+                               "thickness_error", "beam_halo", "sensor_nonlinearity", "filter_bandwidth"}
+    with pytest.raises(ModelParameterError, match="warp_drive"):
+        get_extension("warp_drive")
+
+
+@pytest.mark.parametrize("name", sorted(IMAGE_CASES))
+@pytest.mark.parametrize("profile_only", [True, False])
+def test_image_extension_neutral_adjoint_and_derivatives(name: str, profile_only: bool) -> None:
+    ext = get_extension(name)
+    assert issubclass(ext, ImageExtension)
+    rng = np.random.default_rng(3)
+    shape = (2, 1, 40) if profile_only else (2, 9, 40)
+    img = rng.random(shape)
+    neutral = {p.name: p.neutral for p in ext.parameters}
+    assert np.allclose(ext.apply(img, neutral, pixel_mm=0.04, profile_only=profile_only), img)
+    values = IMAGE_CASES[name]
+    # adjoint of the linearisation: <J dx, y> = <dx, J^T y>
+    dx = rng.normal(size=shape)
+    y = rng.normal(size=shape)
+    eps = 1e-6
+    jdx = (ext.apply(img + eps * dx, values, pixel_mm=0.04, profile_only=profile_only)
+           - ext.apply(img - eps * dx, values, pixel_mm=0.04, profile_only=profile_only)) / (2 * eps)
+    jty = ext.vjp_input(img, y, values, pixel_mm=0.04, profile_only=profile_only)
+    assert float((jdx * y).sum()) == pytest.approx(float((dx * jty).sum()), rel=1e-5)
+    # parameter derivatives against a fine central difference
+    derivs = ext.param_derivatives(img, values, pixel_mm=0.04, profile_only=profile_only)
+    for p in ext.parameters:
+        h = 1e-5 * max(1.0, abs(values[p.name]))
+        hi, lo = dict(values), dict(values)
+        hi[p.name] += h
+        lo[p.name] -= h
+        fd = (ext.apply(img, hi, pixel_mm=0.04, profile_only=profile_only)
+              - ext.apply(img, lo, pixel_mm=0.04, profile_only=profile_only)) / (2 * h)
+        assert np.allclose(derivs[p.name], fd, rtol=2e-3, atol=1e-6 * np.abs(fd).max() + 1e-12), p.name
+
+
+def test_lens_blur_conserves_energy_and_spreads() -> None:
+    ext = get_extension("lens_blur")
+    img = np.zeros((1, 129, 201))  # the kernels (radius 64 px) fit inside
+    img[0, 64, 100] = 1.0
+    out = ext.apply(img, IMAGE_CASES["lens_blur"], pixel_mm=0.04, profile_only=False)
+    assert out.sum() == pytest.approx(1.0, rel=1e-6)
+    assert out[0, 64, 100] < 0.2 and out[0, 64, 130] > 0  # core and long tail
+    prof = ext.apply(img[:, 64:65, :], IMAGE_CASES["lens_blur"], pixel_mm=0.04, profile_only=True)
+    assert prof.sum() == pytest.approx(1.0, rel=1e-6)
+
+
+def test_sensor_nonlinearity_raw_and_hdr() -> None:
+    x = np.linspace(0, 100_000, 11)
+    y = apply_raw(x, 0.2, 100_000.0)
+    assert y[0] == 0 and y[-1] == pytest.approx(80_000.0)
+    assert np.all(np.diff(y) > 0)
+    with pytest.raises(ModelParameterError, match="compression"):
+        apply_raw(x, 0.4, 100_000.0)
+    ext = get_extension("sensor_nonlinearity")
+    prof = np.array([[[0.1, 0.5, 1.0, 2.0]]])
+    out = ext.apply(prof, {"compression": 0.1, "full_well_radiance": 1.0}, pixel_mm=0.04, profile_only=True)
+    assert out[0, 0, 0] == pytest.approx(0.1 * (1 - 0.1 * 0.01))
+    assert out[0, 0, 3] == pytest.approx(2.0 * 0.9)
+
+
+def test_refractive_boundary_bound_on_omitted_reflections() -> None:
+    assert omitted_fraction(30.0, 1.45) < 1e-5
+    assert omitted_fraction(150.0, 1.6) < 1e-4
+
+
+@pytest.fixture(scope="module")
+def base_model() -> ForwardModel:
+    return ForwardModel(GEOM, BEAM, phase="exp1")
+
+
+def test_neutral_extensions_leave_the_render_unchanged(base_model: ForwardModel) -> None:
+    names = ["lens_blur", "stray_light", "angle_offset", "thickness_error", "beam_halo", "sensor_nonlinearity"]
+    full = ForwardModel(GEOM, BEAM, phase="exp1", extensions=names)
+    a = base_model.render_profiles({**BASE, "phase.b1": 1.0}, [40.0, 140.0], spp=256, seed=2)
+    b = full.render_profiles({**BASE, "phase.b1": 1.0}, [40.0, 140.0], spp=256, seed=2)
+    assert np.allclose(a, b, rtol=1e-5, atol=1e-9)
+
+
+def test_angle_offset_shifts_every_angle(base_model: ForwardModel) -> None:
+    model = ForwardModel(GEOM, BEAM, phase="exp1", extensions=["angle_offset"])
+    a = model.render_profiles({**BASE, "angle_offset.delta_deg": 4.0}, [40.0, 140.0], spp=256, seed=3)
+    b = base_model.render_profiles(BASE, [44.0, 144.0], spp=256, seed=3)
+    assert np.allclose(a, b, rtol=1e-5, atol=1e-9)
+
+
+def test_thickness_error_scales_the_slab() -> None:
+    model = ForwardModel(GEOM, BEAM, phase="exp1", extensions=["thickness_error"])
+    thick = ForwardModel(RigGeometry(thickness_mm=1.25, sensor_px=(N_PIX, 1), magnification=0.4,
+                                     image_center_px=(N_PIX / 2, 0.5)), BEAM, phase="exp1")
+    a = model.render_profiles({**BASE, "thickness_error.e": 0.25}, [140.0], spp=2048, seed=4)
+    b = thick.render_profiles(BASE, [140.0], spp=2048, seed=4)
+    c = model.render_profiles(BASE, [140.0], spp=2048, seed=4)
+    assert a.sum() == pytest.approx(b.sum(), rel=0.01)
+    assert abs(a.sum() - c.sum()) > 0.05 * c.sum()  # back-lit: a thicker slab transmits less
+
+
+def test_beam_halo_adds_light_and_its_gradient_matches_fd() -> None:
+    model = ForwardModel(GEOM, BEAM, phase="exp1", extensions=["beam_halo"])
+    p = {**BASE, "beam_halo.fraction": 0.05, "beam_halo.sigma_mm": 1.0}
+    angles = [40.0, 140.0]
+    with_halo = model.render_profiles(p, angles, spp=1024, seed=5)
+    without = model.render_profiles({**p, "beam_halo.fraction": 0.0}, angles, spp=1024, seed=5)
+    assert with_halo.sum() > without.sum()
+    cot = np.random.default_rng(4).random((2, N_PIX))
+    grads = model.vjp(p, angles, cot, spp=1024, seed=5)
+    h = 0.01
+    hi = model.render_profiles({**p, "beam_halo.fraction": 0.06}, angles, spp=1024, seed=5)
+    lo = model.render_profiles({**p, "beam_halo.fraction": 0.04}, angles, spp=1024, seed=5)
+    fd = ((hi - lo) * cot).sum() / (2 * h)
+    assert grads["beam_halo.fraction"] == pytest.approx(fd, rel=0.03)
+    hs = model.render_profiles({**p, "beam_halo.sigma_mm": 1.1}, angles, spp=1024, seed=5)
+    ls = model.render_profiles({**p, "beam_halo.sigma_mm": 0.9}, angles, spp=1024, seed=5)
+    fd_s = ((hs - ls) * cot).sum() / 0.2
+    assert grads["beam_halo.sigma_mm"] == pytest.approx(fd_s, rel=0.1, abs=0.05 * abs(fd))
+
+
+def test_image_parameters_in_vjp_and_jacobian() -> None:
+    names = ["lens_blur", "stray_light", "sensor_nonlinearity"]
+    model = ForwardModel(GEOM, BEAM, phase="exp1", extensions=names)
+    p = {**BASE, "phase.b1": 1.0, "lens_blur.core_sigma_px": 1.0, "lens_blur.tail_fraction": 0.02,
+         "stray_light.offset": 0.001, "sensor_nonlinearity.compression": 0.05,
+         "sensor_nonlinearity.full_well_radiance": 0.05}
+    angles = [40.0, 140.0]
+    cot = np.random.default_rng(5).random((2, N_PIX))
+    grads = model.vjp(p, angles, cot, spp=256, seed=6, fd_parameters=False)
+    jac = model.jacobian(p, angles, ["stray_light.offset", "lens_blur.tail_fraction",
+                                     "sensor_nonlinearity.compression"], spp=256, seed=6)
+    for name, j in jac.items():
+        assert grads[name] == pytest.approx(float((j * cot).sum()), rel=1e-3, abs=1e-9), name
+    # the offset passes through the (compressive) sensor: slightly less than sum(cot)
+    assert 0.8 * cot.sum() < grads["stray_light.offset"] <= cot.sum() * (1 + 1e-9)
+
+
+def test_filter_bandwidth_zero_spread_matches_single_wavelength(base_model: ForwardModel) -> None:
+    model = ForwardModel(GEOM, BEAM, phase="exp1", extensions=["filter_bandwidth"])
+    a = model.render_profiles({**BASE, "phase.b1": 1.0}, [40.0], spp=4096, seed=7)
+    b = base_model.render_profiles({**BASE, "phase.b1": 1.0}, [40.0], spp=4096, seed=8)
+    assert a.sum() == pytest.approx(b.sum(), rel=0.02)
+    c = model.render_profiles({**BASE, "phase.b1": 1.0, "filter_bandwidth.spread": 0.5}, [40.0], spp=4096, seed=7)
+    assert not np.allclose(a, c)
+    jac = model.jacobian({**BASE, "filter_bandwidth.spread": 0.3}, [40.0], ["filter_bandwidth.spread"],
+                         spp=512, seed=7)
+    assert np.all(np.isfinite(jac["filter_bandwidth.spread"]))
+
+
+@pytest.mark.parametrize(
+    ("ext", "params", "match"),
+    [
+        ("beam_halo", {"beam_halo.fraction": -0.1}, "beam_halo.fraction"),
+        ("beam_halo", {"beam_halo.sigma_mm": 0.0}, "beam_halo.sigma_mm"),
+        ("lens_blur", {"lens_blur.tail_fraction": float("nan")}, "lens_blur.tail_fraction"),
+        ("stray_light", {"stray_light.offset": -1.0}, "stray_light.offset"),
+        ("thickness_error", {"thickness_error.e": -1.0}, "thickness_error.e"),
+        ("refractive_boundary", {"refractive_boundary.n": 0.99}, "refractive_boundary.n"),
+        ("angle_offset", {"angle_offset.delta_deg": float("nan")}, "angle_offset.delta_deg"),
+    ],
+)
+def test_bad_extension_parameters(ext: str, params: dict, match: str) -> None:
+    model = ForwardModel(GEOM, BEAM, phase="exp0", extensions=[ext])
+    with pytest.raises(ModelParameterError, match=match.replace(".", r"\.")):
+        model.validate(params)
