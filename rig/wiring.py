@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from typing import Callable
-from urllib.parse import urlencode
+from urllib.parse import parse_qs, urlencode, urlsplit
 
 from drivers.interfaces import AngleRange, Camera, FilterChanger, RotationStage
 from drivers.iolog import Transcript
@@ -55,7 +55,14 @@ def _is_sim(port: str | None, sim: bool) -> bool:
 def _sim_url(driver: str, port: str | None, cfg: RigConfig, **extra: object) -> str:
     """Twin URL for a driver: keep an explicit ``sim-*://`` port, else build one."""
     if port and "://" in port and port.split("://", 1)[0] == SIM_SCHEMES[driver]:
-        return port
+        # An explicit twin URL keeps its settings; the device facts the driver is configured
+        # with (e.g. the stage's zero_offset_deg) are added when the URL does not set them,
+        # so that the twin's angles mean what the driver thinks they mean.
+        given = parse_qs(urlsplit(port).query)
+        missing = {k: v for k, v in extra.items() if k not in given}
+        if not missing:
+            return port
+        return port + ("&" if "?" in port else "?") + urlencode(missing)
     query = {"timescale": cfg.sim.time_scale, "seed": cfg.sim.seed, **extra}
     if cfg.sim.faults:
         query["faults"] = cfg.sim.faults
@@ -110,6 +117,9 @@ def open_camera(cfg: RigConfig, *, sim: bool = False, transcript: Transcript | N
             faults=FaultPlan.parse(cfg.sim.faults, cfg.sim.seed),
             seed=cfg.sim.seed,
         )
+        from rig.simbench import configure_backend
+
+        configure_backend(backend)  # an installed world's sensor (non-linearity, overrides)
     return AltaCamera(backend=backend, serial_number=cfg.camera.serial_number, transcript=transcript)
 
 

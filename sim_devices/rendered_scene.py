@@ -1,0 +1,299 @@
+"""What the simulated camera sees: the world rendered by the forward model.
+
+`RenderedScene` is a :class:`~sim_devices.bench.SceneFunction`. With the slab mounted it
+renders the slab lit at the *physical* stage angle (twin angle + the world's hidden zero
+error, + the `angle_offset` tilt of the slab) through the current filter, using
+`estimate.forward.ForwardModel` with the world's true material, thickness and scene
+effects. With the slab removed (calibration) it shows the beam straight into the lens:
+the beam map on the pixel grid, attenuated by the calibration ND filter and the lens's
+telecentric acceptance exp(-delta^2 / 2 sigma^2) for a tilt delta = phi - 180 deg
+(nothing beyond 10 deg of phi = 180: the beam misses the lens).
+
+Scale. The forward model renders radiance L for a beam map of unit power [1/mm^2]:
+    e-/s per unbinned pixel = L * P_f * pixel_area_mm2 * collection_sr
+with P_f the world's beam power through filter f and collection_sr the lens's
+collection solid angle. The straight beam: E(u, v) * P_f * nd * pixel_area_mm2 * A(delta).
+
+Monte Carlo noise. One radiance image per (angle, filter) is rendered and reused for
+every exposure, so its Monte Carlo noise is frozen into every frame of a stack (a fixed
+pattern, not averaged away by more exposures). It is kept small where it matters: the
+profile rows (axis row +- `profile_halfwidth_rows`) at `spp_profile`, the band around
+them (+- `band_halfwidth_rows`) at `spp_band`, the rest of the frame at `spp_outside`
+(it only feeds blooming and full-frame views). benchmarks/sim_render.py measures the
+residual noise against the sensor noise of a merged bracket.
+
+Caching. Radiance images are cached in memory and on disk under
+`<cache_dir>/<sha256(world truth, render settings, geometry, filter, angle)>.npz`, so a
+later run with the same world reuses them. Image-space effects (`lens_blur`,
+`stray_light`) are applied to the full frame after the cache; `sensor_nonlinearity` acts
+per raw frame in the camera twin (:func:`raw_nonlinearity`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import threading
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from sim_devices.world import World, beam_map
+
+__all__ = ["RenderedScene", "raw_nonlinearity", "MAX_DIRECT_TILT_DEG"]
+
+#: Beyond this tilt from phi = 180 the straight beam misses the lens entirely.
+MAX_DIRECT_TILT_DEG = 10.0
+#: Angles closer than this share one render (stage resolution is 0.0025 deg).
+ANGLE_KEY_DECIMALS = 6
+_CACHE_VERSION = "rendered-scene/1"
+
+
+def raw_nonlinearity(world: World, full_well_e: float) -> Callable[[np.ndarray], np.ndarray] | None:
+    """Electrons -> electrons compression of raw frames, or None when the world has none."""
+    eff = world.effects.get("sensor_nonlinearity")
+    if not eff or eff["compression"] == 0:
+        return None
+    from estimate.extensions.sensor_nonlinearity import apply_raw
+
+    c = float(eff["compression"])
+    return lambda q: apply_raw(q, c, full_well_e)
+
+
+class RenderedScene:
+    """Scene function of a world.
+
+    Args:
+        world: the parsed world.
+        magnification: lens magnification (the world's, else the rig configuration's).
+        sensor_px: (columns, rows) of the sensor.
+        pixel_um: physical pixel size [um].
+
+    Attributes:
+        slab_present: False while the operator has the slab removed (calibration).
+        renders: number of radiance images rendered (not read from a cache).
+        disk_hits: number of radiance images read from the disk cache.
+    """
+
+    def __init__(self, world: World, *, magnification: float, sensor_px: tuple[int, int] = (512, 512),
+                 pixel_um: float = 20.0) -> None:
+        self.world = world
+        self.magnification = float(world.optics.magnification or magnification)
+        self.sensor_px = (int(sensor_px[0]), int(sensor_px[1]))
+        self.pixel_um = float(pixel_um)
+        self.pixel_mm = self.pixel_um * 1e-3 / self.magnification
+        cols, rows = self.sensor_px
+        self.axis_px = world.optics.axis_px or (cols / 2.0, rows / 2.0)
+        self.slab_present = True
+        self.renders = 0
+        self.disk_hits = 0
+        self._lock = threading.RLock()
+        self._memory: dict[tuple, np.ndarray] = {}
+        self._models: dict[str, Any] = {}
+        self._beam_map, self._beam_pitch = beam_map(world)
+
+    # ------------------------------------------------------------------ bench interface
+    def __call__(self, angle_deg: float, filter_name: str | None, rows: slice, cols: slice) -> np.ndarray:
+        """Photo-electron rate [e-/s per unbinned pixel] of the rows/cols asked."""
+        cols_n, rows_n = self.sensor_px
+        if filter_name is None or filter_name not in self.world.materials:
+            # the wheel is between positions (or an unknown filter): the beam is blocked
+            return np.zeros((rows_n, cols_n))[rows, cols]
+        phys = float(angle_deg) + self.world.stage_zero_error_deg
+        if self.slab_present:
+            img = self.slab_image(phys, filter_name)
+        else:
+            img = self.direct_image(phys, filter_name)
+        return img[rows, cols]
+
+    # ------------------------------------------------------------------ the straight beam
+    def direct_image(self, phys_deg: float, filter_name: str) -> np.ndarray:
+        """e-/s per pixel of the beam pointed into the lens (slab removed), full frame."""
+        key = ("direct", round(phys_deg, ANGLE_KEY_DECIMALS), filter_name)
+        with self._lock:
+            hit = self._memory.get(key)
+            if hit is not None:
+                return hit
+        delta = (phys_deg - 180.0 + 180.0) % 360.0 - 180.0
+        cols_n, rows_n = self.sensor_px
+        if abs(delta) > MAX_DIRECT_TILT_DEG:
+            img = np.zeros((rows_n, cols_n))
+        else:
+            o = self.world.optics
+            accept = math.exp(-0.5 * (delta / o.acceptance_sigma_deg) ** 2)
+            scale = self.world.beam.power_e_per_s[filter_name] * o.calibration_nd * accept * self.pixel_mm ** 2
+            img = scale * self._beam_on_pixels(math.radians(delta))
+            img = self._image_effects(img, direct=True)
+        with self._lock:
+            self._memory[key] = img
+        return img
+
+    def _beam_on_pixels(self, tilt_rad: float) -> np.ndarray:
+        """Unit-power beam irradiance [1/mm^2] averaged over each pixel (3x3 sub-samples).
+
+        At phi = 180 + delta the beam crosses the front-face plane with its u axis
+        stretched by 1 / cos(delta) (irradiance on the plane divided by the same)."""
+        from estimate.beam import BeamProfile
+
+        cols_n, rows_n = self.sensor_px
+        cx, cy = self.axis_px
+        ou, ov = self.world.beam.offset_mm
+        prof = BeamProfile.centered(self._beam_map, self._beam_pitch, (ou, ov))
+        sub = (np.arange(3) + 0.5) / 3.0
+        c = math.cos(tilt_rad)
+        out = np.zeros((rows_n, cols_n))
+        # only the pixels the map can reach
+        nv, nu = self._beam_map.shape
+        half_u = (0.5 * nu * self._beam_pitch + abs(ou)) / self.pixel_mm / max(c, 1e-3) + 3
+        half_v = (0.5 * nv * self._beam_pitch + abs(ov)) / self.pixel_mm + 3
+        c0, c1 = max(0, int(cx - half_u)), min(cols_n, int(cx + half_u) + 1)
+        r0, r1 = max(0, int(cy - half_v)), min(rows_n, int(cy + half_v) + 1)
+        if c0 >= c1 or r0 >= r1:
+            return out
+        for sy in sub:
+            for sx in sub:
+                x = (np.arange(c0, c1) + sx - cx) * self.pixel_mm
+                y = -(np.arange(r0, r1) + sy - cy) * self.pixel_mm
+                xx, yy = np.meshgrid(x * c, y)
+                out[r0:r1, c0:c1] += prof.lookup(xx, yy) * c
+        return out / 9.0
+
+    # ------------------------------------------------------------------ the slab
+    def _model(self, filter_name: str) -> Any:
+        m = self._models.get(filter_name)
+        if m is None:
+            from estimate.beam import BeamProfile
+            from estimate.forward import ForwardModel
+            from estimate.geometry import RigGeometry
+
+            w = self.world
+            geom = RigGeometry(thickness_mm=w.thickness_mm, half_width_mm=w.half_width_mm,
+                               sensor_px=self.sensor_px, pixel_um=self.pixel_um,
+                               magnification=self.magnification, image_center_px=self.axis_px)
+            beam = BeamProfile.centered(self._beam_map, self._beam_pitch, w.beam.offset_mm)
+            exts = [e for e in w.effects if e not in ("lens_blur", "stray_light", "sensor_nonlinearity")]
+            m = ForwardModel(geom, beam, phase=w.materials[filter_name].model, extensions=exts,
+                             max_depth=w.render.max_depth)
+            self._models[filter_name] = m
+        return m
+
+    def _params(self, filter_name: str) -> dict[str, float]:
+        p = self.world.materials[filter_name].parameters()
+        for k, v in self.world.effect_values().items():
+            if k.split(".", 1)[0] not in ("lens_blur", "stray_light", "sensor_nonlinearity"):
+                p[k] = v
+        return p
+
+    def row_tiers(self) -> list[tuple[int, int, int]]:
+        """(row0, row1, spp) of the rendered tiers, every sensor row exactly once."""
+        rs = self.world.render
+        rows_n = self.sensor_px[1]
+        centre = min(rows_n - 1, int(math.floor(self.axis_px[1])))
+        p0, p1 = max(0, centre - rs.profile_halfwidth_rows), min(rows_n, centre + rs.profile_halfwidth_rows + 1)
+        b0, b1 = max(0, centre - rs.band_halfwidth_rows), min(rows_n, centre + rs.band_halfwidth_rows + 1)
+        b0, b1 = min(b0, p0), max(b1, p1)
+        tiers = [(p0, p1, rs.spp_profile)]
+        for lo, hi in ((b0, p0), (p1, b1)):
+            if hi > lo:
+                tiers.append((lo, hi, rs.spp_band))
+        if rs.spp_outside > 0:
+            for lo, hi in ((0, b0), (b1, rows_n)):
+                if hi > lo:
+                    tiers.append((lo, hi, rs.spp_outside))
+        return tiers
+
+    def cache_key(self, phys_deg: float, filter_name: str) -> str:
+        """Disk-cache key of one radiance image."""
+        text = "|".join([_CACHE_VERSION, self.world.truth_hash(), repr(self.sensor_px), repr(self.pixel_um),
+                         repr(self.magnification), repr(tuple(self.axis_px)), repr(self.row_tiers()),
+                         filter_name, f"{round(phys_deg, ANGLE_KEY_DECIMALS):.6f}"])
+        return hashlib.sha256(text.encode()).hexdigest()
+
+    def radiance(self, phys_deg: float, filter_name: str) -> np.ndarray:
+        """Scene radiance of the slab for a unit-power beam, full frame, before image
+        effects (cached in memory and on disk)."""
+        mkey = ("slab", round(phys_deg, ANGLE_KEY_DECIMALS), filter_name)
+        with self._lock:
+            hit = self._memory.get(mkey)
+            if hit is not None:
+                return hit
+            key = self.cache_key(phys_deg, filter_name)
+            path = self.world.render.cache_path() / f"{key}.npz"
+            img = _read_cache(path, (self.sensor_px[1], self.sensor_px[0]))
+            if img is not None:
+                self.disk_hits += 1
+            else:
+                # float32 like the disk copy, so a cached run sees the very same numbers
+                img = self._render(phys_deg, filter_name).astype(np.float32).astype(np.float64)
+                self.renders += 1
+                _write_cache(path, img)
+            self._memory[mkey] = img
+            return img
+
+    def _render(self, phys_deg: float, filter_name: str) -> np.ndarray:
+        model = self._model(filter_name)
+        params = self._params(filter_name)
+        cols_n, rows_n = self.sensor_px
+        img = np.zeros((rows_n, cols_n))
+        seed = self.world.render.seed
+        angle = ((phys_deg + 180.0) % 360.0) - 180.0
+        for i, (r0, r1, spp) in enumerate(self.row_tiers()):
+            img[r0:r1] = model.render(params, [angle], columns=(0, cols_n), rows=(r0, r1), spp=spp,
+                                      seed=seed * 16 + i)[0]
+        return img
+
+    def slab_image(self, phys_deg: float, filter_name: str) -> np.ndarray:
+        """e-/s per pixel of the lit slab, full frame (image effects applied)."""
+        key = ("slab-e", round(phys_deg, ANGLE_KEY_DECIMALS), filter_name)
+        with self._lock:
+            hit = self._memory.get(key)
+            if hit is not None:
+                return hit
+        rad = self._image_effects(self.radiance(phys_deg, filter_name), direct=False)
+        scale = self.world.beam.power_e_per_s[filter_name] * self.pixel_mm ** 2 * self.world.optics.collection_sr
+        img = np.clip(rad, 0.0, None) * scale
+        with self._lock:
+            self._memory[key] = img
+        return img
+
+    def _image_effects(self, img: np.ndarray, *, direct: bool) -> np.ndarray:
+        """Lens blur (everything the lens sees) and stray light (slab only), full frame."""
+        eff = self.world.effects
+        out = img
+        if not direct and "stray_light" in eff:
+            from estimate.extensions.stray_light import StrayLight
+
+            out = StrayLight.apply(out, eff["stray_light"], pixel_mm=self.pixel_mm, profile_only=False)
+        if "lens_blur" in eff:
+            from estimate.extensions.lens_blur import LensBlur
+
+            out = LensBlur.apply(out, eff["lens_blur"], pixel_mm=self.pixel_mm, profile_only=False)
+        return out
+
+    def profile_rows(self) -> tuple[int, int]:
+        """[row0, row1) rendered at `spp_profile`."""
+        r0, r1, _ = self.row_tiers()[0]
+        return r0, r1
+
+
+def _read_cache(path: Path, shape: tuple[int, int]) -> np.ndarray | None:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            img = np.array(z["radiance"], dtype=np.float64)
+    except (OSError, ValueError, KeyError):
+        return None
+    return img if img.shape == shape else None
+
+
+def _write_cache(path: Path, img: np.ndarray) -> None:
+    """Atomic write (temp + rename); a cache that cannot be written is only slower."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, radiance=img.astype(np.float32))
+        os.replace(tmp, path)
+    except OSError:
+        pass
