@@ -83,6 +83,10 @@ class HenyeyGreenstein:
         """Mean scattering cosine (= g)."""
         return self.g
 
+    def sample_mu(self, u: np.ndarray | float) -> np.ndarray:
+        """Inverse CDF: cosines for uniform u in [0, 1]."""
+        return hg_sample_mu(u, self.g)
+
     def sample(self, u: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
         """Cosines for uniform u and their pdf per steradian (= p)."""
         mu = hg_sample_mu(u, self.g)
@@ -135,11 +139,26 @@ class TwoTermHG:
         """Alias of :attr:`asymmetry`."""
         return self.asymmetry
 
-    def sample(self, u1: np.ndarray | float, u2: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
-        """Cosines (lobe chosen by u1 < w, then HG inversion with u2) and their pdf (= p)."""
-        u1 = np.asarray(u1, dtype=float)
-        u2 = np.asarray(u2, dtype=float)
-        mu = np.where(u1 < self.w, hg_sample_mu(u2, self.g1), hg_sample_mu(u2, self.g2))
+    def sample_mu(self, u: np.ndarray | float) -> np.ndarray:
+        """Cosines from one uniform u each: u < w picks the forward lobe and u/w, rescaled,
+        inverts it; otherwise (u - w)/(1 - w) inverts the backward lobe."""
+        u = np.asarray(u, dtype=float)
+        w = self.w
+        fwd = u < w
+        u_f = np.clip(u / w, 0.0, 1.0) if w > 0 else np.zeros_like(u)
+        u_b = np.clip((u - w) / (1.0 - w), 0.0, 1.0) if w < 1 else np.zeros_like(u)
+        return np.where(fwd, hg_sample_mu(u_f, self.g1), hg_sample_mu(u_b, self.g2))
+
+    def sample(self, u1: np.ndarray | float, u2: np.ndarray | float | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """Cosines and their pdf (= p). With u2, u1 < w picks the lobe and u2 inverts it;
+        without, see :meth:`sample_mu`."""
+        if u2 is None:
+            mu = self.sample_mu(u1)
+        else:
+            u1 = np.asarray(u1, dtype=float)
+            u2 = np.asarray(u2, dtype=float)
+            mu = np.where(u1 < self.w, hg_sample_mu(u2, self.g1), hg_sample_mu(u2, self.g2))
         return mu, self.eval(mu)
 
     def pdf(self, mu: np.ndarray | float) -> np.ndarray:

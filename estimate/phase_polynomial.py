@@ -130,6 +130,10 @@ class IsotropicPhase:
         """log p(mu)."""
         return np.full_like(np.asarray(mu, dtype=float), math.log(ISOTROPIC))
 
+    def sample_mu(self, u: np.ndarray | float) -> np.ndarray:
+        """Cosines 2u - 1."""
+        return 2.0 * np.asarray(u, dtype=float) - 1.0
+
     def sample(self, u: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
         """Cosines 2u - 1 and their pdf (1/(4 pi))."""
         mu = 2.0 * np.asarray(u, dtype=float) - 1.0

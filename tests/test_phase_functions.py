@@ -174,6 +174,13 @@ def test_two_term_hg() -> None:
     rng = np.random.default_rng(4)
     s, pdf = t.sample(rng.random(40000), rng.random(40000))
     assert s.mean() == pytest.approx(t.asymmetry, abs=0.01)
+    np.testing.assert_allclose(pdf, t.eval(s))
+
+    def cdf(x: np.ndarray) -> np.ndarray:
+        return np.array([2 * math.pi * integrate.quad(lambda m: float(t.eval(m)), -1, xi, limit=200)[0] for xi in x])
+
+    assert _chi2_pvalue(t.sample_mu(rng.random(40000)), cdf) > 1e-3
+    assert _chi2_pvalue(s, cdf) > 1e-3
     # w = 1 is plain HG
     np.testing.assert_allclose(TwoTermHG(0.6, -0.3, 1.0).eval(mu), HenyeyGreenstein(0.6).eval(mu))
     for bad in ({"w": 1.2}, {"w": float("nan")}, {"g2": -1.0}):
