@@ -13,6 +13,7 @@ import threading
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Self
 
 import numpy as np
 import pytest
@@ -141,7 +142,7 @@ class AngleSampler:
             self.angles.append(self.twin.angle_deg())
             time.sleep(0.0005)
 
-    def __enter__(self) -> AngleSampler:
+    def __enter__(self) -> Self:
         self._t.start()
         return self
 
