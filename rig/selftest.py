@@ -171,7 +171,8 @@ class SelfTestOptions:
         stage_step_deg: size of the small moves either side of the test point, degrees
             (shrunk to a quarter of the allowed range when that is narrow).
         stage_tolerance_deg: largest accepted difference between a target and the angle
-            read back; None: one position count of the controller (its resolution).
+            read back; None: one position count of the controller (its resolution), or
+            ``FALLBACK_STAGE_TOLERANCE_DEG`` for a driver that does not report one.
         cooler_wait_s: longest time to watch the cooler approach its set-point, seconds.
         cooler_poll_s: interval between cooler readings, seconds.
         cooler_min_drop_c: a CCD that cooled by at least this much while watched is
@@ -295,6 +296,8 @@ def stage_resolution_deg(stage: RotationStage) -> float | None:
     return float(v) if isinstance(v, (int, float)) and v > 0 else None
 
 
+#: Read-back tolerance for a stage whose driver does not report its resolution, degrees.
+FALLBACK_STAGE_TOLERANCE_DEG = 0.01
 #: Names of the results :func:`check_stage_motion` yields, in order.
 STAGE_CHECKS = ("stage.home", "stage.moves", "stage.return")
 
@@ -313,7 +316,7 @@ def check_stage_motion(stage: RotationStage, options: SelfTestOptions) -> Iterat
     elif res is not None:
         tol = res + 1e-9  # a target is rounded to a count, and nudged by one at a range edge
     else:
-        tol = 0.01
+        tol = FALLBACK_STAGE_TOLERANCE_DEG
     rng_text = f"[{r.lo:g}, {r.hi:g}] deg"
     start = stage.angle()
 
@@ -627,8 +630,9 @@ def fault_fix(err: DeviceError) -> str:
     if isinstance(err, DeviceTimeout):
         return f"the {who} stopped answering in time: check its cable and power; send the transcript if it persists"
     if isinstance(err, LimitError):
-        return (f"the {who} reached a limit: check the stage's travel and cable wrap, and "
-                "allowed_range_deg in rig.yaml")
+        if who == "stage":
+            return "a limit was reached: check the stage's travel and cable wrap, and allowed_range_deg in rig.yaml"
+        return f"a request outside what the {who} can do: check its entry in rig.yaml"
     if isinstance(err, ProtocolError):
         return f"the {who} refused or garbled a command: power-cycle it and rerun; send the transcript if it persists"
     if isinstance(err, StateError):
@@ -701,21 +705,22 @@ def expected_identities(cfg: RigConfig, camera: Camera) -> dict[str, str]:
 
 def _make_safe(rig: Rig, roi: ROI, run: _Run) -> None:
     """Stop the stage and force the shutter closed; failures are reported, never raised."""
-    actions: list[tuple[str, str, Callable[[], None]]] = [
-        ("safety.stage", "stop the stage", rig.stage.stop),
-        ("safety.shutter", "close the shutter", lambda: rig.camera.set_shutter(ShutterMode.CLOSED)),
-        ("safety.roi", "restore the camera's region of interest", lambda: rig.camera.set_roi(roi)),
+    actions: list[tuple[str, str, Callable[[], None], str]] = [
+        ("safety.stage", "stop the stage", rig.stage.stop,
+         "make sure the stage stands still (STOP on the controller's front panel) before touching the rig"),
+        ("safety.shutter", "close the shutter", lambda: rig.camera.set_shutter(ShutterMode.CLOSED),
+         "the shutter closes when the camera is idle or power-cycled: check it before the next exposure"),
+        ("safety.roi", "restore the camera's region of interest", lambda: rig.camera.set_roi(roi),
+         "nothing to do: the next program sets its own region of interest"),
     ]
-    for name, what, act in actions:
+    done = []
+    for name, what, act, fix in actions:
         try:
             act()
+            done.append(what)
         except DeviceError as e:
-            run.add(CheckResult(name, "fail", f"could not {what}: {e}", {"error": type(e).__name__},
-                                fix=("make sure the stage stands still (front panel STOP) "
-                                     if name == "safety.stage" else
-                                     "the shutter closes when the camera is idle or power-cycled; check it ")
-                                + "before touching the rig"))
-    run.note("safety: stage stopped, shutter forced closed")
+            run.add(CheckResult(name, "fail", f"could not {what}: {e}", {"error": type(e).__name__}, fix=fix))
+    run.note(f"safety: {'; '.join(done) if done else 'nothing could be done'}")
 
 
 def run_selftest(rig: Rig, options: SelfTestOptions | None = None, *,

@@ -79,10 +79,13 @@ def hw_config() -> RigConfig:
 @pytest.fixture
 def rig(hw_config: RigConfig, tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Rig]:
     log = _transcript_dir(tmp_path) / f"hardware-{request.node.name}.log"
+    problem = None
     try:
         opened = open_rig(hw_config, log_io=str(log))
     except DeviceError as e:
-        pytest.fail(str(describe_open_problem(e, hw_config)), pytrace=False)
+        problem = str(describe_open_problem(e, hw_config))
+    if problem is not None:  # one line naming the device and the fix, outside the except block
+        pytest.fail(problem, pytrace=False)
     try:
         yield opened
     finally:
@@ -148,10 +151,13 @@ def test_bias_read_noise_dark_and_shutter(rig: Rig):
 @pytest.mark.hardware
 def test_full_selftest_passes_and_writes_its_transcript(hw_config: RigConfig, tmp_path: Path):
     path = _transcript_dir(tmp_path) / "hardware-selftest.log"
+    problem = None
     try:
         report = selftest_from_config(hw_config, transcript_path=path)
     except DeviceError as e:
-        pytest.fail(str(e), pytrace=False)
+        problem = str(e)
+    if problem is not None:
+        pytest.fail(problem, pytrace=False)
     assert report.ok, _lines(report.results)
     text = path.read_text()
     assert "stage    >" in text and "filter" in text and "camera   >" in text
