@@ -473,3 +473,28 @@ def test_options_are_checked():
     with pytest.raises(ValueError):
         SelfTestOptions(dark_exposures_s=())
     assert math.isfinite(SelfTestOptions().light_exposure_s)
+
+
+def test_missing_serial_port_names_the_port_and_the_fix(tmp_path, bench, capsys):
+    cfg = write_config(tmp_path, bench, stage_port=str(tmp_path / "ttyUSB-gone"))
+    rc = cli.main(["selftest", "--config", str(cfg), "--transcript", str(tmp_path / "gone.log")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 3 and len(err) == 1, err
+    assert "stage (SHOT-702 on" in err[0] and "does not exist" in err[0]
+    assert "-> fix:" in err[0] and "rig devices --scan" in err[0]
+
+
+def test_manual_filter_changer_is_not_driven(tmp_path, bench):
+    p = write_config(tmp_path, bench)
+    p.write_text(p.read_text().replace('driver: fw102c\n  port: "sim"', "driver: manual"))
+    cfg = load_config(p)
+    assert cfg.filter.driver == "manual"
+    asked: list[str] = []
+    be = AltaBackend(bench, time_scale=FAST, seed=2)
+    rig = opener(be)(cfg, sim=True, log_io=None)
+    rig.changer._ask = asked.append  # the operator is never asked during a self-test
+    with rig:
+        report = by_name(run_selftest(rig, OPTS))
+    assert report["filter.identity"].status == "ok"
+    assert report["filter.positions"].status == "ok" and "manual" in report["filter.positions"].message
+    assert asked == [] and all(r.status == "ok" for r in report.values())
