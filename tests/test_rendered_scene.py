@@ -1,0 +1,142 @@
+"""The rendered bench scene: physical angle, scale, caches (memory and disk), effects, install."""
+
+import math
+
+import numpy as np
+import pytest
+
+from sim_devices.rendered_scene import RenderedScene
+from sim_devices.world import beam_map, parse_world
+
+FULL = (slice(0, 512), slice(0, 512))
+
+
+def _world(tmp_path, **over):
+    d = {
+        "slab": {"thickness_mm": 1.0},
+        "materials": {"r": {"sigma_t": 2.0, "albedo": 0.9, "phase": {"type": "exp", "b": [1.5, 0.2]}},
+                      "g": {"sigma_t": 2.5, "albedo": 0.9, "phase": {"type": "hg", "g": 0.5}}},
+        "beam": {"profile": {"type": "gaussian", "sigma_mm": 0.25}, "power_e_per_s": {"r": 4e10, "g": 2e10}},
+        "optics": {"axis_px": [260.5, 250.5]},
+        "stage": {"zero_error_deg": 0.4},
+        "render": {"spp_profile": 8, "profile_halfwidth_rows": 1, "spp_band": 2, "band_halfwidth_rows": 3,
+                   "spp_outside": 0, "cache_dir": str(tmp_path / "cache")},
+    }
+    d.update(over)
+    return parse_world(d, "test.yaml")
+
+
+def test_render_is_cached_in_memory_and_on_disk(tmp_path):
+    w = _world(tmp_path)
+    s = RenderedScene(w, magnification=0.3)
+    a = s(45.0, "r", *FULL)
+    assert s.renders == 1 and a.shape == (512, 512)
+    r0, r1 = s.profile_rows()
+    assert a[r0:r1].max() > 0 and a[:r0 - 3].max() == 0  # outside the band: not rendered (spp_outside 0)
+    b = s(45.0, "r", slice(0, 512), slice(100, 200))  # another ROI, another exposure: same image
+    assert s.renders == 1 and np.array_equal(b, a[:, 100:200])
+    s(45.0, "g", *FULL)
+    assert s.renders == 2
+    fresh = RenderedScene(w, magnification=0.3)  # a later run: read from disk, not rendered
+    c = fresh(45.0, "r", *FULL)
+    assert fresh.renders == 0 and fresh.disk_hits == 1 and np.array_equal(c, a)
+    other = RenderedScene(_world(tmp_path, slab={"thickness_mm": 1.2}), magnification=0.3)
+    assert other.cache_key(45.4, "r") != fresh.cache_key(45.4, "r")
+
+
+def test_scale_is_radiance_times_power_pixel_area_and_collection(tmp_path):
+    w = _world(tmp_path)
+    s = RenderedScene(w, magnification=0.3)
+    img = s(30.0, "r", *FULL)
+    rad = s.radiance(30.0 + 0.4, "r")  # physical angle = stage angle + hidden error
+    k = 4e10 * (0.020 / 0.3) ** 2 * 0.01
+    assert np.allclose(img, np.clip(rad, 0, None) * k)
+
+
+def test_straight_beam_peaks_at_the_hidden_zero_and_carries_the_power(tmp_path):
+    w = _world(tmp_path)
+    s = RenderedScene(w, magnification=0.3)
+    s.slab_present = False
+    at_zero = s(180.0 - 0.4, "r", *FULL)
+    # all the beam (through the calibration ND) lands on the sensor at the true zero
+    assert math.isclose(at_zero.sum(), 4e10 * 1e-3, rel_tol=1e-3)
+    tilted = s(180.0 - 0.4 + 0.5, "r", *FULL)
+    assert math.isclose(tilted.sum() / at_zero.sum(), math.exp(-0.5), rel_tol=2e-3)  # acceptance sigma 0.5 deg
+    j, i = np.unravel_index(np.argmax(at_zero), at_zero.shape)
+    assert (i, j) == (260, 250)  # the axis pixel
+    ys, xs = np.indices(at_zero.shape) + 0.5
+    cx = (at_zero * xs).sum() / at_zero.sum()
+    wx = math.sqrt((at_zero * (xs - cx) ** 2).sum() / at_zero.sum()) * 0.020 / 0.3
+    assert abs(cx - 260.5) < 1e-3 and abs(wx - 0.25) < 0.002
+    assert s(150.0, "r", *FULL).max() == 0.0  # far from 180: the beam misses the lens
+    assert s(179.6, None, *FULL).max() == 0.0  # wheel between positions
+    assert s.renders == 0  # no Mitsuba render for the straight beam
+
+
+def test_image_effects_and_raw_nonlinearity(tmp_path):
+    from sim_devices.rendered_scene import raw_nonlinearity
+
+    w = _world(tmp_path, effects={"lens_blur": {"core_sigma_px": 2.0},
+                                  "sensor_nonlinearity": {"compression": 0.1}})
+    s = RenderedScene(w, magnification=0.3)
+    s.slab_present = False
+    img = s(179.6, "r", *FULL)
+    sharp = 4e10 * 1e-3 * (0.020 / 0.3) ** 2 * s._beam_on_pixels(0.0)
+    assert math.isclose(img.sum(), sharp.sum(), rel_tol=1e-3) and img.max() < 0.9 * sharp.max()
+    f = raw_nonlinearity(w, 2e5)
+    assert f(np.array([2e5]))[0] == pytest.approx(1.8e5)
+    assert raw_nonlinearity(_world(tmp_path), 2e5) is None
+
+
+def test_install_world_drives_the_twins(tmp_path):
+    import yaml
+
+    from rig.config import load_config
+    from rig.simbench import SimOperator, install_world
+    from rig.wiring import open_rig
+
+    cfg = load_config(None)
+    wpath = tmp_path / "w.yaml"
+    d = yaml.safe_load(yaml.safe_dump(_world(tmp_path).raw))
+    d["materials"]["b"] = d["materials"]["g"]
+    d["beam"]["power_e_per_s"]["b"] = 1e10
+    d["effects"] = {"sensor_nonlinearity": {"compression": 0.2}}
+    wpath.write_text(yaml.safe_dump(d))
+    inst = install_world(cfg, str(wpath))
+    assert inst.name == "w"  # no name in the file: its stem
+    op = SimOperator(inst)
+    assert op.ask("remove_slab", "remove it") and not inst.scene.slab_present
+    with open_rig(cfg, sim=True, scene=inst.scene) as rig:
+        rig.changer.select("r")
+        rig.stage.move_to(180.0 - 0.4)  # the hidden zero error puts the beam into the lens here
+        fr = rig.camera.expose(0.001)
+        assert fr.data.max() > 300  # the beam, in ADU above the 250 bias
+    assert op.ask("mount_slab", "mount it") and inst.scene.slab_present
+
+
+def test_configure_backend_gives_the_camera_twin_the_world_sensor(tmp_path):
+    import yaml
+
+    from rig.config import load_config
+    from rig.simbench import configure_backend, install_world
+    from rig.wiring import prepare_bench
+    from sim_devices.alta_usb import AltaBackend
+
+    cfg = load_config(None)
+    d = yaml.safe_load(yaml.safe_dump(_world(tmp_path).raw))
+    for f in ("g", "b"):
+        d["materials"][f] = d["materials"]["r"]
+        d["beam"]["power_e_per_s"][f] = 1e10
+    d["effects"] = {"sensor_nonlinearity": {"compression": 0.2}}
+    d["sensor"] = {"read_noise_e": 9.0}
+    (tmp_path / "w.yaml").write_text(yaml.safe_dump(d))
+    install_world(cfg, str(tmp_path / "w.yaml"))
+    backend = AltaBackend(cfg.sim.bench)
+    configure_backend(backend)
+    assert backend.ccd.sensor.read_noise_e == 9.0
+    assert backend.ccd.nonlinearity(np.array([backend.ccd.sensor.full_well_e]))[0] == pytest.approx(
+        0.8 * backend.ccd.sensor.full_well_e)
+    prepare_bench(cfg)  # a plain bench again: the world no longer applies
+    plain = AltaBackend(cfg.sim.bench)
+    configure_backend(plain)
+    assert plain.ccd.nonlinearity is None and plain.ccd.sensor.read_noise_e != 9.0
