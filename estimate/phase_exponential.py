@@ -4,12 +4,14 @@
 
 with theta the scattering angle (mu = +1: light goes straight on). ``Q_i`` is either the
 paper's monomial basis ``Q_i = mu^i`` or the Legendre basis ``Q_i = P_i`` (better
-conditioned for fitting; both have ``Q_0 = 1``, so ``b_0`` means the same in both).
+conditioned for fitting). Both have ``Q_0 = 1``, but the value of ``b_0`` differs between
+the bases for the same function, because P_2, P_4, ... have constant terms.
 ``b_0`` is not free: the normalisation over the sphere, ``2 pi int_{-1}^{1} p dmu = 1``,
 fixes it (:func:`log_norm`). ``p`` is a density per steradian [1/sr].
 
 Degree 0 is the isotropic phase function ``1/(4 pi)``; degree 1 is the von Mises-Fisher
-phase function with ``kappa = b_1``.
+phase function with ``kappa = b_1``, exp(b_0) = kappa / (4 pi sinh kappa) (the paper
+prints 2 pi, which would integrate to 2 under its own normalisation).
 
 The normalisation integral of a strongly peaked function (``b_1`` in the hundreds puts
 almost all of the mass within ``1/b_1`` of ``mu = 1``) is computed as a log-sum-exp over
@@ -38,6 +40,8 @@ __all__ = [
     "monomial_to_legendre",
     "legendre_to_monomial",
     "quadrature_nodes",
+    "check_degree",
+    "sample_about_axis",
 ]
 
 Basis = Literal["monomial", "legendre"]
