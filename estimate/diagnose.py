@@ -1,0 +1,458 @@
+"""Mismatch diagnosis of one channel's fit: locate, explain, model and refit.
+
+1. Locate: re-render the base fit (several seeds: the model's Monte-Carlo variance enters
+   the noise), normalised residuals, chi^2 test of the whole fit, localisation
+   (`estimate.residuals`).
+2. Explain: score tests of every candidate extension at the base fit (`estimate.screening`).
+3. Confirm: the leading candidates are refitted with their extension switched on, on the
+   training angles (every `HOLDOUT_EVERY`-th light angle is held out); a candidate is
+   confirmed when the held-out chi^2 drops and the BIC improves by more than `BIC_STRONG`.
+   After one confirmed effect the fit is tested again; a remaining significant mismatch is
+   screened at the new fit for a second effect (pairs).
+4. Model and refit: the final model holds the confirmed effects, refitted on all angles,
+   with Gauss-Newton uncertainties of every parameter.
+
+The refit is a Levenberg-Marquardt loop on the forward model's `jacobian` (finite
+differences with common random numbers, exact for image-space parameters), with the scale
+(measured = scale * rendered) as a free linear parameter. When no candidate explains a
+significant mismatch, no cause is named.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from estimate.errors import EstimateError, ModelParameterError
+from estimate.extensions import EXTENSIONS
+from estimate.residuals import ALPHA, FitResiduals, fit_significance, localise, normalised_residuals
+from estimate.screening import CandidateScore, candidate_columns, screen
+
+__all__ = ["BaseFit", "Evaluation", "ChannelDiagnosis", "diagnose_channel", "evaluate", "refit",
+           "FREE_PARAMETERS", "CANDIDATES", "BIC_STRONG", "HOLDOUT_EVERY"]
+
+CANDIDATES: tuple[str, ...] = tuple(EXTENSIONS)
+
+#: Extension parameters freed in a refit and their starting values (None = derived from
+#: the data: the full-well radiance starts at the brightest rendered pixel).
+FREE_PARAMETERS: dict[str, dict[str, float | None]] = {
+    "refractive_boundary": {"refractive_boundary.n": 1.2},
+    "lens_blur": {"lens_blur.core_sigma_px": 1.0, "lens_blur.tail_fraction": 0.01},
+    "stray_light": {"stray_light.offset": 0.0, "stray_light.slope_per_mm": 0.0},
+    "angle_offset": {"angle_offset.delta_deg": 0.0},
+    "thickness_error": {"thickness_error.e": 0.0},
+    "beam_halo": {"beam_halo.fraction": 0.01, "beam_halo.sigma_mm": 1.0},
+    "sensor_nonlinearity": {"sensor_nonlinearity.compression": 0.05,
+                            "sensor_nonlinearity.full_well_radiance": None},
+    "filter_bandwidth": {"filter_bandwidth.spread": 0.2},
+}
+
+#: BIC improvement (chi^2 drop minus k ln n) that confirms an effect ("very strong" evidence).
+BIC_STRONG = 10.0
+#: Every HOLDOUT_EVERY-th light angle (sorted) is held out when confirming.
+HOLDOUT_EVERY = 4
+#: At most this many candidates are refitted per round.
+MAX_CONFIRM = 3
+#: At most this many effects are added.
+MAX_EFFECTS = 2
+#: Screening threshold (log10 p), Bonferroni-corrected for the eight candidates.
+SCREEN_LOG10_P = math.log10(ALPHA / len(CANDIDATES))
+
+ModelFactory = Callable[[Sequence[str]], Any]
+
+
+@dataclass
+class BaseFit:
+    """The fit to diagnose: forward-model parameters (incl. any extensions already on) and scale."""
+
+    parameters: dict[str, float]
+    scale: float
+    phase: str
+    extensions: list[str] = field(default_factory=list)
+    uncertainties: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class Evaluation:
+    """A model evaluated against the data: mean render of `repeats` seeds and its residuals."""
+
+    parameters: dict[str, float]
+    extensions: list[str]
+    scale: float
+    model: np.ndarray
+    model_variance: np.ndarray
+    residuals: FitResiduals
+    n_params: int
+
+
+@dataclass
+class ChannelDiagnosis:
+    """Everything `rig diagnose` reports for one channel (see `as_dict`)."""
+
+    channel: str
+    before: Evaluation
+    localisation: dict[str, Any]
+    candidates: list[CandidateScore]
+    confirmations: list[dict[str, Any]]
+    confirmed: list[str]
+    after: Evaluation | None
+    uncertainties_after: dict[str, float]
+    verdict: str
+    time_s: float
+    material_names: list[str]
+
+    @property
+    def significant(self) -> bool:
+        return self.before.residuals.significant
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain (YAML/JSON-ready) summary."""
+        b = self.before
+        a = self.after
+        eff = {}
+        for name in self.confirmed:
+            eff[name] = {k: {"value": a.parameters[k], "uncertainty": self.uncertainties_after.get(k)}
+                         for k in (a.parameters if a else {}) if k.startswith(name + ".")}
+        return {
+            "channel": self.channel,
+            "significant": self.significant,
+            "before": {"chi2": b.residuals.chi2, "dof": b.residuals.dof, "reduced_chi2": b.residuals.reduced_chi2,
+                       "p_value": b.residuals.p_value},
+            "localisation": _plain(self.localisation),
+            "candidates": [c.as_dict() for c in self.candidates],
+            "confirmations": _plain(self.confirmations),
+            "confirmed_effects": _plain(eff),
+            "reduced_chi2_before": b.residuals.reduced_chi2,
+            "reduced_chi2_after": a.residuals.reduced_chi2 if a else b.residuals.reduced_chi2,
+            "after_significant": a.residuals.significant if a else b.residuals.significant,
+            "material_before": {k: b.parameters[k] for k in self.material_names},
+            "material_after": {k: (a or b).parameters[k] for k in self.material_names},
+            "material_uncertainty_after": {k: self.uncertainties_after.get(k) for k in self.material_names}
+            if a else {},
+            "scale_before": b.scale, "scale_after": (a or b).scale,
+            "parameters_after": _plain(a.parameters) if a else None,
+            "verdict": self.verdict,
+            "time_s": self.time_s,
+        }
+
+
+def _plain(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None if math.isnan(x) else (1e308 if x > 0 else -1e308)
+    return x
+
+
+# ---------------------------------------------------------------------------- helpers
+def _variance(problem: Any) -> np.ndarray:
+    var = np.asarray(problem.variance, dtype=np.float64).copy()
+    valid = getattr(problem, "valid", None)
+    if valid is not None:
+        var = np.where(np.asarray(valid, bool), var, np.inf)
+    return np.where(np.isfinite(var) & (var > 0), var, np.inf)
+
+
+def _best_scale(measured: np.ndarray, var: np.ndarray, f: np.ndarray) -> float:
+    w = 1.0 / var
+    den = float(np.sum(w * f * f))
+    return float(np.sum(w * measured * f) / den) if den > 0 else 1.0
+
+
+def evaluate(model: Any, params: Mapping[str, float], problem: Any, n_params: int, *, spp: int = 256,
+             seed: int = 1000, repeats: int = 4, angle_idx: Sequence[int] | None = None,
+             scale: float | None = None) -> Evaluation:
+    """Render `repeats` seeds, average, and test the fit (scale refitted unless given)."""
+    idx = list(range(len(problem.angles_deg))) if angle_idx is None else list(angle_idx)
+    angles = [float(problem.angles_deg[i]) for i in idx]
+    renders = np.stack([model.render_profiles(params, angles, spp=spp, seed=seed + 7 * k) for k in range(repeats)])
+    mean = renders.mean(axis=0)
+    mvar = renders.var(axis=0, ddof=1) / repeats if repeats > 1 else np.zeros_like(mean)
+    meas = np.asarray(problem.measured, dtype=np.float64)[idx]
+    var = _variance(problem)[idx]
+    s = _best_scale(meas, var, mean) if scale is None else float(scale)
+    r = normalised_residuals(meas, var, mean, s, mvar)
+    r = np.where(np.isfinite(var), r, np.nan)
+    res = fit_significance(r, n_params)
+    return Evaluation(dict(model.validate(params)), list(model.extensions), s, mean, mvar, res, n_params)
+
+
+def _bounds(model: Any, name: str) -> tuple[float, float]:
+    spec = model.specs[name]
+    lo = spec.lower
+    hi = spec.upper
+    if spec.open_lower or name in ("sigma_t",):
+        lo = lo + max(1e-6, 1e-6 * abs(hi if math.isfinite(hi) else 1.0))
+    if name == "thickness_error.e":
+        lo = max(lo, -0.5)
+    if name == "sensor_nonlinearity.compression":
+        hi = min(hi, 0.32)
+    return lo, hi
+
+
+@dataclass
+class RefitResult:
+    """Result of `refit`: parameters, scale, 1-sigma uncertainties, chi^2 of the fixed-seed fit."""
+
+    parameters: dict[str, float]
+    scale: float
+    uncertainties: dict[str, float]
+    chi2: float
+    iterations: int
+
+
+def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[str], *,
+          angle_idx: Sequence[int] | None = None, spp: int = 256, seed: int = 2000, iterations: int = 12,
+          model_variance: np.ndarray | None = None) -> RefitResult:
+    """Levenberg-Marquardt fit of `free` parameters (and the scale) with a fixed render seed.
+
+    Uncertainties: Gauss-Newton covariance at the optimum, inflated by the reduced chi^2
+    when it exceeds 1.
+    """
+    idx = list(range(len(problem.angles_deg))) if angle_idx is None else list(angle_idx)
+    angles = [float(problem.angles_deg[i]) for i in idx]
+    meas = np.asarray(problem.measured, dtype=np.float64)[idx]
+    var = _variance(problem)[idx]
+    mv = None if model_variance is None else np.asarray(model_variance)[idx]
+    theta = dict(model.validate(start))
+    free = list(free)
+    bounds = [_bounds(model, n) for n in free]
+    for n, (lo, hi) in zip(free, bounds):
+        theta[n] = float(np.clip(theta[n], lo, hi))
+
+    def residual(th: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+        f = model.render_profiles(th, angles, spp=spp, seed=seed)
+        s = _best_scale(meas, var, f)
+        v = var if mv is None else var + s * s * mv
+        sig = np.sqrt(v)
+        r = (meas - s * f) / sig
+        r = np.where(np.isfinite(sig), r, 0.0)
+        return r, f, s, sig
+
+    r, f, s, sig = residual(theta)
+    chi2 = float(np.sum(r * r))
+    lam = 1e-3
+    it = 0
+    A = None
+    for it in range(1, iterations + 1):
+        jac = model.jacobian(theta, angles, free, spp=spp, seed=seed)
+        cols = [np.ravel(-s * jac[n] / sig) for n in free] + [np.ravel(-f / sig)]
+        A = np.nan_to_num(np.stack(cols, axis=1), nan=0.0, posinf=0.0, neginf=0.0)
+        g = A.T @ r.ravel()
+        H = A.T @ A
+        d = np.maximum(np.diag(H), 1e-300)
+        improved = False
+        for _ in range(8):
+            try:
+                step = -np.linalg.solve(H + lam * np.diag(d), g)
+            except np.linalg.LinAlgError:
+                lam *= 10.0
+                continue
+            trial = dict(theta)
+            for j, (n, (lo, hi)) in enumerate(zip(free, bounds)):
+                trial[n] = float(np.clip(theta[n] + step[j], lo, hi))
+            try:
+                r2, f2, s2, sig2 = residual(trial)
+            except ModelParameterError:
+                lam *= 10.0
+                continue
+            c2 = float(np.sum(r2 * r2))
+            if c2 < chi2:
+                rel = (chi2 - c2) / max(chi2, 1e-300)
+                theta, r, f, s, sig, chi2 = trial, r2, f2, s2, sig2, c2
+                lam = max(lam / 3.0, 1e-7)
+                improved = True
+                break
+            lam *= 4.0
+        if not improved or rel < 1e-4:
+            break
+    unc: dict[str, float] = {}
+    if A is not None:
+        jac = model.jacobian(theta, angles, free, spp=spp, seed=seed)
+        cols = [np.ravel(-s * jac[n] / sig) for n in free] + [np.ravel(-f / sig)]
+        A = np.nan_to_num(np.stack(cols, axis=1), nan=0.0, posinf=0.0, neginf=0.0)
+        n_obs = int(np.sum(np.isfinite(sig)))
+        red = chi2 / max(1, n_obs - len(free) - 1)
+        cov = np.linalg.pinv(A.T @ A) * max(1.0, red)
+        unc = {n: float(math.sqrt(max(cov[j, j], 0.0))) for j, n in enumerate(free)}
+    return RefitResult(theta, s, unc, chi2, it)
+
+
+def _free_names(model: Any, extensions: Sequence[str]) -> list[str]:
+    base = [n for n in model.parameter_names if n in ("sigma_t", "albedo") or n.startswith("phase.")]
+    out = list(base)
+    for e in extensions:
+        out += list(FREE_PARAMETERS[e])
+    return out
+
+
+def _start(model: Any, params: Mapping[str, float], ext: str, brightest: float) -> dict[str, float]:
+    p = dict(params)
+    for k, v in FREE_PARAMETERS[ext].items():
+        if k not in p or p[k] == model.specs[k].neutral:
+            p[k] = brightest if v is None else v
+    return p
+
+
+def _holdout(n: int) -> tuple[list[int], list[int]]:
+    if n < 4:
+        return list(range(n)), []
+    held = list(range(HOLDOUT_EVERY // 2, n, HOLDOUT_EVERY))
+    train = [i for i in range(n) if i not in held]
+    return train, held
+
+
+# ---------------------------------------------------------------------------- main
+def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
+                     candidates: Sequence[str] | None = None, spp: int = 256, seed: int = 1000,
+                     repeats: int = 4, iterations: int = 12,
+                     log: Callable[[str], None] | None = None) -> ChannelDiagnosis:
+    """Diagnose one channel.
+
+    Args:
+        problem: `estimate.problem.Problem` (or any object with angles_deg, x_mm, measured,
+            variance, geometry, channel; optional valid).
+        base: the fit to diagnose.
+        make_model: extensions -> ForwardModel for this channel (phase and geometry fixed).
+        candidates: extension names to test (default: all eight, less those already on).
+        spp, seed, repeats: rendering of evaluations, screening columns and refits.
+        iterations: Levenberg-Marquardt iterations per refit.
+        log: progress callback (one line per step).
+    """
+    t0 = time.perf_counter()
+    say = log or (lambda s: None)
+    cands = [c for c in (candidates or CANDIDATES) if c not in base.extensions]
+    for c in cands:
+        if c not in EXTENSIONS:
+            raise ModelParameterError(f"unknown model extension {c!r}; known: {', '.join(sorted(EXTENSIONS))}")
+    n = len(problem.angles_deg)
+    if n < 2:
+        raise EstimateError(f"channel {problem.channel}: at least two light angles are needed to diagnose a fit")
+    base_model = make_model(base.extensions)
+    base_free = _free_names(base_model, base.extensions)
+    before = evaluate(base_model, base.parameters, problem, len(base_free) + 1, spp=spp, seed=seed, repeats=repeats)
+    loc = localise(before.residuals.r, problem.angles_deg, problem.x_mm, before.model)
+    say(f"{problem.channel}: reduced chi2 {before.residuals.reduced_chi2:.3f} "
+        f"(p={before.residuals.p_value:.2g}); {loc['summary']}")
+    train, held = _holdout(n)
+    current = before
+    current_exts = list(base.extensions)
+    current_unc = dict(base.uncertainties)
+    first_scores: list[CandidateScore] = []
+    confirmations: list[dict[str, Any]] = []
+    confirmed: list[str] = []
+    brightest = float(np.max(before.model))
+    while current.residuals.significant and len(confirmed) < MAX_EFFECTS:
+        remaining = [c for c in cands if c not in confirmed]
+        if not remaining:
+            break
+        scores = _screen(problem, current, current_exts, make_model, remaining, spp=spp, seed=seed + 101)
+        if not first_scores:
+            first_scores = scores
+        say("  screening: " + ", ".join(f"{c.name} {c.statistic:.0f}/{c.dof}" for c in scores[:4]))
+        leading = [c for c in scores if c.log10_p < SCREEN_LOG10_P][:MAX_CONFIRM]
+        best: tuple[float, str, RefitResult] | None = None
+        cur_model = make_model(current_exts)
+        cur_train = evaluate(cur_model, current.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats,
+                             angle_idx=train)
+        cur_held = (evaluate(cur_model, current.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats,
+                             angle_idx=held, scale=cur_train.scale) if held else None)
+        for cand in leading:
+            exts = current_exts + [cand.name]
+            m = make_model(exts)
+            free = _free_names(m, exts)
+            fit = refit(m, problem, _start(m, current.parameters, cand.name, brightest), free, angle_idx=train,
+                        spp=spp, seed=seed + 202, iterations=iterations)
+            tr = evaluate(m, fit.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats, angle_idx=train)
+            k = len(FREE_PARAMETERS[cand.name])
+            n_train = int(np.sum(np.isfinite(tr.residuals.r)))
+            dbic = cur_train.residuals.chi2 - tr.residuals.chi2 - k * math.log(max(n_train, 2))
+            entry: dict[str, Any] = {"effect": cand.name, "round": len(confirmed) + 1, "delta_bic": dbic,
+                                     "chi2_train_before": cur_train.residuals.chi2,
+                                     "chi2_train_after": tr.residuals.chi2,
+                                     "parameters": {kk: fit.parameters[kk] for kk in FREE_PARAMETERS[cand.name]}}
+            ok = dbic > BIC_STRONG
+            if held:
+                ho = evaluate(m, fit.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats, angle_idx=held,
+                              scale=tr.scale)
+                entry["chi2_heldout_before"] = cur_held.residuals.chi2
+                entry["chi2_heldout_after"] = ho.residuals.chi2
+                ok = ok and ho.residuals.chi2 < cur_held.residuals.chi2
+            entry["confirmed"] = bool(ok)
+            confirmations.append(entry)
+            say(f"  refit with {cand.name}: dBIC {dbic:.1f}" +
+                (f", held-out chi2 {entry['chi2_heldout_before']:.0f} -> {entry['chi2_heldout_after']:.0f}"
+                 if held else "") + (" (confirmed)" if ok else ""))
+            if ok and (best is None or dbic > best[0]):
+                best = (dbic, cand.name, fit)
+        if best is None:
+            break
+        for e in confirmations:
+            if e["round"] == len(confirmed) + 1 and e["effect"] != best[1]:
+                e["confirmed"] = False
+        confirmed.append(best[1])
+        current_exts = current_exts + [best[1]]
+        m = make_model(current_exts)
+        free = _free_names(m, current_exts)
+        full = refit(m, problem, best[2].parameters, free, spp=spp, seed=seed + 303, iterations=iterations)
+        current = evaluate(m, full.parameters, problem, len(free) + 1, spp=spp, seed=seed, repeats=repeats)
+        current_unc = full.uncertainties
+        say(f"  with {', '.join(confirmed)}: reduced chi2 {current.residuals.reduced_chi2:.3f}")
+    if not first_scores and before.residuals.significant is False and candidates is not None:
+        first_scores = []
+    material = [k for k in before.parameters if k in ("sigma_t", "albedo") or k.startswith("phase.")]
+    after = current if confirmed else None
+    verdict = _verdict(before, loc, first_scores, confirmed, after)
+    return ChannelDiagnosis(problem.channel, before, loc, first_scores, confirmations, confirmed, after,
+                            current_unc if confirmed else {}, verdict, time.perf_counter() - t0, material)
+
+
+def _screen(problem: Any, current: Evaluation, exts: Sequence[str], make_model: ModelFactory,
+            names: Sequence[str], *, spp: int, seed: int) -> list[CandidateScore]:
+    """Score tests of `names` at the fit `current` (whose model has extensions `exts`)."""
+    angles = [float(a) for a in problem.angles_deg]
+    var = _variance(problem) + current.scale ** 2 * current.model_variance
+    sigma = np.sqrt(var)
+    m0 = make_model(exts)
+    free = _free_names(m0, exts)
+    base_render = m0.render_profiles(current.parameters, angles, spp=spp, seed=seed)
+    jac = m0.jacobian(current.parameters, angles, free, spp=spp, seed=seed)
+    base_cols = [current.scale * jac[n] for n in free] + [current.model]
+    cols: dict[str, list[np.ndarray]] = {}
+    image = [n for n in names if EXTENSIONS[n].kind == "image"]
+    if image:
+        cols.update(candidate_columns(m0, current.parameters, angles, current.model, image, spp=spp, seed=seed))
+    for n in names:
+        if n in image:
+            continue
+        m = make_model(list(exts) + [n])
+        b = m.render_profiles(current.parameters, angles, spp=spp, seed=seed)
+        cols.update(candidate_columns(m, current.parameters, angles, b, [n], spp=spp, seed=seed))
+    del base_render
+    excess = current.residuals.chi2 - current.residuals.dof
+    r = np.nan_to_num(current.residuals.r, nan=0.0)
+    return screen(r, sigma, base_cols, current.scale, cols, excess)
+
+
+def _verdict(before: Evaluation, loc: dict[str, Any], scores: list[CandidateScore], confirmed: list[str],
+             after: Evaluation | None) -> str:
+    b = before.residuals
+    if not b.significant:
+        return (f"no significant mismatch: reduced chi2 {b.reduced_chi2:.2f} on {b.dof} degrees of freedom "
+                f"(p = {b.p_value:.2g})")
+    head = f"significant mismatch (reduced chi2 {b.reduced_chi2:.2f}, p = {b.p_value:.2g}), {loc['summary']}"
+    if not confirmed:
+        lead = (f"; the best candidate, {scores[0].name}, would remove only {100 * min(1.0, scores[0].explained):.0f}% "
+                "of the excess and was not confirmed by a refit" if scores else "")
+        return head + "; no candidate in the catalogue explains it" + lead + ": no cause is named"
+    a = after.residuals if after else b
+    return (head + f"; left-out physics: {', '.join(confirmed)}; reduced chi2 {b.reduced_chi2:.2f} -> "
+            f"{a.reduced_chi2:.2f}" + ("" if not a.significant else " (a significant mismatch remains)"))

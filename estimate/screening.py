@@ -1,0 +1,168 @@
+"""Score (Lagrange-multiplier) tests of the catalogue extensions at a base fit.
+
+At the base optimum theta0 (extension absent), the whitened residual r and the whitened
+derivative columns X of the base parameters (and of the scale) are known. A candidate
+extension with parameters psi adds columns Z = d profile / d psi at psi = neutral. The score
+test projects Z orthogonal to X in the noise metric, Z' = (I - X X^+) Z, and measures how
+much of r lies in their span:
+
+    LM = r^T Z' (Z'^T Z')^+ Z'^T r  ~  chi^2(k)  under "the extension is absent",
+
+k = rank of Z'. No refit is needed: one set of derivative columns per candidate.
+
+Some extensions have a zero first derivative at their neutral value (a Gaussian blur of
+width s changes the image by O(s^2); a symmetric band mixture by O(spread^2)), and some
+neutral values sit on a bound (n = 1, fraction = 0) where only one-sided changes are
+physical. Their columns are therefore secants to a small, realistic probe magnitude
+(`PROBES`): the direction in which the profiles move when the effect appears. The test
+statistic does not depend on the columns' scale.
+
+`sensor_nonlinearity` acts on raw frames; at profile level the HDR merge reads bright
+pixels from the shortest exposure, so its columns are -I (I / W)^2 with the well filled
+either at the brightest pixel of the channel or of each angle (the bracket picks a short
+exposure per angle).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+from scipy import stats
+
+from estimate.extensions import EXTENSIONS
+from estimate.extensions.lens_blur import LensBlur
+
+__all__ = ["CandidateScore", "PROBES", "candidate_columns", "score_test", "screen"]
+
+#: Probe values (secant end points) of the scene extensions' parameters.
+PROBES: dict[str, list[dict[str, float]]] = {
+    "refractive_boundary": [{"refractive_boundary.n": 1.1}],
+    "angle_offset": [{"angle_offset.delta_deg": 0.5}],
+    "thickness_error": [{"thickness_error.e": 0.05}],
+    "beam_halo": [{"beam_halo.fraction": 0.02, "beam_halo.sigma_mm": 0.5},
+                  {"beam_halo.fraction": 0.02, "beam_halo.sigma_mm": 2.0}],
+    "filter_bandwidth": [{"filter_bandwidth.spread": 0.3}],
+}
+
+
+@dataclass
+class CandidateScore:
+    """Screening result of one extension.
+
+    Attributes:
+        name: extension name.
+        statistic: LM statistic; dof: its degrees of freedom (rank of the projected columns).
+        p_value: chi^2(dof) tail probability; log10_p: its log10 (finite for huge statistics).
+        explained: fraction of the fit's chi^2 excess (chi2 - dof) this candidate could remove
+            to first order (LM / excess).
+        coefficients: least-squares coefficients of the projected columns (probe units).
+    """
+
+    name: str
+    statistic: float
+    dof: int
+    p_value: float
+    log10_p: float
+    explained: float
+    coefficients: list[float] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "statistic": self.statistic, "dof": self.dof, "p_value": self.p_value,
+                "log10_p": self.log10_p, "explained": self.explained}
+
+
+def score_test(r: np.ndarray, X: np.ndarray, Z: np.ndarray, excess: float | None = None,
+               name: str = "") -> CandidateScore:
+    """LM test of columns Z (n, k) given residual r (n,) and base columns X (n, p), all whitened."""
+    r = np.asarray(r, dtype=np.float64).ravel()
+    X = np.asarray(X, dtype=np.float64).reshape(r.size, -1)
+    Z = np.asarray(Z, dtype=np.float64).reshape(r.size, -1)
+    ok = np.isfinite(r) & np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(Z), axis=1)
+    r, X, Z = r[ok], X[ok], Z[ok]
+    q, _ = np.linalg.qr(X / np.maximum(np.linalg.norm(X, axis=0), 1e-300))
+    zp = Z - q @ (q.T @ Z)
+    norms = np.linalg.norm(zp, axis=0)
+    keep = norms > 1e-8 * np.maximum(np.linalg.norm(Z, axis=0), 1e-300)
+    zp = zp[:, keep]
+    if zp.shape[1] == 0:
+        return CandidateScore(name, 0.0, 0, 1.0, 0.0, 0.0, [])
+    u, s, vt = np.linalg.svd(zp / norms[keep], full_matrices=False)
+    rank = int(np.sum(s > 1e-6 * s[0]))
+    proj = u[:, :rank].T @ r
+    lm = float(proj @ proj)
+    coef = np.zeros(Z.shape[1])
+    coef[keep] = (vt[:rank].T @ (proj / s[:rank])) / norms[keep]
+    logsf = float(stats.chi2.logsf(lm, rank)) / np.log(10.0)
+    exc = excess if excess is not None else max(float(r @ r) - r.size, 1.0)
+    return CandidateScore(name, lm, rank, float(10 ** logsf), logsf, lm / max(exc, 1.0), coef.tolist())
+
+
+def image_columns(name: str, base: np.ndarray, pixel_mm: float) -> list[np.ndarray]:
+    """Columns of an image-space extension from the base-fit render (unscaled), each (N, W)."""
+    base = np.asarray(base, dtype=np.float64)
+    if name == "stray_light":
+        w = base.shape[-1]
+        x = (np.arange(w) + 0.5 - 0.5 * w) * pixel_mm
+        return [np.ones_like(base), np.broadcast_to(x, base.shape).copy()]
+    if name == "lens_blur":
+        img = base[:, None, :]
+        d = LensBlur.parameters
+        neutral = {p.name: p.neutral for p in d}
+        core = dict(neutral, core_sigma_px=1.5)
+        tail = dict(neutral, tail_fraction=0.02)
+        return [(LensBlur.apply(img, v, pixel_mm=pixel_mm, profile_only=True)[:, 0, :] - base)
+                for v in (core, tail)]
+    if name == "sensor_nonlinearity":
+        pos = np.clip(base, 0, None)
+        w_all = max(float(pos.max()), 1e-300)
+        w_ang = np.maximum(pos.max(axis=1, keepdims=True), 1e-300)
+        return [-pos * (pos / w_all) ** 2, -pos * (pos / w_ang) ** 2]
+    raise KeyError(name)
+
+
+def candidate_columns(model: Any, params: Mapping[str, float], angles_deg: Sequence[float],
+                      base: np.ndarray, names: Sequence[str], *, spp: int, seed: int,
+                      render: Callable[..., np.ndarray] | None = None) -> dict[str, list[np.ndarray]]:
+    """Derivative (secant) columns of each candidate at the base fit, unscaled profiles (N, W).
+
+    `model` is a ForwardModel factory result with every scene candidate switched on
+    (extensions at neutral values reproduce the base model); `base` its render at `params`
+    with the same `spp` and `seed` (common random numbers for the secants).
+    """
+    out: dict[str, list[np.ndarray]] = {}
+    pm = model.geometry.pixel_mm
+    for name in names:
+        if EXTENSIONS[name].kind == "image":
+            out[name] = image_columns(name, base, pm)
+            continue
+        cols = []
+        for probe in PROBES[name]:
+            p = dict(params)
+            p.update(probe)
+            prof = model.render_profiles(p, angles_deg, spp=spp, seed=seed)
+            cols.append(prof - base)
+        out[name] = cols
+    return out
+
+
+def screen(r: np.ndarray, sigma: np.ndarray, base_columns: Sequence[np.ndarray], scale: float,
+           candidates: Mapping[str, Sequence[np.ndarray]], excess: float) -> list[CandidateScore]:
+    """Rank candidates by their score test (smallest p-value first).
+
+    Args:
+        r: normalised residuals (N, W).
+        sigma: noise standard deviation per pixel (N, W) used to whiten columns.
+        base_columns: d(measured model)/d(base parameter) incl. the scale column, each (N, W).
+        scale: fitted scale (candidate columns are unscaled renders).
+        candidates: name -> unscaled columns.
+        excess: chi2 - dof of the base fit.
+    """
+    X = np.stack([np.ravel(c / sigma) for c in base_columns], axis=1)
+    out = []
+    for name, cols in candidates.items():
+        Z = np.stack([np.ravel(scale * c / sigma) for c in cols], axis=1)
+        out.append(score_test(np.ravel(r), X, Z, excess, name))
+    out.sort(key=lambda c: (c.log10_p, -c.statistic))
+    return out
