@@ -223,3 +223,37 @@ def test_full_frame_band_has_spot_on_the_profile_row() -> None:
     rows = img.sum(axis=1)
     assert abs(int(np.argmax(rows)) + 0.5 - 12) <= 1.5  # the beam is centred on the image centre
     assert math.isfinite(float(img.sum())) and img.sum() > 0
+
+
+@pytest.mark.parametrize("phi", [30.0, 150.0])
+def test_albedo_one_index_matched_conserves_energy(phi: float) -> None:
+    """Reflected + transmitted = incident: with albedo 1 every photon that interacts leaves
+    the slab, so the scattered flux through a sphere around it (an `irradiancemeter`, the
+    same beam emitter and integrator as the model) is P (1 - exp(-sigma_t d / |cos phi|));
+    the unscattered part of the beam is the rest."""
+    from estimate.mitsuba_env import init_mitsuba
+
+    mi = init_mitsuba("llvm_ad_mono")
+    T = mi.ScalarTransform4f
+    d, hw, rs, sigma_t = 1.0, 4.0, 6.0, 1.0
+    scene = mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "rig_prbvolpath", "max_depth": 1000, "rr_depth": 1000},
+        "slab": {"type": "cube", "to_world": T().translate([0, 0, -d / 2]).scale([hw, hw, d / 2]),
+                 "bsdf": {"type": "null"},
+                 "interior": {"type": "homogeneous", "sigma_t": sigma_t, "albedo": 1.0,
+                              "phase": {"type": "exponential_phase", "degree": 2, "b1": 1.5, "b2": 0.5}}},
+        "beam": {"type": "collimated_beam", "angle_deg": phi, "thickness": d},
+        "meter": {"type": "sphere", "radius": rs, "flip_normals": True, "bsdf": {"type": "null"},
+                  "sensor": {"type": "irradiancemeter",
+                             "film": {"type": "hdrfilm", "width": 1, "height": 1, "rfilter": {"type": "box"},
+                                      "pixel_format": "luminance"}}},
+    })
+    scene.emitters()[0].set_profile(BeamProfile.gaussian(0.5, power=1.0))
+    # the meter reports the mean irradiance over the sphere: flux = value * area
+    flux = np.array([float(np.array(mi.render(scene, sensor=scene.sensors()[0], spp=2**20, seed=s)).ravel()[0])
+                     for s in range(4)]) * 4 * math.pi * rs**2
+    expected = 1.0 - math.exp(-sigma_t * d / abs(math.cos(math.radians(phi))))
+    stderr = flux.std(ddof=1) / math.sqrt(flux.size)
+    assert stderr < 0.02 * expected
+    assert abs(flux.mean() - expected) < max(4 * stderr, 0.01 * expected)
