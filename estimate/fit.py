@@ -1,0 +1,307 @@
+"""Fit sigma_t, albedo and the phase function of one channel by differentiable rendering.
+
+`fit_channel(problem, model)`:
+
+1. start: `estimate.start.coarse_start` (grid over sigma_t x albedo, then a few phase shapes,
+   at 32 spp) unless `start` gives sigma_t and albedo;
+2. Adam on unconstrained variables (`estimate.transforms`: log sigma_t, logit albedo,
+   exp coefficients clamped to +-200, tanh for HG g, logit for the lobe weight), gradient
+   from `ForwardModel.value_and_grad` of the log loss (`estimate.loss`) with delta drawn at
+   random per iteration and the scale profiled out; every iteration uses a new seed;
+3. progressive samples per pixel: start at `spp_start` (128); the loss at the reference
+   delta is tracked; when over the last 2 x `window` iterations its fitted slope is not
+   significantly negative (above -2 standard errors from the scatter of the losses about
+   the line, i.e. the Monte Carlo noise of the loss), the fit has flattened at this spp: spp doubles and the step shrinks (x0.85); when
+   it flattens at `spp_max` the fit stops ("converged");
+4. the result is the average of the last `window` iterates (in z), which averages
+   the Monte Carlo noise of the gradient steps;
+5. final evaluation at `final_spp` with two seeds: fitted profiles (their mean), the model's
+   own Monte Carlo variance per pixel ((p1 - p2)^2 / 4, the variance of the mean of two),
+   scale, loss at the reference delta, chi^2 with var_meas + s^2 var_model;
+6. uncertainties: Gauss-Newton / Fisher information F = J^T W J with J the Jacobian of
+   s * I_model (central differences with common random numbers, `ForwardModel.jacobian`,
+   plus the scale column), W = 1 / (var_meas + s^2 var_model); covariance F^-1, multiplied
+   by the reduced chi^2 when it exceeds 1 (the model does not explain the data to the noise,
+   so the noise alone understates the spread).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from estimate.errors import ModelParameterError
+from estimate.forward import ForwardModel
+from estimate.loss import DEFAULT_DELTA_RANGE, chi2, log_loss, profile_scale, reference_delta
+from estimate.problem import Problem
+from estimate.start import coarse_start
+from estimate.transforms import Transform, transform_for
+
+__all__ = ["FitSettings", "FitResult", "fit_channel", "model_phase", "evaluate", "fisher_uncertainties"]
+
+
+@dataclass
+class FitSettings:
+    """Optimiser settings (defaults: the paper's exp3 fit within ~2 min on 2 cores)."""
+
+    max_iterations: int = 150
+    spp_start: int = 128
+    spp_max: int = 512
+    final_spp: int = 1024
+    start_spp: int = 32
+    window: int = 8
+    lr_scale: float = 1.0
+    lr_decay: float = 0.85
+    delta_range: tuple[float, float] = DEFAULT_DELTA_RANGE
+    seed: int = 0
+    time_limit_s: float | None = None
+    uncertainties: bool = True
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["delta_range"] = list(self.delta_range)
+        return d
+
+
+@dataclass
+class FitResult:
+    """Outcome of `fit_channel`; parameters use ForwardModel names."""
+
+    channel: str
+    model: str                       # "exp3" | "tthg" | ...
+    extensions: list[str]
+    parameters: dict[str, float]
+    uncertainties: dict[str, float]
+    fixed: dict[str, float]
+    scale: float
+    scale_uncertainty: float
+    loss: float                      # at the reference delta, final spp
+    delta_rel: float
+    chi2: float
+    dof: int
+    reduced_chi2: float
+    iterations: int
+    time_s: float
+    stop_reason: str
+    spp_schedule: list[list[int]]    # [iteration, spp] where the spp changed
+    loss_curve: list[float]          # reference-delta loss per iteration
+    angles_deg: list[float]
+    fitted: np.ndarray               # (N, W) rendered profiles (model units, not scaled)
+    model_variance: np.ndarray       # (N, W) MC variance of `fitted`
+    start: dict[str, float]
+    settings: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def free(self) -> list[str]:
+        return [k for k in self.parameters if k not in self.fixed]
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-safe per-channel summary (the `--json` shape)."""
+        return {"model": self.model, "sigma_t": self.parameters["sigma_t"], "albedo": self.parameters["albedo"],
+                "phase": {k: v for k, v in self.parameters.items() if k.startswith("phase.")},
+                "parameters": dict(self.parameters), "uncertainties": dict(self.uncertainties),
+                "scale": self.scale, "loss": self.loss, "chi2": self.chi2, "dof": self.dof,
+                "reduced_chi2": self.reduced_chi2, "iterations": self.iterations, "time_s": self.time_s,
+                "stop_reason": self.stop_reason, "extensions": list(self.extensions)}
+
+
+def model_phase(model: str, degree: int = 3) -> str:
+    """CLI model name -> ForwardModel phase name ("exp" -> "exp<degree>")."""
+    if model in ("exp", "exponential"):
+        return f"exp{int(degree)}"
+    if model.startswith("exp") and model[3:].isdigit():
+        return model
+    if model in ("tthg", "hg"):
+        return model
+    raise ModelParameterError(f"unknown model {model!r}; use exp, exp<M>, tthg or hg")
+
+
+class _Adam:
+    def __init__(self, lrs: np.ndarray, b1: float = 0.9, b2: float = 0.999, eps: float = 1e-8) -> None:
+        self.lr = lrs.astype(float)
+        self.b1, self.b2, self.eps = b1, b2, eps
+        self.m = np.zeros_like(self.lr)
+        self.v = np.zeros_like(self.lr)
+        self.t = 0
+
+    def step(self, z: np.ndarray, g: np.ndarray) -> np.ndarray:
+        self.t += 1
+        self.m = self.b1 * self.m + (1 - self.b1) * g
+        self.v = self.b2 * self.v + (1 - self.b2) * g * g
+        mh = self.m / (1 - self.b1 ** self.t)
+        vh = self.v / (1 - self.b2 ** self.t)
+        return z - self.lr * mh / (np.sqrt(vh) + self.eps)
+
+
+def _flattened(losses: Sequence[float], window: int) -> bool:
+    """True when the loss no longer decreases significantly: over the last 2 x `window`
+    iterations the fitted slope is above -2 standard errors (the errors from the scatter of
+    the losses about the line, i.e. the Monte Carlo noise of the loss)."""
+    n = 2 * window
+    if len(losses) < n:
+        return False
+    y = np.asarray(losses[-n:], dtype=float)
+    x = np.arange(n, dtype=float)
+    slope, icpt = np.polyfit(x, y, 1)
+    resid = y - (slope * x + icpt)
+    se = float(np.sqrt(np.sum(resid ** 2) / (n - 2) / np.sum((x - x.mean()) ** 2)))
+    return slope > -2.0 * se
+
+
+def evaluate(fm: ForwardModel, problem: Problem, params: Mapping[str, float], *, spp: int, seed: int,
+             delta_rel: float) -> dict[str, Any]:
+    """Profiles (mean of two seeds), their MC variance, profiled scale, loss and chi^2."""
+    p1 = fm.render_profiles(params, problem.angles_deg, spp=spp, seed=seed)
+    p2 = fm.render_profiles(params, problem.angles_deg, spp=spp, seed=seed + 7_777)
+    prof = 0.5 * (p1 + p2)
+    mvar = 0.25 * (p1 - p2) ** 2
+    # One pixel's two-sample variance estimate is itself very noisy: smooth it along x.
+    k = np.ones(5) / 5.0
+    mvar = np.stack([np.convolve(r, k, mode="same") for r in mvar])
+    s = profile_scale(problem.measured, prof, problem.valid, delta_rel)
+    loss = log_loss(problem.measured, prof, problem.valid, s, delta_rel)[0]
+    c2 = chi2(problem.measured, problem.variance, prof, problem.valid, s, mvar)
+    return {"profiles": prof, "model_variance": mvar, "scale": s, "loss": loss, "chi2": c2}
+
+
+def fisher_uncertainties(fm: ForwardModel, problem: Problem, params: Mapping[str, float],
+                         names: Sequence[str], scale: float, model_variance: np.ndarray,
+                         profiles: np.ndarray, *, spp: int, seed: int, inflate: float = 1.0
+                         ) -> tuple[dict[str, float], float]:
+    """1-sigma uncertainties of `names` and of the scale from the Gauss-Newton Fisher matrix."""
+    jac = fm.jacobian(params, problem.angles_deg, list(names), spp=spp, seed=seed)
+    w = np.where(problem.valid, 1.0 / (problem.variance + scale ** 2 * model_variance), 0.0)
+    w = np.where(np.isfinite(w), w, 0.0).ravel()
+    cols = [scale * jac[n].ravel() for n in names] + [profiles.ravel()]
+    J = np.stack(cols, axis=1)
+    F = J.T @ (J * w[:, None])
+    try:
+        cov = np.linalg.pinv(F, rcond=1e-12) * max(1.0, inflate)
+    except np.linalg.LinAlgError:
+        return {n: float("nan") for n in names}, float("nan")
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    return {n: float(sd[i]) for i, n in enumerate(names)}, float(sd[-1])
+
+
+def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[str] = (),
+                start: Mapping[str, float] | None = None, fixed: Mapping[str, float] | None = None,
+                settings: FitSettings | None = None, forward: ForwardModel | None = None,
+                progress: Callable[[int, float, int], None] | None = None) -> FitResult:
+    """Fit one channel.
+
+    Args:
+        problem: from `estimate.problem.load_problem`.
+        model: phase model, "exp<M>" (e.g. "exp3"), "tthg" or "hg" ("exp" = exp3).
+        extensions: ForwardModel extensions to include (their parameters are fitted
+            unless fixed).
+        start: starting values (any subset); with both sigma_t and albedo given the coarse
+            search is skipped.
+        fixed: parameters held at the given values (not fitted, no uncertainty).
+        settings: optimiser settings.
+        forward: a ready ForwardModel for this problem (else built).
+        progress: called as progress(iteration, reference loss, spp).
+    """
+    st = settings or FitSettings()
+    t0 = time.monotonic()
+    phase = model_phase(model)
+    fm = forward or ForwardModel(problem.geometry, problem.beam, phase=phase, extensions=extensions)
+    fixed = dict(fixed or {})
+    fm.validate(fixed)
+    d_ref = reference_delta(st.delta_range)
+    base = fm.default_parameters()
+    base.update(fixed)
+    if start is not None and "sigma_t" in start and "albedo" in start:
+        init = dict(base)
+        init.update(start)
+        init.update(fixed)
+    else:
+        b = dict(base)
+        b.update(start or {})
+        init, _ = coarse_start(fm, problem, b, spp=st.start_spp, seed=st.seed + 99_991, delta_rel=d_ref,
+                               fixed=fixed)
+    init = fm.validate(init)
+    names = [n for n in fm.parameter_names if n not in fixed]
+    tr: list[Transform] = [transform_for(n, fm.specs[n]) for n in names]
+    z = np.array([t.to_z(init[n]) for n, t in zip(names, tr)])
+    adam = _Adam(np.array([t.lr for t in tr]) * st.lr_scale)
+    rng = np.random.default_rng(st.seed)
+
+    def params_of(zv: np.ndarray) -> dict[str, float]:
+        p = dict(init)
+        p.update({n: t.to_x(float(zz)) for n, t, zz in zip(names, tr, zv)})
+        return p
+
+    spp = int(st.spp_start)
+    schedule = [[0, spp]]
+    curve: list[float] = []
+    history: list[np.ndarray] = []
+    since_change = 0
+    stop = "max_iterations"
+    scale = None
+    it = 0
+    lo, hi = math.log(st.delta_range[0]), math.log(st.delta_range[1])
+    for it in range(1, st.max_iterations + 1):
+        p = params_of(z)
+        delta_rel = math.exp(rng.uniform(lo, hi))
+        ref: dict[str, float] = {}
+
+        def loss_fn(prof: np.ndarray) -> tuple[float, np.ndarray]:
+            nonlocal scale
+            s = profile_scale(problem.measured, prof, problem.valid, delta_rel, guess=scale)
+            scale = s
+            ref["loss"] = log_loss(problem.measured, prof, problem.valid, s, d_ref)[0]
+            return log_loss(problem.measured, prof, problem.valid, s, delta_rel)
+
+        _, _, grads = fm.value_and_grad(p, problem.angles_deg, loss_fn, spp=spp, seed=st.seed * 100_003 + it)
+        g = np.array([grads.get(n, 0.0) * t.dx_dz(float(zz)) for n, t, zz in zip(names, tr, z)])
+        g = np.where(np.isfinite(g), g, 0.0)
+        z = adam.step(z, g)
+        z = np.array([t.clamp_z(float(zz)) for t, zz in zip(tr, z)])
+        curve.append(ref["loss"])
+        history.append(z.copy())
+        since_change += 1
+        if progress:
+            progress(it, ref["loss"], spp)
+        if st.time_limit_s is not None and time.monotonic() - t0 > st.time_limit_s:
+            stop = "time_limit"
+            break
+        if since_change >= 3 * st.window and _flattened(curve[-since_change:], st.window):
+            if spp >= st.spp_max:
+                stop = "converged"
+                break
+            spp = min(st.spp_max, spp * 2)
+            adam.lr = adam.lr * st.lr_decay
+            schedule.append([it, spp])
+            since_change = 0
+    n_avg = min(len(history), st.window)
+    z_final = np.mean(history[-n_avg:], axis=0) if history else z
+    final = params_of(z_final)
+    ev = evaluate(fm, problem, final, spp=st.final_spp, seed=st.seed * 100_003 + 50_000, delta_rel=d_ref)
+    n_valid = int(problem.valid.sum())
+    dof = max(1, n_valid - len(names) - 1)
+    red = ev["chi2"] / dof
+    unc: dict[str, float] = {n: float("nan") for n in names}
+    s_unc = float("nan")
+    if st.uncertainties:
+        unc, s_unc = fisher_uncertainties(fm, problem, final, names, ev["scale"], ev["model_variance"],
+                                          ev["profiles"], spp=st.spp_max, seed=st.seed * 100_003 + 60_000,
+                                          inflate=red)
+    return FitResult(
+        channel=problem.channel, model=phase, extensions=list(fm.extensions), parameters=final,
+        uncertainties=unc, fixed=fixed, scale=ev["scale"], scale_uncertainty=s_unc, loss=ev["loss"],
+        delta_rel=d_ref, chi2=ev["chi2"], dof=dof, reduced_chi2=red, iterations=it,
+        time_s=time.monotonic() - t0, stop_reason=stop, spp_schedule=schedule, loss_curve=curve,
+        angles_deg=[float(a) for a in problem.angles_deg], fitted=ev["profiles"],
+        model_variance=ev["model_variance"], start=dict(init), settings=st.to_dict())
+
+
+def loss_at(problem: Problem, model: str, params: Mapping[str, float], *, extensions: Sequence[str] = (),
+            spp: int = 1024, seed: int = 12_345, delta_range: tuple[float, float] = DEFAULT_DELTA_RANGE,
+            forward: ForwardModel | None = None) -> dict[str, Any]:
+    """Loss / chi^2 of given parameters (e.g. the true ones: the noise floor), scale profiled."""
+    fm = forward or ForwardModel(problem.geometry, problem.beam, phase=model_phase(model), extensions=extensions)
+    return evaluate(fm, problem, params, spp=spp, seed=seed, delta_rel=reference_delta(delta_range))

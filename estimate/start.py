@@ -1,0 +1,85 @@
+"""A starting point for the fit: coarse search over sigma_t x albedo (x a few phase shapes)
+at low samples per pixel, each candidate scored by the log loss at the reference delta with
+its scale profiled out. Costs (n_sigma x n_albedo + n_phase) renders at `spp`.
+"""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import numpy as np
+
+from estimate.forward import ForwardModel
+from estimate.loss import log_loss, profile_scale
+from estimate.problem import Problem
+
+__all__ = ["coarse_start", "SIGMA_GRID", "ALBEDO_GRID", "phase_candidates"]
+
+#: Extinction coefficients tried (1/mm): log-spaced over what a 1 mm slab's profiles can show.
+SIGMA_GRID = tuple(float(x) for x in np.geomspace(0.5, 16.0, 11))
+ALBEDO_GRID = (0.5, 0.7, 0.85, 0.95, 0.99)
+
+
+def phase_candidates(phase: str) -> list[dict[str, float]]:
+    """A few phase shapes from isotropic to strongly forward for the model's family."""
+    if phase.startswith("exp"):
+        deg = int(phase[3:])
+        if deg == 0:
+            return [{}]
+        out = []
+        for b1 in (0.5, 2.0, 5.0, 12.0):
+            d = {f"phase.b{i}": 0.0 for i in range(1, deg + 1)}
+            d["phase.b1"] = b1
+            out.append(d)
+        return out
+    if phase == "tthg":
+        return [{"phase.g_forward": g, "phase.g_backward": -0.3, "phase.w_forward": 0.9}
+                for g in (0.2, 0.5, 0.75, 0.9)]
+    if phase == "hg":
+        return [{"phase.g": g} for g in (0.2, 0.5, 0.75, 0.9)]
+    return [{}]
+
+
+def _score(fm: ForwardModel, problem: Problem, params: Mapping[str, float], spp: int, seed: int,
+           delta_rel: float) -> float:
+    prof = fm.render_profiles(params, problem.angles_deg, spp=spp, seed=seed)
+    s = profile_scale(problem.measured, prof, problem.valid, delta_rel)
+    return log_loss(problem.measured, prof, problem.valid, s, delta_rel)[0]
+
+
+def coarse_start(fm: ForwardModel, problem: Problem, base: Mapping[str, float], *, spp: int = 32,
+                 seed: int = 0, delta_rel: float = 1e-2, fixed: Mapping[str, float] | None = None
+                 ) -> tuple[dict[str, float], list[tuple[dict[str, float], float]]]:
+    """Best grid point (parameters) and every (candidate, loss) tried.
+
+    Pass 1: sigma_t x albedo with the middle phase candidate; pass 2: the phase candidates
+    at the best (sigma_t, albedo). Parameters in `fixed` are never changed.
+    """
+    fixed = dict(fixed or {})
+    tried: list[tuple[dict[str, float], float]] = []
+    phases = phase_candidates(fm.phase)
+    mid = phases[min(1, len(phases) - 1)]
+    best: tuple[float, dict[str, float]] | None = None
+    sig = [fixed["sigma_t"]] if "sigma_t" in fixed else SIGMA_GRID
+    alb = [fixed["albedo"]] if "albedo" in fixed else ALBEDO_GRID
+    for st in sig:
+        for a in alb:
+            p = dict(base)
+            p.update({k: v for k, v in mid.items() if k not in fixed})
+            p.update({"sigma_t": st, "albedo": a})
+            p.update(fixed)
+            loss = _score(fm, problem, p, spp, seed, delta_rel)
+            tried.append((p, loss))
+            if best is None or loss < best[0]:
+                best = (loss, p)
+    assert best is not None
+    for ph in phases:
+        if ph is mid:
+            continue
+        p = dict(best[1])
+        p.update({k: v for k, v in ph.items() if k not in fixed})
+        loss = _score(fm, problem, p, spp, seed, delta_rel)
+        tried.append((p, loss))
+        if loss < best[0]:
+            best = (loss, p)
+    return dict(best[1]), tried

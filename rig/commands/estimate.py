@@ -1,0 +1,104 @@
+"""`rig estimate SESSION/`: fit sigma_t, albedo and the phase function per channel.
+
+    rig estimate SESSION/ [--model exp|tthg|both] [--degree 3] [--channels rgb]
+                          [--columns 256] [--allow-partial] [--max-iterations N] [--seed S]
+                          [--extensions a,b] [--json] [--diagnose]
+
+Each model is one run: SESSION/estimates/<UTC time>_<model>/ (never overwritten), see
+estimate/results.py and CONTRACTS.md. Channels are fitted one after another: the renderer
+already uses every core.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from rig.errors import UsageError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("estimate", help="estimate scattering parameters per channel from a session")
+    p.add_argument("session", metavar="SESSION", help="session directory written by rig capture")
+    p.add_argument("--model", choices=("exp", "tthg", "both"), default="exp",
+                   help="phase model: exponential (exp, default), two-term HG (tthg) or both")
+    p.add_argument("--degree", type=int, default=3, help="degree M of the exponential phase function (3)")
+    p.add_argument("--channels", default=None, help="filters to fit, e.g. rgb or r,g (default: all of the plan)")
+    p.add_argument("--columns", type=int, default=None, help="profile window width in pixels (256)")
+    p.add_argument("--extensions", default="", help="forward-model extensions to include, comma separated")
+    p.add_argument("--allow-partial", action="store_true", help="fit the stacks present when some are missing")
+    p.add_argument("--max-iterations", type=int, default=None, help="Adam iterations at most (150)")
+    p.add_argument("--spp-max", type=int, default=None, help="largest samples per pixel of the optimisation (512)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (renders, delta draws)")
+    p.add_argument("--json", action="store_true", help="print the results as JSON")
+    p.add_argument("--diagnose", action="store_true", help="run the diagnosis on the new fit (estimate.diagnose)")
+    p.set_defaults(func=run)
+
+
+def _channels(spec: str | None, available: list[str]) -> list[str]:
+    if not spec:
+        return available
+    parts = [c for c in (spec.split(",") if "," in spec else list(spec)) if c.strip()]
+    return [c.strip() for c in parts]
+
+
+def run(args: argparse.Namespace) -> int:
+    from estimate.fit import FitSettings, fit_channel, model_phase
+    from estimate.problem import load_problem, session_channels
+    from estimate.results import new_run_dir, write_run
+
+    session = Path(args.session)
+    if args.degree < 0 or args.degree > 12:
+        raise UsageError(f"--degree {args.degree}: use 0..12")
+    if args.max_iterations is not None and args.max_iterations < 1:
+        raise UsageError("--max-iterations must be >= 1")
+    if args.diagnose and importlib.util.find_spec("estimate.diagnose") is None:
+        raise UsageError("--diagnose needs estimate.diagnose, which this installation does not have")
+    available = session_channels(session)
+    channels = _channels(args.channels, available)
+    exts = [e.strip() for e in args.extensions.split(",") if e.strip()]
+    # Load every problem first: bad input fails before any fitting.
+    problems = {c: load_problem(session, c, args.columns, allow_partial=args.allow_partial) for c in channels}
+    models = ["exp", "tthg"] if args.model == "both" else [args.model]
+    settings = FitSettings(seed=args.seed)
+    if args.max_iterations is not None:
+        settings.max_iterations = args.max_iterations
+    if args.spp_max is not None:
+        settings.spp_max = max(settings.spp_start, args.spp_max)
+    out: dict[str, Any] = {"session": str(session), "runs": []}
+    for m in models:
+        phase = model_phase(m, args.degree)
+        fits = []
+        for c in channels:
+            if not args.json:
+                print(f"fitting channel {c} ({phase}) ...", file=sys.stderr, flush=True)
+            fits.append(fit_channel(problems[c], phase, extensions=exts, settings=settings))
+        run_dir = new_run_dir(session, phase)
+        write_run(run_dir, session, fits, problems,
+                  {"columns": int(problems[channels[0]].n_px), "iterations": settings.max_iterations,
+                   "spp_schedule": {f.channel: f.spp_schedule for f in fits},
+                   "delta": {"range_rel": list(settings.delta_range), "reference_rel": fits[0].delta_rel},
+                   "seed": settings.seed, "loss": "mean (log(I_meas/scale + delta) - log(I_model + delta))^2",
+                   "fit": settings.to_dict()})
+        out["runs"].append({"run_id": run_dir.name, "path": str(run_dir), "model": phase,
+                            "channels": {f.channel: f.summary() for f in fits}})
+        if not args.json:
+            print(f"run {run_dir}")
+            for f in fits:
+                p = f.parameters
+                u = f.uncertainties
+                print(f"  {f.channel}: sigma_t {p['sigma_t']:.4g} +- {u.get('sigma_t', float('nan')):.2g} /mm, "
+                      f"albedo {p['albedo']:.4f} +- {u.get('albedo', float('nan')):.2g}, "
+                      + ", ".join(f"{k[6:]} {v:.4g}" for k, v in p.items() if k.startswith("phase."))
+                      + f"; reduced chi2 {f.reduced_chi2:.3g} ({f.iterations} it, {f.time_s:.0f} s, {f.stop_reason})")
+        if args.diagnose:
+            from estimate import diagnose  # type: ignore[attr-defined]
+
+            diagnose.run_diagnosis(session, fit_run=run_dir)
+    if args.json:
+        print(json.dumps(out, indent=1, default=float))
+    return 0

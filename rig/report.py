@@ -1,0 +1,142 @@
+"""One self-contained HTML page about a session: plan, devices, stacks, calibration, every
+estimate run (tables + plots) and every diagnosis run. Plots are embedded as base64 PNG.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import os
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+__all__ = ["write_report"]
+
+
+def _img(path_or_bytes: Path | bytes, alt: str = "") -> str:
+    data = path_or_bytes if isinstance(path_or_bytes, bytes) else Path(path_or_bytes).read_bytes()
+    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{base64.b64encode(data).decode()}">'
+
+
+def _table(rows: list[list[Any]], head: list[str]) -> str:
+    h = "".join(f"<th>{html.escape(str(c))}</th>" for c in head)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(_fmt(c))}</td>" for c in r) + "</tr>" for r in rows)
+    return f"<table><tr>{h}</tr>{body}</table>"
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.5g}"
+    return str(v)
+
+
+def _beam_plots(cal_dir: Path, cal: dict[str, Any]) -> str:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from capture.exr_io import read_exr
+
+    out = []
+    for f, entry in ((cal.get("beam") or {}).get("filters") or {}).items():
+        try:
+            img = np.asarray(read_exr(cal_dir / entry["map"])["radiance"], dtype=float)
+        except Exception as e:  # noqa: BLE001  (a report shows what it can)
+            out.append(f"<p>beam map {html.escape(f)}: unreadable ({html.escape(type(e).__name__)})</p>")
+            continue
+        fig, ax = plt.subplots(figsize=(3, 3))
+        ax.imshow(np.log10(np.clip(img, img.max() * 1e-4 + 1e-30, None)), cmap="magma")
+        ax.set_title(f"beam {f} (log10 e-/s)", fontsize=9)
+        ax.axis("off")
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", dpi=80)
+        plt.close(fig)
+        out.append(_img(buf.getvalue(), f"beam {f}"))
+    return "".join(out)
+
+
+def write_report(session_dir: str | os.PathLike[str], out: str | os.PathLike[str] | None = None) -> Path:
+    """Write SESSION/report.html (or `out`) and return its path."""
+    from capture.session import Session
+    from estimate.results import list_runs, read_run
+
+    s = Session.open(session_dir)
+    parts = [f"<h1>rig session {html.escape(str(s.path))}</h1>",
+             f"<p>report written {datetime.now(timezone.utc).isoformat(timespec='seconds')}</p>"]
+    summ = s.summary()
+    parts.append("<h2>Session</h2>")
+    parts.append(_table([[k, v] for k, v in summ.items() if k != "devices"], ["", ""]))
+    parts.append("<h3>Devices</h3>" + _table([[k, v] for k, v in (s.devices or {}).items()], ["device", "identity"]))
+    parts.append("<h3>Geometry</h3>" + _table([[k, v] for k, v in (s.geometry() or {}).items()], ["", ""]))
+    parts.append("<h3>Stacks</h3>" + _table(
+        [[r.id, r.angle_deg, r.key.filter, r.state, (r.info.get("bracket") or {}).get("exposures_s", "")]
+         for r in s.stacks()], ["stack", "angle [deg]", "filter", "state", "exposures [s]"]))
+    problems = s.verify()
+    parts.append("<p>checksums: " + (html.escape("; ".join(problems)) if problems else "all match") + "</p>")
+    parts.append("<h2>Calibration</h2>")
+    if s.calibration_dir is None:
+        parts.append("<p>none attached</p>")
+    else:
+        try:
+            cal = s.load_calibration()
+            parts.append(_table([[k, cal.get(k)] for k in ("created", "rotation_zero_deg", "rotation_zero_uncertainty_deg",
+                                                           "pixel_pitch_mm")] +
+                                [["beam centre [px]", (cal.get("beam") or {}).get("center_px")]], ["", ""]))
+            filt = ((cal.get("beam") or {}).get("filters") or {})
+            parts.append(_table([[f, e.get("power_e_per_s"), e.get("relative_power"), e.get("centroid_mm"), e.get("width_mm")]
+                                 for f, e in filt.items()], ["filter", "power [e-/s]", "relative", "centroid [mm]", "width [mm]"]))
+            parts.append(_beam_plots(s.calibration_dir, cal))
+        except Exception as e:  # noqa: BLE001
+            parts.append(f"<p>calibration unreadable: {html.escape(str(e))}</p>")
+    parts.append("<h2>Estimates</h2>")
+    runs = list_runs(s.path)
+    if not runs:
+        parts.append("<p>no estimate runs yet (rig estimate SESSION)</p>")
+    for rd in runs:
+        try:
+            doc = read_run(rd)
+        except Exception as e:  # noqa: BLE001
+            parts.append(f"<h3>{html.escape(rd.name)}</h3><p>{html.escape(str(e))}</p>")
+            continue
+        parts.append(f"<h3>{html.escape(doc['run_id'])}</h3>")
+        st = doc.get("settings") or {}
+        parts.append(f"<p>model {html.escape(str(st.get('model')))}, extensions {html.escape(str(st.get('extensions')))}, "
+                     f"software {html.escape(str(doc.get('software')))}</p>")
+        rows = []
+        for f, ch in (doc.get("channels") or {}).items():
+            for k, v in ch["parameters"].items():
+                rows.append([f, k, v, (ch.get("uncertainties") or {}).get(k, "fixed")])
+            rows.append([f, "scale", ch["scale"], ch.get("scale_uncertainty")])
+            rows.append([f, "loss / reduced chi2", ch["loss"], ch["reduced_chi2"]])
+            rows.append([f, "iterations / time [s]", ch["iterations"], ch["time_s"]])
+        parts.append(_table(rows, ["channel", "parameter", "value", "1-sigma"]))
+        for png in sorted(rd.glob("*.png")):
+            parts.append(_img(png, png.name))
+    diag = sorted((s.path / "diagnoses").glob("*/diagnosis.yaml")) if (s.path / "diagnoses").is_dir() else []
+    if diag:
+        parts.append("<h2>Diagnoses</h2>")
+    for dy in diag:
+        parts.append(f"<h3>{html.escape(dy.parent.name)}</h3>")
+        try:
+            d = yaml.safe_load(dy.read_text(encoding="utf-8"))
+        except (OSError, yaml.YAMLError) as e:
+            parts.append(f"<p>unreadable: {html.escape(type(e).__name__)}</p>")
+            continue
+        text = d.get("summary") if isinstance(d, dict) else None
+        parts.append("<pre>" + html.escape(text if isinstance(text, str) else yaml.safe_dump(d, sort_keys=False)[:20000]) + "</pre>")
+        for png in sorted(dy.parent.glob("*.png")):
+            parts.append(_img(png, png.name))
+    style = ("<style>body{font-family:sans-serif;max-width:1200px;margin:auto}table{border-collapse:collapse;margin:6px 0}"
+             "td,th{border:1px solid #ccc;padding:2px 6px;font-size:13px}img{max-width:100%;margin:4px}</style>")
+    page = f"<!doctype html><html><head><meta charset='utf-8'><title>rig report</title>{style}</head><body>{''.join(parts)}</body></html>"
+    path = Path(out) if out else s.path / "report.html"
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(page, encoding="utf-8")
+    os.replace(tmp, path)
+    return path

@@ -1,0 +1,58 @@
+"""`rig estimate` / `rig report` end to end on a tiny synthetic session."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import yaml
+
+from rig.cli import main
+from synth_session import make_session
+
+TRUTH = {"sigma_t": 3.0, "albedo": 0.85, "phase.b1": 3.0}
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    return make_session(tmp_path_factory.mktemp("c") / "s", {"g": TRUTH, "r": TRUTH}, angles=[30, 150],
+                        spp=256, width=64, scale=2e5, skip=["a01_r"])
+
+
+def test_json_shape_and_runs_never_overwritten(session, capsys):
+    argv = ["estimate", str(session), "--channels", "g", "--columns", "32", "--max-iterations", "4",
+            "--spp-max", "128", "--json"]
+    assert main(argv) == 0
+    out = json.loads(capsys.readouterr().out)
+    (run,) = out["runs"]
+    ch = run["channels"]["g"]
+    assert run["model"] == "exp3"
+    assert set(ch) >= {"model", "sigma_t", "albedo", "phase", "uncertainties", "reduced_chi2"}
+    assert set(ch["phase"]) == {"phase.b1", "phase.b2", "phase.b3"}
+    assert set(ch["uncertainties"]) == {"sigma_t", "albedo", "phase.b1", "phase.b2", "phase.b3"}
+    doc = yaml.safe_load(open(f"{run['path']}/results.yaml"))
+    assert doc["format"] == "rig-estimate/1" and doc["channels"]["g"]["iterations"] == 4
+    first = open(f"{run['path']}/results.yaml").read()
+    assert main(argv) == 0
+    second = json.loads(capsys.readouterr().out)["runs"][0]["path"]
+    assert second != run["path"] and open(f"{run['path']}/results.yaml").read() == first
+    # The report gathers both runs into one page.
+    assert main(["report", str(session)]) == 0
+    html_path = capsys.readouterr().out.strip().splitlines()[-1]
+    html = open(html_path).read()
+    assert run["run_id"] in html and "data:image/png;base64," in html
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--channels", "r"], "a01_r (not captured)"),
+    (["--channels", "x"], "unknown channel 'x'"),
+])
+def test_bad_input_one_line_exit_2(session, capsys, extra, message):
+    assert main(["estimate", str(session), "--max-iterations", "1", *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1
+
+
+def test_missing_session_exit_2(tmp_path, capsys):
+    assert main(["estimate", str(tmp_path / "nope")]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
