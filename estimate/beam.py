@@ -18,8 +18,10 @@ With a refractive slab (index eta > 1) the beam is refracted on entry: p is trac
 along the refracted direction to its entry point q on the lit face and the map is read
 at q's outside cross-section coordinate. This conserves the footprint on the face: inside,
 the cross-section is R cos_t / cos_i by R and the perpendicular irradiance is
-(1 - F(theta_i)) E cos_i / cos_t. The shadow ray stops at the face (no boundary crossing,
-which a `dielectric` would block), its medium attenuation is computed by the integrator.
+(1 - F(theta_i)) E cos_i / cos_t. With a dielectric the shadow ray stops at the face (a
+`dielectric` would block it); with an index-matched (`null`) boundary (`cross_face`) it
+ends just outside, so that prbvolpath differentiates its attenuation (it drops that
+derivative for shadow rays that end inside a medium).
 The beam's internal reflections between the faces are included as `reflections` image
 beams (unfolded straight lines) with the Fresnel reflectance F(theta_t) per bounce and the
 analytic attenuation of the completed passes exp(-sigma_t d / cos_t) each; each
@@ -46,6 +48,8 @@ from estimate.errors import ModelParameterError
 __all__ = ["BeamProfile", "PLUGIN_NAME", "register_plugins", "beam_frame"]
 
 PLUGIN_NAME = "collimated_beam"
+#: How far beyond the lit face a shadow ray ends when it may cross the boundary (mm).
+_FACE_MARGIN_MM = 1e-3
 _registered: set[str] = set()
 
 
@@ -180,6 +184,8 @@ def _make_plugin_class(mi: Any, dr: Any) -> type:
             mi.Emitter.__init__(self, props)
             self.m_flags = mi.EmitterFlags.DeltaDirection
             self.reflections = int(props.get("reflections", 0))
+            # True for a null (index-matched) boundary, which shadow rays may cross.
+            self.cross_face = bool(props.get("cross_face", True))
             # Stage angles of a batched render, indexed by the path's time.
             self.copies = int(props.get("copies", 1))
             self.angle_deg = mi.Float([float(props.get("angle_deg", 45.0))] * self.copies)
@@ -301,6 +307,12 @@ def _make_plugin_class(mi: Any, dr: Any) -> type:
             dz_sign = dr.select(from_front, 1.0, -1.0)
             dvec = mi.Vector3f(sgn_x * sin_t, 0.0, dz_sign * cos_t)
             dist = dr.maximum(partial, 0.0) / dr.maximum(cos_t, 1e-6)
+            if self.cross_face:
+                # Index-matched (null) boundary: end the shadow ray just outside the face.
+                # prbvolpath back-propagates the shadow ray's medium transmittance only
+                # when the ray meets a surface; a ray ending inside the medium loses the
+                # sigma_t derivative of that attenuation.
+                dist = dist + _FACE_MARGIN_MM
             valid = active & (partial >= 0.0) & (partial <= d)
             ds = dr.zeros(mi.DirectionSample3f)
             ds.p = it.p + dvec * dist
