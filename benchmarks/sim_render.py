@@ -59,7 +59,7 @@ def main() -> None:
         scene = RenderedScene(world, magnification=cfg.camera.magnification)
         inst.scene = scene
         twin = RenderedScene(other, magnification=cfg.camera.magnification)
-        r0, r1 = scene.profile_rows()
+        _r0, _r1 = scene.profile_rows()
         prow = int(np.floor(scene.axis_px[1]))
         tiers = scene.row_tiers()
         with open_rig(cfg, sim=True, scene=scene) as rig:
@@ -78,7 +78,7 @@ def main() -> None:
                 # start with the peak at ~30 % of the well (the camera's shortest exposure
                 # would leave 6 exposures x 4 far too short for the dim tail)
                 t0 = 0.3 * rig.camera.sensor.full_well_e / float(scene.slab_image(phys, f).max())
-                light, status = acquire_bracket(rig.camera, BracketPolicy(profile_row=8, first_exposure_s=t0),
+                light, _status = acquire_bracket(rig.camera, BracketPolicy(profile_row=8, first_exposure_s=t0),
                                                 noise)
                 darks = acquire_darks(rig.camera, [fr.exposure_s for fr in light], 2)
                 res = merge_hdr(np.stack([fr.data for fr in light]), [fr.exposure_s for fr in light],

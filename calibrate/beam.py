@@ -33,9 +33,10 @@ from __future__ import annotations
 import datetime as _dt
 import math
 import os
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Mapping, Protocol, Sequence
+from typing import Any, Protocol
 
 import numpy as np
 import yaml
@@ -45,10 +46,27 @@ from capture.bracket import BracketPolicy, acquire_bracket, acquire_darks
 from capture.errors import CaptureError
 from capture.exr_io import write_exr, write_frames
 from capture.hdr import MatchedDarks, NoiseModel, merge_hdr
-from drivers.interfaces import ROI, Camera, FilterChanger, Frame, RotationStage, ShutterMode
+from drivers.interfaces import (
+    ROI,
+    Camera,
+    FilterChanger,
+    Frame,
+    RotationStage,
+    ShutterMode,
+)
 
-__all__ = ["CalibrationError", "Operator", "BeamCalibrationSettings", "ScanResult", "BeamMeasurement",
-           "calibrate_beam", "check_output_dir", "fit_rotation_zero", "beam_moments", "FORMAT"]
+__all__ = [
+    "FORMAT",
+    "BeamCalibrationSettings",
+    "BeamMeasurement",
+    "CalibrationError",
+    "Operator",
+    "ScanResult",
+    "beam_moments",
+    "calibrate_beam",
+    "check_output_dir",
+    "fit_rotation_zero",
+]
 
 FORMAT = "rig-calibration/1"
 
@@ -221,7 +239,7 @@ def beam_moments(radiance: np.ndarray, threshold: float, origin_px: tuple[int, i
 
 
 def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
 
 
 class _Calibration:
@@ -391,7 +409,7 @@ def calibrate_beam(stage: RotationStage, camera: Camera, changer: FilterChanger,
     pmax = max(b.power_e_per_s for b in beams)
     filters: dict[str, Any] = {}
     for b in beams:
-        half = max(16, int(math.ceil(settings.map_halfwidth_widths * max(b.width_px))))
+        half = max(16, math.ceil(settings.map_halfwidth_widths * max(b.width_px)))
         x0 = int(min(max(0, round(cx) - half), sensor.width - 1))
         y0 = int(min(max(0, round(cy) - half), sensor.height - 1))
         x1, y1 = min(sensor.width, x0 + 2 * half), min(sensor.height, y0 + 2 * half)

@@ -24,8 +24,14 @@ from rig.errors import UsageError
 from sim_devices.rendered_scene import RenderedScene, raw_nonlinearity
 from sim_devices.world import World, WorldError, check_filters, load_world
 
-__all__ = ["InstalledWorld", "install_world", "installed_world", "configure_backend", "SimOperator",
-           "TerminalOperator"]
+__all__ = [
+    "InstalledWorld",
+    "SimOperator",
+    "TerminalOperator",
+    "configure_backend",
+    "install_world",
+    "installed_world",
+]
 
 
 @dataclass

@@ -35,14 +35,15 @@ import hashlib
 import math
 import os
 import threading
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from sim_devices.world import World, beam_map
 
-__all__ = ["RenderedScene", "raw_nonlinearity", "MAX_DIRECT_TILT_DEG"]
+__all__ = ["MAX_DIRECT_TILT_DEG", "RenderedScene", "raw_nonlinearity"]
 
 #: Beyond this tilt from phi = 180 the straight beam misses the lens entirely.
 MAX_DIRECT_TILT_DEG = 10.0
@@ -190,7 +191,7 @@ class RenderedScene:
         """(row0, row1, spp) of the rendered tiers, every sensor row exactly once."""
         rs = self.world.render
         rows_n = self.sensor_px[1]
-        centre = min(rows_n - 1, int(math.floor(self.axis_px[1])))
+        centre = min(rows_n - 1, math.floor(self.axis_px[1]))
         p0, p1 = max(0, centre - rs.profile_halfwidth_rows), min(rows_n, centre + rs.profile_halfwidth_rows + 1)
         b0, b1 = max(0, centre - rs.band_halfwidth_rows), min(rows_n, centre + rs.band_halfwidth_rows + 1)
         b0, b1 = min(b0, p0), max(b1, p1)

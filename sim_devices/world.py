@@ -17,9 +17,10 @@ import hashlib
 import json
 import math
 import os
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 import yaml
@@ -27,8 +28,16 @@ import yaml
 from estimate.extensions import EXTENSIONS
 
 __all__ = [
-    "WorldError", "Material", "BeamSpec", "Optics", "RenderSettings", "World",
-    "load_world", "parse_world", "DEFAULT_WORLD_PATH", "EFFECT_NAMES",
+    "DEFAULT_WORLD_PATH",
+    "EFFECT_NAMES",
+    "BeamSpec",
+    "Material",
+    "Optics",
+    "RenderSettings",
+    "World",
+    "WorldError",
+    "load_world",
+    "parse_world",
 ]
 
 #: The documented default world (clean: every left-out effect off).
@@ -186,7 +195,7 @@ class _R:
     def fail(self, key: str, msg: str) -> WorldError:
         return WorldError(f"{self.src}: {self.prefix}{key}: {msg}")
 
-    def section(self, key: str, required: bool = False) -> "_R":
+    def section(self, key: str, required: bool = False) -> _R:
         v = self.data.get(key)
         if v is None:
             if required:
@@ -281,7 +290,7 @@ def _phase(r: _R, degree: int) -> tuple[str, dict[str, float]]:
 
 def _effects(r: _R) -> dict[str, dict[str, float]]:
     out: dict[str, dict[str, float]] = {}
-    for name, vals in r.data.items():
+    for name in r.data:
         if name not in EXTENSIONS:
             raise r.fail(str(name), f"unknown effect; use one of: {', '.join(EFFECT_NAMES)}")
         er = r.section(name)
@@ -434,7 +443,7 @@ def beam_map(world: World, pitch_mm: float | None = None) -> tuple[np.ndarray, f
             size = prof["radius_mm"]
             extent = size + 6.0 * prof["edge_mm"]
         pitch = pitch_mm or size / 20.0
-        n = int(math.ceil(extent / pitch))
+        n = math.ceil(extent / pitch)
         c = np.arange(-n, n + 1) * pitch
         uu, vv = np.meshgrid(c, c)
         r = np.hypot(uu, vv)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sim_devices.rendered_scene import RenderedScene
-from sim_devices.world import beam_map, parse_world
+from sim_devices.world import parse_world
 
 FULL = (slice(0, 512), slice(0, 512))
 
@@ -64,7 +64,7 @@ def test_straight_beam_peaks_at_the_hidden_zero_and_carries_the_power(tmp_path):
     assert math.isclose(tilted.sum() / at_zero.sum(), math.exp(-0.5), rel_tol=2e-3)  # acceptance sigma 0.5 deg
     j, i = np.unravel_index(np.argmax(at_zero), at_zero.shape)
     assert (i, j) == (260, 250)  # the axis pixel
-    ys, xs = np.indices(at_zero.shape) + 0.5
+    _ys, xs = np.indices(at_zero.shape) + 0.5
     cx = (at_zero * xs).sum() / at_zero.sum()
     wx = math.sqrt((at_zero * (xs - cx) ** 2).sum() / at_zero.sum()) * 0.020 / 0.3
     assert abs(cx - 260.5) < 1e-3 and abs(wx - 0.25) < 0.002

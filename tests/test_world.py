@@ -5,7 +5,14 @@ from pathlib import Path
 import pytest
 import yaml
 
-from sim_devices.world import DEFAULT_WORLD_PATH, WorldError, beam_map, check_filters, load_world, parse_world
+from sim_devices.world import (
+    DEFAULT_WORLD_PATH,
+    WorldError,
+    beam_map,
+    check_filters,
+    load_world,
+    parse_world,
+)
 
 WORLDS = Path(__file__).resolve().parent.parent / "worlds"
 
@@ -39,7 +46,7 @@ def test_example_worlds_parse(name):
     w = load_world(WORLDS / name)
     for m in w.materials.values():
         assert m.parameters()["sigma_t"] > 0
-    for eff, vals in w.effects.items():
+    for vals in w.effects.values():
         assert vals  # every effect has its parameters filled in
 
 

@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config)
     filters = parse_filters(args.filters, list(cfg.filter.positions))
-    out = args.out or f"calibration-{dt.datetime.now(dt.timezone.utc).strftime('%Y%m%dT%H%M%SZ')}"
+    out = args.out or f"calibration-{dt.datetime.now(dt.UTC).strftime('%Y%m%dT%H%M%SZ')}"
     check_output_dir(out)  # before any device is opened or moved
     sim = args.sim is not None
     scene = None
