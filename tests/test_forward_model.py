@@ -257,3 +257,28 @@ def test_albedo_one_index_matched_conserves_energy(phi: float) -> None:
     stderr = flux.std(ddof=1) / math.sqrt(flux.size)
     assert stderr < 0.02 * expected
     assert abs(flux.mean() - expected) < max(4 * stderr, 0.01 * expected)
+
+
+def test_mitsuba_env_refuses_llvm_15_and_16_without_aborting(tmp_path) -> None:
+    import subprocess
+    import sys
+
+    fake = tmp_path / "libLLVM-15.so.1"
+    fake.write_bytes(b"")
+    code = ("from estimate.mitsuba_env import init_mitsuba, MitsubaSetupError\n"
+            "try:\n    init_mitsuba('llvm_ad_mono')\nexcept MitsubaSetupError as e:\n    print('refused:', e)\n")
+    env = {**__import__("os").environ, "DRJIT_LIBLLVM_PATH": str(fake)}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60,
+                         cwd=str(__import__("pathlib").Path(__file__).resolve().parents[1]))
+    assert out.returncode == 0, out.stderr
+    assert "refused:" in out.stdout and "LLVM 15" in out.stdout
+
+
+def test_mitsuba_variant_choice(monkeypatch) -> None:
+    from estimate import mitsuba_env
+
+    monkeypatch.setenv("RIG_MITSUBA_VARIANT", "llvm_ad_mono")
+    assert mitsuba_env.default_variant() == "llvm_ad_mono"
+    monkeypatch.delenv("RIG_MITSUBA_VARIANT")
+    assert mitsuba_env.default_variant() in ("llvm_ad_mono", "cuda_ad_mono")
+    assert mitsuba_env.find_libllvm() is None or "19" in mitsuba_env.find_libllvm()
