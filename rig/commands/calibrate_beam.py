@@ -56,7 +56,6 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     filters = parse_filters(args.filters, list(cfg.filter.positions))
     out = args.out or f"calibration-{dt.datetime.now(dt.UTC).strftime('%Y%m%dT%H%M%SZ')}"
-    check_output_dir(out)  # before any device is opened or moved
     sim = args.sim is not None
     scene = None
     if sim:
@@ -72,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
         from rig.simbench import TerminalOperator
 
         operator = TerminalOperator()
+    check_output_dir(out)  # before any device is opened or moved
     settings = BeamCalibrationSettings(
         filters=filters,
         pixel_pitch_mm=0.020 / cfg.camera.magnification,
