@@ -23,9 +23,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from estimate.mie import PAPER_DIAMETERS_UM, PAPER_SETTINGS, mie_mono, mie_poly  # noqa: E402
-from estimate.phase_fit import PAPER_MODELS, fit_models  # noqa: E402
-from estimate.phase_table import PhaseTable  # noqa: E402
+from estimate.mie import PAPER_DIAMETERS_UM, PAPER_SETTINGS, mie_mono, mie_poly
+from estimate.phase_fit import PAPER_MODELS, fit_models
+from estimate.phase_table import PhaseTable
 
 
 def _fit_one(table: PhaseTable) -> tuple[str, list[dict], float, float]:

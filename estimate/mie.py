@@ -43,9 +43,10 @@ paper; no commits until 2024):
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from functools import lru_cache
-from typing import Literal, Sequence
+from typing import Literal
 
 import numpy as np
 
@@ -53,16 +54,16 @@ from estimate.errors import ModelParameterError
 from estimate.phase_table import PhaseTable, simpson_weights
 
 __all__ = [
-    "MieSettings",
-    "PolyModel",
-    "mie_mono",
-    "mie_poly",
-    "mie_dataset",
-    "mie_coefficients",
     "PAPER_DIAMETERS_UM",
     "PAPER_G_MONO",
     "PAPER_G_POLY",
     "PAPER_SETTINGS",
+    "MieSettings",
+    "PolyModel",
+    "mie_coefficients",
+    "mie_dataset",
+    "mie_mono",
+    "mie_poly",
 ]
 
 PolyModel = Literal["lognormal", "miesimulatorgui"]

@@ -22,9 +22,11 @@ stays ~1e-12 whatever the peak width between ~1e-12 and 2.
 
 from __future__ import annotations
 
+import itertools
 import math
+from collections.abc import Sequence
 from functools import lru_cache
-from typing import Literal, Sequence
+from typing import Literal
 
 import numpy as np
 from numpy.polynomial import legendre as _leg
@@ -35,12 +37,12 @@ from estimate.errors import ModelParameterError
 __all__ = [
     "Basis",
     "ExponentialPhase",
+    "check_degree",
+    "legendre_to_monomial",
     "log_norm",
     "log_norm_and_grad",
     "monomial_to_legendre",
-    "legendre_to_monomial",
     "quadrature_nodes",
-    "check_degree",
     "sample_about_axis",
 ]
 
@@ -169,7 +171,7 @@ def _nodes_for(mono: np.ndarray, n_nodes: int = _GL_NODES) -> tuple[np.ndarray, 
     bp = _breakpoints(mono)
     t, wt = _graded_unit(n_nodes)
     mus, ws = [], []
-    for a, b in zip(bp[:-1], bp[1:]):
+    for a, b in itertools.pairwise(bp):
         h = 0.5 * (b - a)
         mus.append(a + h * t)          # graded towards a
         ws.append(h * wt)
@@ -260,17 +262,17 @@ class ExponentialPhase:
 
     # -- construction -------------------------------------------------------------------
     @classmethod
-    def isotropic(cls) -> "ExponentialPhase":
+    def isotropic(cls) -> ExponentialPhase:
         """Degree 0: p = 1/(4 pi)."""
         return cls([])
 
     @classmethod
-    def von_mises_fisher(cls, kappa: float) -> "ExponentialPhase":
+    def von_mises_fisher(cls, kappa: float) -> ExponentialPhase:
         """Degree 1 with b_1 = kappa."""
         return cls([kappa])
 
     @classmethod
-    def zeros(cls, degree: int, basis: Basis = "monomial") -> "ExponentialPhase":
+    def zeros(cls, degree: int, basis: Basis = "monomial") -> ExponentialPhase:
         """Isotropic function written with ``degree`` zero coefficients.
 
         Raises:
@@ -297,7 +299,7 @@ class ExponentialPhase:
             return self._mono.copy()
         return monomial_to_legendre(self._mono)
 
-    def to_basis(self, basis: Basis) -> "ExponentialPhase":
+    def to_basis(self, basis: Basis) -> ExponentialPhase:
         """The same function with coefficients in another basis."""
         full = self.full_coeffs(basis)
         return ExponentialPhase(full[1:], basis)

@@ -29,8 +29,9 @@ import contextlib
 import ctypes
 import math
 import re
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Iterator, Sequence
+from typing import Any
 
 import numpy as np
 from numpy.polynomial import legendre as _leg
@@ -43,14 +44,14 @@ from estimate.phase_polynomial import ISOTROPIC, PolynomialPhase, normalised_des
 from estimate.phase_table import PhaseTable
 
 __all__ = [
-    "ModelSpec",
-    "FitResult",
     "PAPER_MODELS",
+    "FitResult",
+    "ModelSpec",
+    "fit_model",
+    "fit_models",
     "parse_model",
     "parse_models",
     "sad",
-    "fit_model",
-    "fit_models",
 ]
 
 #: The nine models of the paper's comparison, in its order.
@@ -300,7 +301,7 @@ def _fit_poly(mu: np.ndarray, y: np.ndarray, degree: int) -> FitResult:
         where = f" (p = {worst[1]:.3g} at theta = {worst[0]:.1f} deg)" if worst else ""
         return FitResult(name, None, {}, f"polynomial fit is <= 0 on the grid{where}; cannot fit in the log domain")
     ph = PolynomialPhase(best_a)
-    m, at = ph.min_value()
+    m, _ = ph.min_value()
     return FitResult(name, best_sad, {"a": ph.full_coeffs().tolist(), "positive_on_sphere": bool(m > 0),
                                       "min_on_sphere": m, "g": ph.g}, phase=ph)
 

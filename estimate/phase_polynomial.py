@@ -10,14 +10,14 @@ positivity check finds the exact minimum over [-1, 1] (ends and real critical po
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.polynomial import polynomial as _poly
 
 from estimate.errors import ModelParameterError
 
-__all__ = ["PolynomialPhase", "IsotropicPhase", "polynomial_a0", "normalised_design"]
+__all__ = ["IsotropicPhase", "PolynomialPhase", "normalised_design", "polynomial_a0"]
 
 ISOTROPIC = 1.0 / (4.0 * math.pi)
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from estimate.errors import DataError
 
-__all__ = ["PhaseTable", "read_phase_csv", "parse_phase_csv", "simpson_weights"]
+__all__ = ["PhaseTable", "parse_phase_csv", "read_phase_csv", "simpson_weights"]
 
 
 def simpson_weights(n: int) -> np.ndarray:
@@ -111,7 +111,7 @@ def parse_phase_csv(text: str, source: str = "<table>") -> PhaseTable:
         except ValueError:
             if not data and not use_mu:
                 head = cells[0].lower()
-                use_mu = head.startswith("mu") or head.startswith("cos")
+                use_mu = head.startswith(("mu", "cos"))
                 continue  # header line
             raise DataError(f"{source}: line {lineno}: not a number: {','.join(cells[:2])!r}") from None
         if not (math.isfinite(a) and math.isfinite(v)):

@@ -75,7 +75,7 @@ def test_bad_table_is_one_line_exit_2(tmp_path: Path, capsys: pytest.CaptureFixt
                                       needle: str) -> None:
     f = tmp_path / "bad.csv"
     f.write_text(content)
-    rc, out, err = _run(capsys, "fit-phase", str(f), "--out", str(tmp_path / "o"), "--no-plots")
+    rc, _, err = _run(capsys, "fit-phase", str(f), "--out", str(tmp_path / "o"), "--no-plots")
     assert rc == 2
     assert len(err.strip().splitlines()) == 1 and needle in err
 
@@ -94,7 +94,7 @@ def test_bad_table_is_one_line_exit_2(tmp_path: Path, capsys: pytest.CaptureFixt
 ])
 def test_bad_arguments_are_one_line_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str],
                                            needle: str) -> None:
-    rc, out, err = _run(capsys, "fit-phase", *argv, "--out", str(tmp_path / "o"), "--no-plots")
+    rc, _, err = _run(capsys, "fit-phase", *argv, "--out", str(tmp_path / "o"), "--no-plots")
     assert rc == 2
     assert len(err.strip().splitlines()) == 1 and needle in err
 

@@ -58,7 +58,7 @@ def test_phase_function_agrees_with_miepython_and_is_normalised() -> None:
         x = s.size_parameter(d)
         ref = miepython.i_unpolarized(1.377 / 1.333, float(x), t.mu, norm="one")
         np.testing.assert_allclose(t.p, ref, rtol=1e-9)
-        qext, qsca, qback, g = miepython.efficiencies_mx(1.377 / 1.333, float(x))
+        *_, g = miepython.efficiencies_mx(1.377 / 1.333, float(x))
         assert t.g == pytest.approx(float(g), abs=1e-10)
         assert t.normalisation() == pytest.approx(1.0, abs=1e-4)
 

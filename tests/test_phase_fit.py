@@ -10,7 +10,14 @@ import pytest
 from estimate.errors import DataError, ModelParameterError
 from estimate.mie import MieSettings, mie_mono
 from estimate.phase_exponential import ExponentialPhase
-from estimate.phase_fit import PAPER_MODELS, fit_model, fit_models, parse_model, parse_models, sad
+from estimate.phase_fit import (
+    PAPER_MODELS,
+    fit_model,
+    fit_models,
+    parse_model,
+    parse_models,
+    sad,
+)
 from estimate.phase_hg import HenyeyGreenstein, TwoTermHG
 from estimate.phase_polynomial import PolynomialPhase
 from estimate.phase_table import PhaseTable

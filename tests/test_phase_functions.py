@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -24,9 +25,9 @@ from estimate.phase_polynomial import IsotropicPhase, PolynomialPhase
 def _reference_integral(b: np.ndarray, b0: float) -> float:
     """2 pi int exp(b0 + sum b_i mu^i) dmu by adaptive quadrature on many sub-intervals."""
     full = np.concatenate([[b0], b])
-    f = lambda m: math.exp(np.polynomial.polynomial.polyval(m, full))  # noqa: E731
+    f = lambda m: math.exp(np.polynomial.polynomial.polyval(m, full))
     edges = np.linspace(-1, 1, 801)
-    total = sum(integrate.quad(f, a, c, epsabs=0, epsrel=1e-12, limit=200)[0] for a, c in zip(edges[:-1], edges[1:]))
+    total = sum(integrate.quad(f, a, c, epsabs=0, epsrel=1e-12, limit=200)[0] for a, c in itertools.pairwise(edges))
     return 2 * math.pi * total
 
 
@@ -72,7 +73,7 @@ def test_normalisation_interior_peak_and_backward() -> None:
 def test_gradient_of_log_norm_matches_finite_differences() -> None:
     c = np.array([120.0, -15.0, 4.0])
     for basis in ("monomial", "legendre"):
-        b0, grad = log_norm_and_grad(c, basis)
+        _, grad = log_norm_and_grad(c, basis)
         h = 1e-5
         fd = [(log_norm(c + h * np.eye(3)[i], basis) - log_norm(c - h * np.eye(3)[i], basis)) / (2 * h)
               for i in range(3)]
@@ -81,7 +82,7 @@ def test_gradient_of_log_norm_matches_finite_differences() -> None:
 
 def test_legendre_monomial_round_trip() -> None:
     rng = np.random.default_rng(3)
-    for m in range(0, 9):
+    for m in range(9):
         b = rng.normal(size=m + 1)
         np.testing.assert_allclose(legendre_to_monomial(monomial_to_legendre(b)), b, atol=1e-12)
         mu = np.linspace(-1, 1, 9)
@@ -123,7 +124,7 @@ def test_exponential_sampling_peaked_and_directions() -> None:
     mu = e.sample_mu(u)
     # vMF inverse CDF in closed form: mu = 1 + log(u + (1-u) exp(-2 kappa)) / kappa
     np.testing.assert_allclose(mu, 1 + np.log(u + (1 - u) * math.exp(-600)) / 300, atol=1e-10)
-    d, pdf = e.sample_directions(rng.random(100), rng.random(100), axis=(1.0, 0.0, 0.0))
+    d, _ = e.sample_directions(rng.random(100), rng.random(100), axis=(1.0, 0.0, 0.0))
     np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-12)
     assert np.all(d[:, 0] > 0.9)
     with pytest.raises(ModelParameterError):
@@ -147,9 +148,9 @@ def test_hg_normalised_g_and_sampling() -> None:
     rng = np.random.default_rng(2)
     for g in (-0.7, 0.0, 0.5, 0.95):
         h = HenyeyGreenstein(g)
-        norm = 2 * math.pi * integrate.quad(lambda m: float(h.eval(m)), -1, 1, points=[1.0], limit=200)[0]
+        norm = 2 * math.pi * integrate.quad(lambda m, h=h: float(h.eval(m)), -1, 1, points=[1.0], limit=200)[0]
         assert norm == pytest.approx(1.0, rel=1e-8)
-        mean = 2 * math.pi * integrate.quad(lambda m: m * float(h.eval(m)), -1, 1, limit=200)[0]
+        mean = 2 * math.pi * integrate.quad(lambda m, h=h: m * float(h.eval(m)), -1, 1, limit=200)[0]
         assert mean == pytest.approx(g, abs=1e-8)
         mu, pdf = h.sample(rng.random(30000))
         np.testing.assert_allclose(pdf, h.eval(mu))

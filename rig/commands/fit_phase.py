@@ -36,7 +36,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--n-particle", default="1.377", help="particle refractive index, e.g. 1.377 or 1.5+0.01j")
     p.add_argument("--n-medium", type=float, default=1.333, help="medium refractive index (1.333)")
     p.add_argument("--spread", type=float, default=0.1,
-                   help="poly-dispersion: std of diameters relative to the mean (0.1)")
+                   help="poly-dispersion spread (0.1): lognormal = std of diameters / mean; "
+                        "miesimulatorgui = the GUI's std field set to spread x D [um], as the paper did")
     p.add_argument("--poly-model", choices=("miesimulatorgui", "lognormal"), default="miesimulatorgui",
                    help="poly-dispersion: the paper's tool (MieSimulatorGUI v1, default) or a physical "
                         "log-normal with the given relative spread")
