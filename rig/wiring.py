@@ -54,18 +54,19 @@ def _is_sim(port: str | None, sim: bool) -> bool:
 
 def _sim_url(driver: str, port: str | None, cfg: RigConfig, **extra: object) -> str:
     """Twin URL for a driver: keep an explicit ``sim-*://`` port, else build one."""
-    if port and "://" in port and port.split("://", 1)[0] == SIM_SCHEMES[driver]:
-        # An explicit twin URL keeps its settings; the device facts the driver is configured
-        # with (e.g. the stage's zero_offset_deg) are added when the URL does not set them,
-        # so that the twin's angles mean what the driver thinks they mean.
-        given = parse_qs(urlsplit(port).query)
-        missing = {k: v for k, v in extra.items() if k not in given}
-        if not missing:
-            return port
-        return port + ("&" if "?" in port else "?") + urlencode(missing)
     query = {"timescale": cfg.sim.time_scale, "seed": cfg.sim.seed, **extra}
     if cfg.sim.faults:
         query["faults"] = cfg.sim.faults
+    if port and "://" in port and port.split("://", 1)[0] == SIM_SCHEMES[driver]:
+        # An explicit twin URL keeps its settings; the device facts the driver is configured
+        # with (e.g. the stage's zero_offset_deg) and the sim section's time scale, seed and
+        # faults are added when the URL does not set them, so that the twin's angles mean
+        # what the driver thinks they mean and ``sim.faults`` reaches every twin.
+        given = parse_qs(urlsplit(port).query)
+        missing = {k: v for k, v in query.items() if k not in given}
+        if not missing:
+            return port
+        return port + ("&" if "?" in port else "?") + urlencode(missing)
     return f"{SIM_SCHEMES[driver]}://{cfg.sim.bench}?{urlencode(query)}"
 
 

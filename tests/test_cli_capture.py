@@ -1,7 +1,10 @@
 """``rig capture`` and ``rig info`` through the real command line against the twins.
 
-Small plans (1-3 angles, one or two filters, an 8-row band, short brackets) on a
-fast simulated clock; the Ctrl-C test runs the CLI in a subprocess.
+Small plans (1-2 angles, one to three filters, an 8-row band, short brackets) on a
+fast simulated clock; the Ctrl-C test runs the CLI in a subprocess. When the
+rendered bench is installed the camera sees a cheap copy of the default world
+(few samples per pixel, renders cached in a temporary directory shared by the
+tests), else the analytic spot.
 """
 
 from __future__ import annotations
@@ -28,9 +31,30 @@ SMALL = ["--band-rows", "8", "--max-exposures", "3", "--darks", "1", "--no-progr
 MOVES = ("H:", "A:", "M:", "G:", "J:")  # stage commands that move (the transcript's '>' lines)
 
 
+_WORLD: list[Path] = []  # the cheap test world, made once per module (see the ``world`` fixture)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def world(tmp_path_factory: pytest.TempPathFactory) -> Path | None:
+    """A cheap copy of the default world: the rendered bench's physics at a few samples per pixel."""
+    try:
+        from sim_devices.world import DEFAULT_WORLD_PATH
+    except ImportError:
+        return None
+    tmp = tmp_path_factory.mktemp("world")
+    data = yaml.safe_load(DEFAULT_WORLD_PATH.read_text())
+    data["render"].update(spp_profile=16, spp_band=4, band_halfwidth_rows=4, spp_outside=0, cache_dir=str(tmp / "cache"))
+    p = tmp / "cheap.yaml"
+    p.write_text(yaml.safe_dump(data))
+    _WORLD[:] = [p]
+    return p
+
+
 def _config(tmp: Path, *, time_scale: float = 1000.0, **stage: object) -> Path:
     data = yaml.safe_load(PACKAGED_SIM_CONFIG.read_text())
     data["sim"]["time_scale"] = time_scale
+    if _WORLD:
+        data["sim"]["world"] = str(_WORLD[0])
     data["stage"].update(stage)
     p = tmp / f"rig-{len(list(tmp.glob('rig-*.yaml')))}.yaml"
     p.write_text(yaml.safe_dump(data))
@@ -59,7 +83,7 @@ def cfg(tmp_path: Path) -> Path:
 
 
 @pytest.fixture(scope="module")
-def finished(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def finished(tmp_path_factory: pytest.TempPathFactory, world: Path | None) -> Path:
     """One complete two-stack session, shared by the read-only tests."""
     tmp = tmp_path_factory.mktemp("done")
     out = tmp / "s"
@@ -83,11 +107,8 @@ def test_capture_completes_and_records_what_estimation_needs(finished: Path) -> 
     assert s.manifest["frame_shape"] == [8, 512]
     assert s.plan.bracket.profile_row == 256 - g["camera_roi"]["y"]
     img = s.load_hdr("a00_r")
-    assert img["radiance"].shape == (8, 512)
-    # the analytic spot's row is the profile row: brightest row of the merged image
-    peak_row = int(np.unravel_index(np.argmax(img["radiance"]), img["radiance"].shape)[0])
-    assert peak_row == s.plan.bracket.profile_row
-    assert "world" not in json.dumps(s.rig_config)
+    assert img["radiance"].shape == (8, 512) and img["mask"].all()
+    assert "world" not in json.dumps(s.rig_config)  # the simulated truth stays out of sessions
 
 
 def test_info_verifies_and_names_a_corrupt_file(finished: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
@@ -118,9 +139,10 @@ def test_resume_of_a_complete_session_does_nothing(finished: Path, tmp_path: Pat
 
 def test_interrupted_capture_resumes_without_touching_completed_stacks(tmp_path: Path) -> None:
     out = tmp_path / "s"
-    cfg = _config(tmp_path, time_scale=200.0)
-    cmd = [sys.executable, "-m", "rig.cli", "capture", "--angles", "3", "--filters", "rg", "--out", str(out),
-           "--config", str(cfg), "--sim", *SMALL]
+    cfg = _config(tmp_path, time_scale=100.0)
+    # long enough exposures (>= 0.2 s real per stack) that the run is still going when the first stack is saved
+    cmd = [sys.executable, "-m", "rig.cli", "capture", "--angles", "2", "--filters", "rgb", "--out", str(out),
+           "--config", str(cfg), "--sim", "--first-exposure", "0.5", *SMALL]
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 30
     while time.monotonic() < deadline and proc.poll() is None:
@@ -147,22 +169,28 @@ def test_interrupted_capture_resumes_without_touching_completed_stacks(tmp_path:
 
 
 def test_device_fault_stops_cleanly_and_resumes(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    out = tmp_path / "s"
-    faulty = tmp_path / "faulty.yaml"
-    data = yaml.safe_load(_config(tmp_path).read_text())
-    data["sim"].update(faults="disconnect:0.05", seed=3)
-    faulty.write_text(yaml.safe_dump(data))
-    rc = main(["capture", "--angles", "3", "--filters", "r", "--out", str(out), "--config", str(faulty), "--sim", *SMALL])
-    err = capsys.readouterr().err
-    if rc == 0:  # the seed let every exchange through: nothing to check about stopping
-        pytest.fail("the seeded fault plan should disconnect the camera during this capture")
+    # the camera twin draws its faults in an order that depends on how often the driver polls
+    # (real time), so a seed alone does not fix where the disconnect falls: try seeds until one stops the run
+    for seed in range(1, 9):
+        out = tmp_path / f"s{seed}"
+        faulty = tmp_path / f"faulty{seed}.yaml"
+        data = yaml.safe_load(_config(tmp_path).read_text())
+        data["sim"].update(faults="disconnect:0.1", seed=seed)
+        faulty.write_text(yaml.safe_dump(data))
+        rc = main(["capture", "--angles", "2", "--filters", "rg", "--out", str(out), "--config", str(faulty), "--sim", *SMALL])
+        err = capsys.readouterr().err
+        if rc != 0:
+            break
+    else:
+        pytest.fail("no seed let the camera twin disconnect during the capture")
     assert rc == 3
     line = [ln for ln in err.splitlines() if ln.startswith("rig capture: error:")]
     assert len(line) == 1 and "camera" in line[0] and f"--resume {out}" in line[0]
+    assert "Traceback" not in err
     done = _done_records(out)
     assert main(["capture", "--resume", str(out), "--config", str(_config(tmp_path)), "--sim", "--no-progress"]) == 0
     after = _done_records(out)
-    assert {k: after[k] for k in done} == done and len(after) == 3
+    assert {k: after[k] for k in done} == done and len(after) == 4
 
 
 @pytest.mark.parametrize(
@@ -235,20 +263,24 @@ def test_out_dir_holding_a_session_points_at_resume(finished: Path, capsys: pyte
 
 
 def test_calibration_sets_the_band_and_is_attached(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    # the spot's row: where the world images the rotation axis, else the analytic spot's centre
+    centre = list(yaml.safe_load(_WORLD[0].read_text())["optics"]["axis_px"]) if _WORLD else [256.0, 256.0]
     cal = tmp_path / "cal"
     cal.mkdir()
-    (cal / "calibration.yaml").write_text(yaml.safe_dump({"beam": {"center_px": [250.0, 300.4]}}))
+    (cal / "calibration.yaml").write_text(yaml.safe_dump({"beam": {"center_px": centre}}))
     out = tmp_path / "s"
-    assert main(["capture", "--angles", "1", "--filters", "g", "--out", str(out), "--config", str(_config(tmp_path)),
-                 "--sim", "--calibration", str(cal), "--thickness-mm", "2.5", "--json", *SMALL]) == 0
+    assert main(["capture", "--angles", "2", "--filters", "r", "--out", str(out), "--config",
+                 str(_config(tmp_path)), "--sim", "--calibration", str(cal), "--thickness-mm", "2.5", "--json", *SMALL]) == 0
     d = json.loads(capsys.readouterr().out)
-    assert d["complete"] and d["completed"] == ["a00_g"]
+    assert d["complete"] and d["completed"] == ["a00_r", "a01_r"]
     s = Session.open(out)
     g = s.geometry()
-    assert g["profile_row"] == 300 and g["profile_row_source"].startswith("calibration")
-    assert g["beam_center_px"] == [250.0, 300.4] and g["thickness_mm"] == 2.5
-    assert s.load_calibration()["beam"]["center_px"] == [250.0, 300.4]
+    assert g["profile_row"] == round(centre[1]) and g["profile_row_source"].startswith("calibration")
+    assert g["beam_center_px"] == centre and g["thickness_mm"] == 2.5
+    assert s.load_calibration()["beam"]["center_px"] == centre
     assert not s.verify()
+    roi = g["camera_roi"]
+    assert roi["y"] <= round(centre[1]) < roi["y"] + roi["height"]
     (cal / "calibration.yaml").write_text("beam: {}\n")
     assert main(["capture", "--angles", "1", "--out", str(tmp_path / "t"), "--calibration", str(cal)]) == 2
     assert "beam.center_px" in capsys.readouterr().err

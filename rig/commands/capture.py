@@ -225,12 +225,13 @@ def _check(args: argparse.Namespace) -> _Request:
 # --------------------------------------------------------------------------- with the rig
 
 
-def _install_scene(cfg: Any, world: str | None) -> str:
-    """Put the simulated world on the bench; returns what the camera sees.
+def _install_scene(cfg: Any, world: str | None) -> tuple[str, Any]:
+    """Put the simulated world on the bench before the twins open; returns (what the camera
+    sees, the scene for ``open_rig``).
 
-    ``rig.simbench.install_world`` (the rendered bench) is used when it is
-    installed; without it the bench keeps the analytic spot of
-    :mod:`sim_devices.bench`, which cannot honour a world file.
+    ``rig.simbench.install_world`` (the rendered bench; a bad world file is a one-line
+    UsageError) is used when it is installed; without it the bench keeps the analytic
+    spot of :mod:`sim_devices.bench`, which cannot honour a world file.
     """
     try:
         simbench = importlib.import_module("rig.simbench")
@@ -239,9 +240,9 @@ def _install_scene(cfg: Any, world: str | None) -> str:
             raise
         if world:
             raise _usage(f"--sim {world}: this installation has no rendered bench (rig/simbench.py); use --sim alone") from None
-        return "analytic spot (sim_devices.bench)"
-    simbench.install_world(cfg, world or None)
-    return f"rendered world {'(default)' if not world else ''}".strip()
+        return "analytic spot (sim_devices.bench)", None
+    installed = simbench.install_world(cfg, world or None)
+    return f"rendered world {getattr(installed, 'name', '') or ''}".strip(), installed.scene
 
 
 def _profile_row(req: _Request, sensor: Any) -> tuple[int, str]:
@@ -346,10 +347,11 @@ def run(args: argparse.Namespace) -> int:
             print(f"{req.out}: all {s['stacks_total']} stacks are complete; nothing to do")
         return 0
 
-    rig = wiring.open_rig(req.cfg, sim=req.sim, log_io=args.log_io)
+    uses_sim = req.sim or req.cfg.stage.port.startswith("sim") or (req.cfg.filter.port or "").startswith("sim")
+    scene, scene_fn = _install_scene(req.cfg, req.world) if uses_sim else (None, None)
+    rig = wiring.open_rig(req.cfg, sim=req.sim, log_io=args.log_io, scene=scene_fn)
     session = None
     try:
-        scene = _install_scene(req.cfg, req.world) if rig.simulated else None
         cam, stage, changer = rig.camera, rig.stage, rig.changer
         sensor = cam.sensor
         devices = {"stage": stage.identity(), "camera": cam.identity(), "filter": changer.identity()}

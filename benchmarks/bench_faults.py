@@ -1,0 +1,142 @@
+"""Injected device faults: every capture completes, or stops cleanly and resumes.
+
+For each fault kind the twins can inject (``sim_devices.faults``: ``drop``,
+``garble`` and ``ng`` on the serial links of the stage and the filter wheel,
+``pipe``, ``disconnect`` and ``short`` on the camera's USB, ``limit`` on the
+stage) a small simulated capture (2 angles x 3 filters, 8-row band, 3-frame
+brackets, time scale 1000) runs with that fault at a modest rate, for several
+seeds. Each run is classified:
+
+* survived: exit 0, session complete, every checksum right (the drivers
+  retried or resolved what they could);
+* stopped cleanly: exit 2 or 3 with exactly one ``rig capture: error:`` line
+  naming the device and the ``--resume`` command, no traceback, and the
+  session then resumes with faults off to completion without changing any
+  stack completed before the fault;
+* failed badly: anything else (traceback, other exit status, hang, a resume
+  that fails, a changed or corrupt stack).
+
+The byte transcript (``--log-io``) of each run is scanned for the anomalies the
+drivers noted (retries, garbled replies, stalls, failed transfers).
+Writes benchmarks/results/bench_faults.json.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from capture.session import Session  # noqa: E402
+from rig.config import PACKAGED_SIM_CONFIG  # noqa: E402
+
+#: Fault kind -> probability per draw (per serial exchange, USB control transfer,
+#: bulk read, or stage move as the twin draws it).
+RATES = {"drop": 0.02, "garble": 0.02, "ng": 0.02, "limit": 0.05, "pipe": 0.01, "disconnect": 0.005, "short": 0.02}
+DEVICE = {"drop": "serial", "garble": "serial", "ng": "serial", "limit": "stage", "pipe": "camera",
+          "disconnect": "camera", "short": "camera"}
+SEEDS = (1, 2, 3, 4)
+PLAN = ["--angles", "2", "--filters", "rgb", "--band-rows", "8", "--max-exposures", "3", "--darks", "1",
+        "--no-progress", "--sim"]
+TIMEOUT_S = 180
+ANOMALY = re.compile(r" ! .*(retry|attempt|garbled|stall|failed)", re.IGNORECASE)
+
+
+def _config(path: Path, faults: str, seed: int) -> Path:
+    data = yaml.safe_load(PACKAGED_SIM_CONFIG.read_text())
+    data["sim"].update(time_scale=1000.0, faults=faults, seed=seed)
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def _capture(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "rig.cli", "capture", *args], cwd=ROOT, capture_output=True,
+                          text=True, timeout=TIMEOUT_S)
+
+
+def _done(out: Path) -> dict[str, tuple]:
+    s = Session.open(out)
+    return {r.id: (r.completed, tuple(sorted((k, f.sha256) for k, f in r.files.items()))) for r in s.stacks() if r.done}
+
+
+def _one(tmp: Path, kind: str, seed: int, clean_cfg: Path) -> dict:
+    out = tmp / f"{kind}-{seed}"
+    log = tmp / f"{kind}-{seed}.io"
+    cfg = _config(tmp / f"{kind}-{seed}.yaml", f"{kind}:{RATES[kind]}", seed)
+    res: dict = {"kind": kind, "seed": seed}
+    try:
+        p = _capture(*PLAN, "--config", str(cfg), "--out", str(out), "--log-io", str(log))
+    except subprocess.TimeoutExpired:
+        return {**res, "outcome": "failed badly", "why": f"hung for {TIMEOUT_S} s"}
+    res["exit"] = p.returncode
+    res["driver_anomalies"] = sum(bool(ANOMALY.search(ln)) for ln in log.read_text(errors="replace").splitlines()) if log.exists() else 0
+    errors = [ln for ln in p.stderr.splitlines() if ln.startswith("rig capture: error:")]
+    if p.returncode == 0:
+        s = Session.open(out)
+        ok = s.complete and not s.verify()
+        return {**res, "outcome": "survived" if ok else "failed badly", **({} if ok else {"why": "incomplete or corrupt"})}
+    res["message"] = errors[0] if errors else p.stderr.strip().splitlines()[-1:]
+    if "Traceback" in p.stderr or p.returncode not in (2, 3) or len(errors) != 1 or "--resume" not in errors[0]:
+        return {**res, "outcome": "failed badly", "why": "no single clean error line with the resume command"}
+    if not (out / "session.yaml").exists():
+        return {**res, "outcome": "failed badly", "why": "no session to resume"}
+    before = _done(out)
+    res["stacks_before_fault"] = len(before)
+    try:
+        r = _capture("--resume", str(out), "--config", str(clean_cfg), "--sim", "--no-progress")
+    except subprocess.TimeoutExpired:
+        return {**res, "outcome": "failed badly", "why": "resume hung"}
+    if r.returncode != 0:
+        return {**res, "outcome": "failed badly", "why": f"resume exited {r.returncode}: {r.stderr.strip().splitlines()[-1:]}"}
+    s = Session.open(out)
+    after = _done(out)
+    if not s.complete or s.verify() or any(after.get(k) != v for k, v in before.items()):
+        return {**res, "outcome": "failed badly", "why": "resumed session incomplete, corrupt, or a completed stack changed"}
+    return {**res, "outcome": "stopped cleanly"}
+
+
+def main() -> int:
+    runs = []
+    with tempfile.TemporaryDirectory(prefix="bench-faults-") as tmp:
+        tmpd = Path(tmp)
+        clean = _config(tmpd / "clean.yaml", "", 0)
+        for kind in RATES:
+            for seed in SEEDS:
+                r = _one(tmpd, kind, seed, clean)
+                runs.append(r)
+                msg = r.get("message") or ""
+                print(f"{kind:<11} seed {seed}: {r['outcome']:<15} exit {r.get('exit', '-')!s:<3} "
+                      f"anomalies {r.get('driver_anomalies', 0):<3} {r.get('why', '')}{str(msg)[:110]}")
+    table = {}
+    for kind in RATES:
+        rs = [r for r in runs if r["kind"] == kind]
+        table[kind] = {
+            "device": DEVICE[kind], "rate": RATES[kind], "runs": len(rs),
+            "survived": sum(r["outcome"] == "survived" for r in rs),
+            "stopped_cleanly": sum(r["outcome"] == "stopped cleanly" for r in rs),
+            "failed_badly": sum(r["outcome"] == "failed badly" for r in rs),
+            "driver_anomalies": sum(r.get("driver_anomalies", 0) for r in rs),
+        }
+    print(f"\n{'fault':<11}{'device':<8}{'rate':>6}{'runs':>6}{'survived':>10}{'stopped':>9}{'bad':>5}{'anomalies':>11}")
+    for kind, t in table.items():
+        print(f"{kind:<11}{t['device']:<8}{t['rate']:>6g}{t['runs']:>6}{t['survived']:>10}{t['stopped_cleanly']:>9}"
+              f"{t['failed_badly']:>5}{t['driver_anomalies']:>11}")
+    result = {
+        "command": "rig capture " + " ".join(PLAN) + " --config FAULTY.yaml --out DIR; on a stop: --resume DIR with faults off",
+        "seeds": list(SEEDS), "table": table, "runs": runs,
+        "failed_badly": sum(t["failed_badly"] for t in table.values()),
+    }
+    (ROOT / "benchmarks" / "results" / "bench_faults.json").write_text(json.dumps(result, indent=2) + "\n")
+    return 0 if result["failed_badly"] == 0 else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
