@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
+from scipy import ndimage
 
 from estimate.errors import EstimateError, ModelParameterError
 from estimate.extensions import EXTENSIONS
@@ -33,6 +34,7 @@ from estimate.residuals import ALPHA, FitResiduals, fit_significance, localise, 
 from estimate.screening import CandidateScore, candidate_columns, screen
 
 __all__ = ["BaseFit", "Evaluation", "ChannelDiagnosis", "diagnose_channel", "evaluate", "refit",
+           "screen_candidates", "run_diagnosis", "plot_diagnosis", "RefitResult",
            "FREE_PARAMETERS", "CANDIDATES", "BIC_STRONG", "HOLDOUT_EVERY"]
 
 CANDIDATES: tuple[str, ...] = tuple(EXTENSIONS)
@@ -56,11 +58,16 @@ BIC_STRONG = 10.0
 #: Every HOLDOUT_EVERY-th light angle (sorted) is held out when confirming.
 HOLDOUT_EVERY = 4
 #: At most this many candidates are refitted per round.
-MAX_CONFIRM = 3
+MAX_CONFIRM = 2
 #: At most this many effects are added.
 MAX_EFFECTS = 2
 #: Screening threshold (log10 p), Bonferroni-corrected for the eight candidates.
 SCREEN_LOG10_P = math.log10(ALPHA / len(CANDIDATES))
+
+#: Secant columns of scene extensions are rendered with this many times the diagnosis spp.
+COLUMN_SPP_FACTOR = 4
+#: Pixels pooled in the estimate of the model's Monte-Carlo variance.
+VARIANCE_POOL_PX = 15
 
 ModelFactory = Callable[[Sequence[str]], Any]
 
@@ -104,6 +111,7 @@ class ChannelDiagnosis:
     verdict: str
     time_s: float
     material_names: list[str]
+    before_uncertainties: dict[str, float] = field(default_factory=dict)
 
     @property
     def significant(self) -> bool:
@@ -167,6 +175,23 @@ def _best_scale(measured: np.ndarray, var: np.ndarray, f: np.ndarray) -> float:
     return float(np.sum(w * measured * f) / den) if den > 0 else 1.0
 
 
+def _smoothed_variance(renders: np.ndarray) -> np.ndarray:
+    """Per-pixel Monte-Carlo variance of one render from a few seeds, pooled over neighbours.
+
+    A variance from a handful of seeds is itself so noisy that dividing by it turns the
+    normalised residuals into Student-t variables (variance 3 for 4 seeds). The path
+    tracer's variance per unit of signal changes slowly along the profile (it follows
+    the signal through the sharp spot), so the ratio variance / mean is pooled over
+    `VARIANCE_POOL_PX` pixels and multiplied back by the mean.
+    """
+    v = renders.var(axis=0, ddof=1)
+    m = np.abs(renders.mean(axis=0))
+    floor = 1e-6 * max(float(m.max()), 1e-300)
+    ratio = v / np.maximum(m, floor)
+    pooled = ndimage.uniform_filter1d(ratio, VARIANCE_POOL_PX, axis=-1, mode="nearest")
+    return pooled * np.maximum(m, floor)
+
+
 def evaluate(model: Any, params: Mapping[str, float], problem: Any, n_params: int, *, spp: int = 256,
              seed: int = 1000, repeats: int = 4, angle_idx: Sequence[int] | None = None,
              scale: float | None = None) -> Evaluation:
@@ -175,7 +200,7 @@ def evaluate(model: Any, params: Mapping[str, float], problem: Any, n_params: in
     angles = [float(problem.angles_deg[i]) for i in idx]
     renders = np.stack([model.render_profiles(params, angles, spp=spp, seed=seed + 7 * k) for k in range(repeats)])
     mean = renders.mean(axis=0)
-    mvar = renders.var(axis=0, ddof=1) / repeats if repeats > 1 else np.zeros_like(mean)
+    mvar = _smoothed_variance(renders) / repeats if repeats > 1 else np.zeros_like(mean)
     meas = np.asarray(problem.measured, dtype=np.float64)[idx]
     var = _variance(problem)[idx]
     s = _best_scale(meas, var, mean) if scale is None else float(scale)
@@ -311,6 +336,20 @@ def _holdout(n: int) -> tuple[list[int], list[int]]:
 
 
 # ---------------------------------------------------------------------------- main
+def screen_candidates(problem: Any, base: BaseFit, make_model: ModelFactory, *,
+                      candidates: Sequence[str] | None = None, spp: int = 256, seed: int = 1000,
+                      repeats: int = 3) -> tuple[Evaluation, dict[str, Any], list[CandidateScore]]:
+    """Locate and screen only (no refit): the base evaluation, its localisation and the
+    ranked score tests of `candidates` (default: all not already in the base model)."""
+    cands = [c for c in (candidates or CANDIDATES) if c not in base.extensions]
+    m = make_model(base.extensions)
+    free = _free_names(m, base.extensions)
+    ev = evaluate(m, base.parameters, problem, len(free) + 1, spp=spp, seed=seed, repeats=repeats)
+    loc = localise(ev.residuals.r, problem.angles_deg, problem.x_mm, ev.model)
+    scores = _screen(problem, ev, base.extensions, make_model, cands, spp=spp, seed=seed + 101)
+    return ev, loc, scores
+
+
 def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                      candidates: Sequence[str] | None = None, spp: int = 256, seed: int = 1000,
                      repeats: int = 4, iterations: int = 12,
@@ -370,7 +409,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             m = make_model(exts)
             free = _free_names(m, exts)
             fit = refit(m, problem, _start(m, current.parameters, cand.name, brightest), free, angle_idx=train,
-                        spp=spp, seed=seed + 202, iterations=iterations)
+                        spp=spp, seed=seed + 202, iterations=iterations,
+                        model_variance=current.model_variance * repeats)
             tr = evaluate(m, fit.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats, angle_idx=train)
             k = len(FREE_PARAMETERS[cand.name])
             n_train = int(np.sum(np.isfinite(tr.residuals.r)))
@@ -402,7 +442,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         current_exts = current_exts + [best[1]]
         m = make_model(current_exts)
         free = _free_names(m, current_exts)
-        full = refit(m, problem, best[2].parameters, free, spp=spp, seed=seed + 303, iterations=iterations)
+        full = refit(m, problem, best[2].parameters, free, spp=spp, seed=seed + 303, iterations=iterations,
+                     model_variance=current.model_variance * repeats)
         current = evaluate(m, full.parameters, problem, len(free) + 1, spp=spp, seed=seed, repeats=repeats)
         current_unc = full.uncertainties
         say(f"  with {', '.join(confirmed)}: reduced chi2 {current.residuals.reduced_chi2:.3f}")
@@ -412,7 +453,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
     after = current if confirmed else None
     verdict = _verdict(before, loc, first_scores, confirmed, after)
     return ChannelDiagnosis(problem.channel, before, loc, first_scores, confirmations, confirmed, after,
-                            current_unc if confirmed else {}, verdict, time.perf_counter() - t0, material)
+                            current_unc if confirmed else {}, verdict, time.perf_counter() - t0, material,
+                            dict(base.uncertainties))
 
 
 def _screen(problem: Any, current: Evaluation, exts: Sequence[str], make_model: ModelFactory,
@@ -433,9 +475,12 @@ def _screen(problem: Any, current: Evaluation, exts: Sequence[str], make_model: 
     for n in names:
         if n in image:
             continue
+        # Secants of rendered effects: common random numbers and COLUMN_SPP_FACTOR x the
+        # samples (a handful of renders in all; noisy columns dilute the test's power).
         m = make_model(list(exts) + [n])
-        b = m.render_profiles(current.parameters, angles, spp=spp, seed=seed)
-        cols.update(candidate_columns(m, current.parameters, angles, b, [n], spp=spp, seed=seed))
+        cspp = COLUMN_SPP_FACTOR * spp
+        b = m.render_profiles(current.parameters, angles, spp=cspp, seed=seed)
+        cols.update(candidate_columns(m, current.parameters, angles, b, [n], spp=cspp, seed=seed))
     del base_render
     excess = current.residuals.chi2 - current.residuals.dof
     r = np.nan_to_num(current.residuals.r, nan=0.0)
@@ -456,3 +501,180 @@ def _verdict(before: Evaluation, loc: dict[str, Any], scores: list[CandidateScor
     a = after.residuals if after else b
     return (head + f"; left-out physics: {', '.join(confirmed)}; reduced chi2 {b.reduced_chi2:.2f} -> "
             f"{a.reduced_chi2:.2f}" + ("" if not a.significant else " (a significant mismatch remains)"))
+
+
+# ---------------------------------------------------------------------------- session level
+def _resolve_fit(session_dir: Any, fit_run: Any) -> Any:
+    """The estimate run to diagnose (latest when None); DataError with a one-line hint."""
+    from pathlib import Path
+
+    from estimate.errors import DataError
+    from estimate.results import list_runs
+
+    session = Path(session_dir)
+    if fit_run is None:
+        runs = list_runs(session)
+        if not runs:
+            raise DataError(f"no fit to diagnose in {session}: run 'rig estimate {session}' first, or give --fit RUN")
+        return runs[-1]
+    cand = Path(fit_run)
+    if not (cand / "results.yaml").is_file():
+        alt = session / "estimates" / str(fit_run)
+        if (alt / "results.yaml").is_file():
+            cand = alt
+        else:
+            raise DataError(f"--fit {fit_run}: no estimate run there (expected {alt}/results.yaml)")
+    return cand
+
+
+def _check_same_session(session_dir: Any, run_doc: Mapping[str, Any], run_dir: Any) -> None:
+    import hashlib
+    from pathlib import Path
+
+    from estimate.errors import DataError
+
+    session = Path(session_dir).resolve()
+    rec = (run_doc.get("session") or {})
+    path = rec.get("path")
+    sha = rec.get("manifest_sha256")
+    manifest = session / "session.yaml"
+    here = hashlib.sha256(manifest.read_bytes()).hexdigest() if manifest.is_file() else None
+    if (path and Path(path).resolve() != session) or (sha and here and sha != here):
+        raise DataError(f"fit {run_dir} was made from another session ({path}), not {session}")
+
+
+def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[str] | None = None,
+                  channels: Sequence[str] | None = None, spp: int = 256, repeats: int = 3, iterations: int = 8,
+                  seed: int = 1000, plots: bool = True, log: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """Diagnose every channel of an estimate run of a session and write the results.
+
+    Writes SESSION/diagnoses/<run_id>/diagnosis.yaml (+ residual plots) and, when an effect
+    is confirmed, the refit as a new estimate run. Returns the diagnosis document
+    (`channels.<f>` = `ChannelDiagnosis.as_dict()`, plus `refit_run`).
+
+    Raises:
+        DataError: no fit to diagnose, a fit from another session, unreadable inputs.
+        ModelParameterError: an unknown effect name.
+    """
+    from datetime import datetime, timezone
+    from pathlib import Path
+
+    import yaml
+
+    from estimate.fit import FitResult, model_phase
+    from estimate.forward import ForwardModel
+    from estimate.problem import load_problem
+    from estimate.results import new_run_dir, read_run, write_run
+
+    for e in effects or ():
+        if e not in EXTENSIONS:
+            raise ModelParameterError(f"unknown effect {e!r}; known: {', '.join(sorted(EXTENSIONS))}")
+    session = Path(session_dir)
+    run_dir = _resolve_fit(session, fit_run)
+    doc = read_run(run_dir)
+    _check_same_session(session, doc, run_dir)
+    settings = doc.get("settings") or {}
+    base_exts = list(settings.get("extensions") or [])
+    chans = doc.get("channels") or {}
+    chosen = list(channels) if channels else list(chans)
+    out: dict[str, Any] = {"format": "rig-diagnosis/1", "fit_run": str(run_dir), "session": str(session.resolve()),
+                           "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                           "settings": {"spp": spp, "repeats": repeats, "iterations": iterations, "seed": seed,
+                                        "effects": list(effects) if effects else list(CANDIDATES)},
+                           "channels": {}}
+    diags: dict[str, ChannelDiagnosis] = {}
+    problems: dict[str, Any] = {}
+    phases: dict[str, str] = {}
+    for ch in chosen:
+        if ch not in chans:
+            raise EstimateError(f"channel {ch!r} is not in fit {run_dir.name} (has {', '.join(chans)})")
+        c = chans[ch]
+        pb = load_problem(session, ch, settings.get("columns"), allow_partial=bool(c.get("missing_stacks")))
+        phase = model_phase(str(c.get("model") or settings.get("model") or "exp3"))
+        cache: dict[tuple[str, ...], Any] = {}
+
+        def make_model(exts: Sequence[str], _pb: Any = pb, _phase: str = phase,
+                       _cache: dict = cache) -> Any:
+            key = tuple(exts)
+            if key not in _cache:
+                _cache[key] = ForwardModel(_pb.geometry, _pb.beam, phase=_phase, extensions=key)
+            return _cache[key]
+
+        base = BaseFit({k: float(v) for k, v in (c.get("parameters") or {}).items()}, float(c.get("scale", 1.0)),
+                       phase, base_exts, {k: float(v) for k, v in (c.get("uncertainties") or {}).items()
+                                          if v is not None})
+        d = diagnose_channel(pb, base, make_model, candidates=effects, spp=spp, seed=seed, repeats=repeats,
+                             iterations=iterations, log=log)
+        diags[ch] = d
+        problems[ch] = pb
+        phases[ch] = phase
+        out["channels"][ch] = d.as_dict()
+    diag_dir = new_run_dir(session, "diagnosis", kind="diagnoses")
+    out["run_id"] = diag_dir.name
+    refit_run = None
+    if any(d.confirmed for d in diags.values()):
+        fits = []
+        for ch, d in diags.items():
+            ev = d.after or d.before
+            fits.append(FitResult(
+                channel=ch, model=phases[ch], extensions=list(ev.extensions), parameters=dict(ev.parameters),
+                uncertainties=dict(d.uncertainties_after) if d.after else dict(d.before_uncertainties),
+                fixed={}, scale=ev.scale, scale_uncertainty=float("nan"), loss=float("nan"), delta_rel=float("nan"),
+                chi2=ev.residuals.chi2, dof=ev.residuals.dof, reduced_chi2=ev.residuals.reduced_chi2,
+                iterations=0, time_s=d.time_s, stop_reason="diagnosis refit (Levenberg-Marquardt)",
+                spp_schedule=[[0, spp]], loss_curve=[float(ev.residuals.chi2)],
+                angles_deg=[float(a) for a in problems[ch].angles_deg], fitted=ev.model,
+                model_variance=ev.model_variance, start=dict(d.before.parameters), settings={}))
+        rd = new_run_dir(session, f"{phases[chosen[0]]}+diagnosis")
+        write_run(rd, session, fits, problems, {"columns": settings.get("columns"), "diagnosis": diag_dir.name,
+                                                "refit_of": Path(run_dir).name}, plots=plots)
+        refit_run = str(rd)
+    out["refit_run"] = refit_run
+    if plots:
+        out["plots"] = [p.name for ch, d in diags.items() for p in plot_diagnosis(diag_dir, d, problems[ch])]
+    (diag_dir / "diagnosis.yaml").write_text(yaml.safe_dump(_plain(out), sort_keys=False), encoding="utf-8")
+    return out
+
+
+def plot_diagnosis(out_dir: Any, d: ChannelDiagnosis, problem: Any) -> list[Any]:
+    """residuals_<f>.png (normalised residual maps before/after) and profiles_<f>.png
+    (measured vs model before/after at the worst angles)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    evs = [("before", d.before)] + ([("after", d.after)] if d.after else [])
+    fig, axes = plt.subplots(1, len(evs), figsize=(5.5 * len(evs), 3.8), squeeze=False)
+    lim = 5.0
+    x = np.asarray(problem.x_mm)
+    for ax, (label, ev) in zip(axes[0], evs):
+        im = ax.imshow(np.nan_to_num(ev.residuals.r), aspect="auto", cmap="coolwarm", vmin=-lim, vmax=lim,
+                       extent=(x[0], x[-1], len(problem.angles_deg) - 0.5, -0.5), interpolation="nearest")
+        ax.set_yticks(range(len(problem.angles_deg)))
+        ax.set_yticklabels([f"{a:g}" for a in problem.angles_deg], fontsize=7)
+        ax.set_xlabel("x [mm]")
+        ax.set_ylabel("light angle [deg]")
+        ax.set_title(f"{label}: reduced chi2 {ev.residuals.reduced_chi2:.2f}", fontsize=9)
+    fig.colorbar(im, ax=axes[0].tolist(), label="normalised residual")
+    p = out_dir / f"residuals_{d.channel}.png"
+    fig.savefig(p, dpi=80)
+    plt.close(fig)
+    paths.append(p)
+    per = d.localisation["per_angle"]
+    worst = sorted(range(len(problem.angles_deg)), key=lambda i: -per[f"{problem.angles_deg[i]:g}"]["excess_sigma"])[:3]
+    fig, axes = plt.subplots(1, len(worst), figsize=(4 * len(worst), 3.2), squeeze=False)
+    for ax, i in zip(axes[0], worst):
+        ax.semilogy(x, np.clip(problem.measured[i], 1e-6, None), ".", ms=3, color="k", label="measured")
+        for label, ev in evs:
+            ax.semilogy(x, np.clip(ev.scale * ev.model[i], 1e-6, None), "-", lw=1, label=f"model {label}")
+        ax.set_title(f"{problem.angles_deg[i]:g} deg", fontsize=9)
+        ax.set_xlabel("x [mm]")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    p = out_dir / f"profiles_{d.channel}.png"
+    fig.savefig(p, dpi=80)
+    plt.close(fig)
+    paths.append(p)
+    return paths

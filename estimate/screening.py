@@ -39,8 +39,8 @@ __all__ = ["CandidateScore", "PROBES", "candidate_columns", "score_test", "scree
 #: Probe values (secant end points) of the scene extensions' parameters.
 PROBES: dict[str, list[dict[str, float]]] = {
     "refractive_boundary": [{"refractive_boundary.n": 1.1}],
-    "angle_offset": [{"angle_offset.delta_deg": 0.5}],
-    "thickness_error": [{"thickness_error.e": 0.05}],
+    "angle_offset": [{"angle_offset.delta_deg": 2.0}],
+    "thickness_error": [{"thickness_error.e": 0.1}],
     "beam_halo": [{"beam_halo.fraction": 0.02, "beam_halo.sigma_mm": 0.5},
                   {"beam_halo.fraction": 0.02, "beam_halo.sigma_mm": 2.0}],
     "filter_bandwidth": [{"filter_bandwidth.spread": 0.3}],

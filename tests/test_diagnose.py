@@ -1,0 +1,147 @@
+"""Mismatch diagnosis: score-test screening on synthetic profiles with a concealed effect,
+a clean recording found consistent, and the CLI's bad-input errors.
+
+Synthetic recordings: the forward model with one effect switched on, rendered at high spp
+(its Monte-Carlo variance added to the data variance), plus shot-like noise; the diagnosis
+sees the base model at the true material parameters (no base fit: fast) and must rank the
+concealed effect first. Tiny windows and low spp keep this well under a minute.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from estimate.beam import BeamProfile
+from estimate.diagnose import BaseFit, _smoothed_variance, screen_candidates
+from estimate.forward import ForwardModel
+from estimate.geometry import RigGeometry
+from estimate.residuals import fit_significance, localise
+from estimate.screening import score_test
+from rig.cli import main
+
+TRUE = {"sigma_t": 2.0, "albedo": 0.9, "phase.g": 0.5}
+ANGLES = np.array([20.0, 45.0, 70.0, 110.0, 135.0, 160.0])
+GEOMETRY = RigGeometry(thickness_mm=1.0, magnification=0.5, profile_columns=(240, 272))
+BEAM = BeamProfile.disk(0.3)
+_MODELS: dict[tuple[str, ...], ForwardModel] = {}
+
+
+def make_model(exts) -> ForwardModel:
+    key = tuple(exts)
+    if key not in _MODELS:
+        _MODELS[key] = ForwardModel(GEOMETRY, BEAM, phase="hg", extensions=key)
+    return _MODELS[key]
+
+
+@dataclass
+class Recording:
+    angles_deg: np.ndarray
+    x_mm: np.ndarray
+    measured: np.ndarray
+    variance: np.ndarray
+    geometry: RigGeometry
+    beam: BeamProfile
+    channel: str = "g"
+
+
+def record(effect: dict[str, float], seed: int = 3) -> Recording:
+    exts = sorted({k.split(".")[0] for k in effect})
+    m = make_model(exts)
+    renders = np.stack([m.render_profiles({**TRUE, **effect}, ANGLES, spp=4096, seed=50 + k) for k in range(4)])
+    truth = renders.mean(axis=0)
+    scale = 1e4
+    signal = scale * truth
+    var = signal / 5.0 + (1e-3 * signal.max()) ** 2 + scale ** 2 * _smoothed_variance(renders) / 4
+    rng = np.random.default_rng(seed)
+    meas = signal + rng.normal(size=signal.shape) * np.sqrt(var)
+    x = np.asarray(GEOMETRY.pixel_x_mm(GEOMETRY.profile_window()))
+    return Recording(ANGLES, x, meas, var, GEOMETRY, BEAM)
+
+
+@pytest.mark.parametrize("effect", [
+    {"stray_light.offset": 0.003},
+    {"angle_offset.delta_deg": 3.0},
+    {"lens_blur.core_sigma_px": 2.0},
+])
+def test_screening_ranks_the_concealed_effect_first(effect):
+    rec = record(effect)
+    base = BaseFit(dict(TRUE), 1e4, "hg")
+    ev, loc, scores = screen_candidates(rec, base, make_model, spp=128, repeats=3,
+                                        candidates=["stray_light", "angle_offset", "lens_blur",
+                                                    "thickness_error", "sensor_nonlinearity"])
+    concealed = next(iter(effect)).split(".")[0]
+    assert ev.residuals.significant
+    assert scores[0].name == concealed, [(s.name, round(s.statistic)) for s in scores]
+    assert loc["summary"]
+
+
+def test_clean_recording_has_no_significant_mismatch():
+    rec = record({}, seed=11)
+    base = BaseFit(dict(TRUE), 1e4, "hg")
+    ev, loc, scores = screen_candidates(rec, base, make_model, spp=128, repeats=3, candidates=["stray_light"])
+    assert not ev.residuals.significant, ev.residuals.reduced_chi2
+    assert ev.residuals.reduced_chi2 < 1.25
+
+
+def test_score_test_is_chi2_under_the_null_and_large_under_the_alternative():
+    rng = np.random.default_rng(0)
+    n = 400
+    X = np.stack([np.ones(n), np.linspace(-1, 1, n)], axis=1)
+    Z = np.sin(np.linspace(0, 6, n))[:, None]
+    stats_null = [score_test(rng.normal(size=n), X, Z).statistic for _ in range(300)]
+    assert 0.8 < np.mean(stats_null) < 1.2  # chi^2(1) has mean 1
+    r = rng.normal(size=n) + 0.5 * Z[:, 0] + 3.0 * X[:, 0]  # base-direction part is projected out
+    res = score_test(r, X, Z)
+    assert res.statistic > 8 and res.dof == 1 and res.coefficients[0] == pytest.approx(0.5, abs=0.15)
+
+
+def test_significance_counts_fitted_parameters_and_localise_finds_the_tails():
+    rng = np.random.default_rng(1)
+    r = rng.normal(size=(6, 40))
+    assert not fit_significance(r, 4).significant
+    model = np.exp(-np.linspace(-3, 3, 40) ** 2)[None, :].repeat(6, axis=0)
+    r[:, :5] += 4.0
+    loc = localise(r, ANGLES, np.linspace(-1, 1, 40), model)
+    assert fit_significance(r, 4).significant
+    assert "tails" in loc["dominant"] and "left" in loc["dominant"]
+
+
+# ------------------------------------------------------------------------------ CLI
+def _session(tmp: Path, name: str) -> Path:
+    s = tmp / name
+    s.mkdir()
+    (s / "session.yaml").write_text("format: rig-session/1\n")
+    return s
+
+
+def test_cli_without_a_fit_says_run_estimate_first(tmp_path, capsys):
+    s = _session(tmp_path, "a")
+    assert main(["diagnose", str(s)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "rig estimate" in err and "--fit" in err and "\n" not in err
+
+
+def test_cli_refuses_a_fit_from_another_session(tmp_path, capsys):
+    a = _session(tmp_path, "a")
+    b = _session(tmp_path, "b")
+    run = b / "estimates" / "20260101T000000_exp3"
+    run.mkdir(parents=True)
+    (run / "results.yaml").write_text(yaml.safe_dump({
+        "format": "rig-estimate/1", "run_id": run.name, "session": {"path": str(b.resolve())},
+        "settings": {"model": "exp3"}, "channels": {}}))
+    assert main(["diagnose", str(a), "--fit", str(run)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "another session" in err and "\n" not in err
+
+
+def test_cli_unknown_effect_and_unknown_run(tmp_path, capsys):
+    s = _session(tmp_path, "a")
+    assert main(["diagnose", str(s), "--effects", "stray_light,moonlight"]) == 2
+    assert "moonlight" in capsys.readouterr().err
+    assert main(["diagnose", str(s), "--fit", "nope"]) == 2
+    assert "no estimate run" in capsys.readouterr().err
