@@ -12,7 +12,8 @@ albedo 0.9:
 "forward+backward" is `ForwardModel.value_and_grad` with an L2 loss: the forward render,
 the adjoint (path replay) pass for albedo and the phase coefficients, and one extra forward
 render for the one-sided finite difference of sigma_t. Timings: median of several runs,
-`dr.sync_thread()` before each clock read. Run: `.venv/bin/python benchmarks/bench_forward.py`.
+`dr.sync_thread()` before each clock read; also the process CPU time / 2 (what 2 idle
+cores would need with perfect parallel scaling), since other processes share the cores. Run: `.venv/bin/python benchmarks/bench_forward.py`.
 """
 
 from __future__ import annotations
@@ -48,17 +49,21 @@ def exp3_fit_of_hg(g: float) -> list[float]:
     return [float(c) for c in coef[1:]]
 
 
-def timed(fn) -> float:
+def timed(fn, cpu: list[float]) -> float:
+    """Wall seconds of fn(); appends the process CPU seconds (all threads) to `cpu`."""
     import drjit as dr
 
     dr.sync_thread()
     t0 = time.perf_counter()
+    c0 = time.process_time()
     fn()
     dr.sync_thread()
+    cpu.append(time.process_time() - c0)
     return time.perf_counter() - t0
 
 
 def main() -> int:
+    load_start = os.getloadavg()[0]  # other processes on the 2 cores inflate the timings
     geometry = RigGeometry(thickness_mm=1.0, magnification=0.5, profile_columns=(128, 384))
     beam = BeamProfile.gaussian(0.5)
     b = exp3_fit_of_hg(G)
@@ -86,12 +91,18 @@ def main() -> int:
         m.value_and_grad(p, ANGLES, loss_for(name), spp=SPP, seed=0, fd_parameters=False)
 
     times: dict[str, dict[str, list[float]]] = {n: {"forward": [], "forward_backward": []} for n in cases}
+    cpu: dict[str, dict[str, list[float]]] = {n: {"forward": [], "forward_backward": []} for n in cases}
     for rep in range(REPEATS):  # interleaved, so load changes hit every case alike
         for name, (m, p) in cases.items():
-            times[name]["forward"].append(timed(lambda: m.render_profiles(p, ANGLES, spp=SPP, seed=rep)))
+            times[name]["forward"].append(timed(lambda: m.render_profiles(p, ANGLES, spp=SPP, seed=rep),
+                                                cpu[name]["forward"]))
             times[name]["forward_backward"].append(timed(
-                lambda: m.value_and_grad(p, ANGLES, loss_for(name), spp=SPP, seed=rep, fd_parameters=False)))
+                lambda: m.value_and_grad(p, ANGLES, loss_for(name), spp=SPP, seed=rep, fd_parameters=False),
+                cpu[name]["forward_backward"]))
     med = {n: {k: statistics.median(v) for k, v in d.items()} for n, d in times.items()}
+    # CPU seconds / 2: the wall time on 2 otherwise idle cores if the work parallelises
+    # perfectly (a lower bound; the wall times above include other processes' load).
+    med_cpu_half = {n: {k: statistics.median(v) / 2 for k, v in d.items()} for n, d in cpu.items()}
 
     # variance at 128 spp (index-matched exp3)
     m, p = cases["exp3"]
@@ -113,8 +124,10 @@ def main() -> int:
                    "thickness_mm": 1.0, "sigma_t": 2.0, "albedo": 0.9, "hg_g": G, "exp3_b": b,
                    "pixel_mm": geometry.pixel_mm, "beam": "gaussian 1/e^2 radius 0.5 mm",
                    "max_depth": 64, "variant": m.mi.variant(),
-                   "cpu_count": os.cpu_count(), "machine": platform.processor() or platform.machine()},
+                   "cpu_count": os.cpu_count(), "machine": platform.processor() or platform.machine(),
+                   "load_average_1min_start_end": [load_start, os.getloadavg()[0]]},
         "median_s": med,
+        "median_cpu_s_over_2": med_cpu_half,
         "all_s": times,
         "ratios": {
             "exp_over_builtin_forward": med["exp3"]["forward"] / med["hg_builtin"]["forward"],
@@ -126,9 +139,12 @@ def main() -> int:
         "targets": {"forward_s": 0.4, "forward_backward_s": 1.2, "refractive_factor": 2.0, "exp_over_builtin": 1.2},
         "variance_128spp": variance,
     }
-    print(f"{'case':<18}{'forward [s]':>14}{'fwd+bwd [s]':>14}")
+    print(f"load average (1 min) at start / end: {result['config']['load_average_1min_start_end']}")
+    print(f"{'case':<18}{'forward [s]':>14}{'fwd+bwd [s]':>14}{'fwd cpu/2':>12}{'f+b cpu/2':>12}")
     for n, d in med.items():
-        print(f"{n:<18}{d['forward']:>14.3f}{d['forward_backward']:>14.3f}")
+        c = med_cpu_half[n]
+        print(f"{n:<18}{d['forward']:>14.3f}{d['forward_backward']:>14.3f}"
+              f"{c['forward']:>12.3f}{c['forward_backward']:>12.3f}")
     for k, v in result["ratios"].items():
         print(f"{k:<48}{v:>8.2f}")
     print(f"{'angle':>6}{'peak px':>9}{'peak rel std':>14}{'tail rel std':>14}{'tail/peak':>11}")
