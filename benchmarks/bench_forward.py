@@ -30,9 +30,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from estimate.beam import BeamProfile  # noqa: E402
-from estimate.forward import ForwardModel  # noqa: E402
-from estimate.geometry import RigGeometry  # noqa: E402
+from estimate.beam import BeamProfile
+from estimate.forward import ForwardModel
+from estimate.geometry import RigGeometry
 
 ANGLES = [15.0, 30.0, 45.0, 60.0, 75.0, 105.0, 120.0, 135.0, 150.0, 165.0]
 SPP = 128
@@ -94,10 +94,12 @@ def main() -> int:
     cpu: dict[str, dict[str, list[float]]] = {n: {"forward": [], "forward_backward": []} for n in cases}
     for rep in range(REPEATS):  # interleaved, so load changes hit every case alike
         for name, (m, p) in cases.items():
-            times[name]["forward"].append(timed(lambda: m.render_profiles(p, ANGLES, spp=SPP, seed=rep),
-                                                cpu[name]["forward"]))
+            times[name]["forward"].append(timed(
+                lambda m=m, p=p, rep=rep: m.render_profiles(p, ANGLES, spp=SPP, seed=rep),
+                cpu[name]["forward"]))
             times[name]["forward_backward"].append(timed(
-                lambda: m.value_and_grad(p, ANGLES, loss_for(name), spp=SPP, seed=rep, fd_parameters=False),
+                lambda m=m, p=p, name=name, rep=rep: m.value_and_grad(
+                    p, ANGLES, loss_for(name), spp=SPP, seed=rep, fd_parameters=False),
                 cpu[name]["forward_backward"]))
     med = {n: {k: statistics.median(v) for k, v in d.items()} for n, d in times.items()}
     # CPU seconds / 2: the wall time on 2 otherwise idle cores if the work parallelises

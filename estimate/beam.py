@@ -45,7 +45,7 @@ import numpy as np
 
 from estimate.errors import ModelParameterError
 
-__all__ = ["BeamProfile", "PLUGIN_NAME", "register_plugins", "beam_frame"]
+__all__ = ["PLUGIN_NAME", "BeamProfile", "beam_frame", "register_plugins"]
 
 PLUGIN_NAME = "collimated_beam"
 #: How far beyond the lit face a shadow ray ends when it may cross the boundary (mm).
@@ -93,7 +93,7 @@ class BeamProfile:
     # --- constructors -----------------------------------------------------------------
     @classmethod
     def centered(cls, irradiance: np.ndarray, pitch_mm: float,
-                 center_uv_mm: tuple[float, float] = (0.0, 0.0)) -> "BeamProfile":
+                 center_uv_mm: tuple[float, float] = (0.0, 0.0)) -> BeamProfile:
         """Map whose middle sample lies at `center_uv_mm` from the beam axis."""
         e = np.asarray(irradiance, dtype=np.float64)
         nv, nu = e.shape
@@ -102,7 +102,7 @@ class BeamProfile:
 
     @classmethod
     def from_camera_image(cls, image: np.ndarray, pitch_mm: float,
-                          axis_px: tuple[float, float]) -> "BeamProfile":
+                          axis_px: tuple[float, float]) -> BeamProfile:
         """From a calibration frame at phi = 180 deg (image rows top-down, y up).
 
         `axis_px` = (column, row) where the beam axis (rotation axis) is imaged.
@@ -114,12 +114,12 @@ class BeamProfile:
 
     @classmethod
     def disk(cls, radius_mm: float, irradiance: float = 1.0, pitch_mm: float | None = None,
-             center_uv_mm: tuple[float, float] = (0.0, 0.0)) -> "BeamProfile":
+             center_uv_mm: tuple[float, float] = (0.0, 0.0)) -> BeamProfile:
         """A uniform disk map (area-sampled edge), e.g. for tests and the simulated bench."""
         if not (math.isfinite(radius_mm) and radius_mm > 0):
             raise ModelParameterError(f"beam radius_mm={radius_mm!r} must be > 0")
         pitch = pitch_mm or radius_mm / 16.0
-        n = int(math.ceil(radius_mm / pitch)) + 2
+        n = math.ceil(radius_mm / pitch) + 2
         c = (np.arange(-n, n + 1)) * pitch
         sub = (np.arange(4) + 0.5) / 4 - 0.5
         uu = c[None, :, None, None] + sub[None, None, None, :] * pitch
@@ -129,13 +129,13 @@ class BeamProfile:
 
     @classmethod
     def gaussian(cls, radius_mm: float, power: float = 1.0, pitch_mm: float | None = None,
-                 center_uv_mm: tuple[float, float] = (0.0, 0.0)) -> "BeamProfile":
+                 center_uv_mm: tuple[float, float] = (0.0, 0.0)) -> BeamProfile:
         """Gaussian beam of 1/e^2 radius `radius_mm` and total `power`:
         E = 2 P / (pi R^2) exp(-2 r^2 / R^2), sampled to 3 R."""
         if not (math.isfinite(radius_mm) and radius_mm > 0):
             raise ModelParameterError(f"beam radius_mm={radius_mm!r} must be > 0")
         pitch = pitch_mm or radius_mm / 16.0
-        n = int(math.ceil(3.0 * radius_mm / pitch))
+        n = math.ceil(3.0 * radius_mm / pitch)
         c = np.arange(-n, n + 1) * pitch
         r2 = c[None, :] ** 2 + c[:, None] ** 2
         e = 2.0 * power / (math.pi * radius_mm ** 2) * np.exp(-2.0 * r2 / radius_mm ** 2)

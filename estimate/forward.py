@@ -27,7 +27,8 @@ from __future__ import annotations
 import math
 import re
 import threading
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -41,7 +42,7 @@ from estimate.geometry import PixelWindow, RigGeometry
 from estimate.mitsuba_env import init_mitsuba
 from estimate.mitsuba_phase import exp_phase_dict, tthg_phase_dict
 
-__all__ = ["ForwardModel", "render_seed", "BASE_SPECS", "phase_specs"]
+__all__ = ["BASE_SPECS", "ForwardModel", "phase_specs", "render_seed"]
 
 _INF = float("inf")
 #: Largest number of paths (pixels x spp) traced in one launch; bounds memory (~0.2 kB each).
@@ -163,7 +164,7 @@ class ForwardModel:
         return out
 
     # ------------------------------------------------------------------ scene
-    def _bundle(self, copies: int) -> "_SceneBundle":
+    def _bundle(self, copies: int) -> _SceneBundle:
         """The scene with `copies` slab copies (one per angle of a batched render)."""
         bundle = self._bundles.get(copies)
         if bundle is None:
@@ -186,7 +187,7 @@ class ForwardModel:
         groups = [range(i, min(n_angles, i + per_group)) for i in range(0, n_angles, per_group)]
         return groups, passes
 
-    def _launch(self, bundle: "_SceneBundle", window: PixelWindow, spp: int, seed: int, first: int,
+    def _launch(self, bundle: _SceneBundle, window: PixelWindow, spp: int, seed: int, first: int,
                 band: int, pass_index: int, ad: bool) -> Any:
         """One mi.render of a group; returns the (H, copies * W) image (Dr.Jit, unevaluated)."""
         kwargs = {"params": bundle.params} if ad else {}
@@ -407,10 +408,8 @@ class ForwardModel:
             lo = x - h
             hi = x + h
             lower = spec.lower + (1e-9 if spec.open_lower else 0.0)
-            if lo < lower:
-                lo = lower
-            if hi > spec.upper:
-                hi = spec.upper
+            lo = max(lo, lower)
+            hi = min(hi, spec.upper)
             if name == "thickness_error.e":
                 lo = max(lo, -0.9)
             one_sided = base_profiles is not None
@@ -501,7 +500,7 @@ class _SceneBundle:
             },
         }
         self.scene = mi.load_dict(scene_dict)
-        beam = [e for e in self.scene.emitters()][0]
+        beam = next(iter(self.scene.emitters()))
         beam.set_profile(model.beam_profile)
         self.params = mi.traverse(self.scene)
         keys = list(self.params.keys())

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 from estimate.errors import ModelParameterError
 
-__all__ = ["RigGeometry", "PixelWindow"]
+__all__ = ["PixelWindow", "RigGeometry"]
 
 
 def _positive(name: str, v: float) -> float:
@@ -107,7 +107,7 @@ class RigGeometry:
     def row(self) -> int:
         if self.profile_row is not None:
             return int(self.profile_row)
-        return min(self.sensor_px[1] - 1, int(math.floor(self.center_px[1])))
+        return min(self.sensor_px[1] - 1, math.floor(self.center_px[1]))
 
     def profile_window(self) -> PixelWindow:
         c0, c1 = self.profile_columns if self.profile_columns is not None else (0, self.sensor_px[0])

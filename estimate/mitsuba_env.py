@@ -18,7 +18,7 @@ from types import ModuleType
 
 from estimate.errors import EstimateError
 
-__all__ = ["MitsubaSetupError", "find_libllvm", "init_mitsuba", "default_variant"]
+__all__ = ["MitsubaSetupError", "default_variant", "find_libllvm", "init_mitsuba"]
 
 _LLVM_GLOBS = (
     "/usr/lib/*/libLLVM-19.so*",
@@ -61,7 +61,7 @@ def _gpu_usable() -> bool:
     if shutil.which("nvidia-smi") is None:
         return False
     try:
-        out = subprocess.run(["nvidia-smi", "-L"], capture_output=True, timeout=10, text=True)
+        out = subprocess.run(["nvidia-smi", "-L"], capture_output=True, timeout=10, text=True, check=False)
     except (OSError, subprocess.TimeoutExpired):
         return False
     return out.returncode == 0 and "GPU" in out.stdout
@@ -109,7 +109,7 @@ def init_mitsuba(variant: str | None = None) -> ModuleType:
     chosen = variant or default_variant()
     if _state.get("variant") == chosen:
         return _state["module"]  # type: ignore[return-value]
-    if chosen.startswith("llvm") or chosen.startswith("scalar"):
+    if chosen.startswith(("llvm", "scalar")):
         _prepare_llvm()
     import mitsuba as mi
 

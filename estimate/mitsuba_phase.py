@@ -23,19 +23,20 @@ Call `register_plugins()` after `mi.set_variant` (done by `estimate.mitsuba_env.
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
 from estimate.errors import ModelParameterError
 
 __all__ = [
-    "PLUGIN_NAME",
-    "register_plugins",
-    "exp_phase_dict",
-    "tthg_phase_dict",
-    "exp_normalisation_nodes",
     "MAX_ABS_B",
+    "PLUGIN_NAME",
+    "exp_normalisation_nodes",
+    "exp_phase_dict",
+    "register_plugins",
+    "tthg_phase_dict",
 ]
 
 PLUGIN_NAME = "exponential_phase"

@@ -16,7 +16,7 @@ from estimate.phase_exponential import ExponentialPhase
 from estimate.phase_hg import TwoTermHG
 
 mi = init_mitsuba("llvm_ad_mono")
-import drjit as dr  # noqa: E402  (after the variant is set)
+import drjit as dr
 
 CASES = [[], [2.0], [1.5, 0.5, 0.2], [0.0, 0.68], [-1.0, 2.0, -0.5, 1.0, 0.3], [300.0]]
 

@@ -8,7 +8,12 @@ from __future__ import annotations
 
 from estimate.errors import ModelParameterError
 from estimate.extensions.angle_offset import AngleOffset
-from estimate.extensions.base import Extension, ImageExtension, ParameterSpec, check_value
+from estimate.extensions.base import (
+    Extension,
+    ImageExtension,
+    ParameterSpec,
+    check_value,
+)
 from estimate.extensions.beam_halo import BeamHalo
 from estimate.extensions.filter_bandwidth import FilterBandwidth
 from estimate.extensions.lens_blur import LensBlur
@@ -17,7 +22,7 @@ from estimate.extensions.sensor_nonlinearity import SensorNonlinearity
 from estimate.extensions.stray_light import StrayLight
 from estimate.extensions.thickness_error import ThicknessError
 
-__all__ = ["EXTENSIONS", "get_extension", "Extension", "ImageExtension", "ParameterSpec", "check_value"]
+__all__ = ["EXTENSIONS", "Extension", "ImageExtension", "ParameterSpec", "check_value", "get_extension"]
 
 EXTENSIONS: dict[str, type[Extension]] = {
     cls.name: cls

@@ -18,14 +18,15 @@ next-event estimation, the boundary position, the dielectric index).
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import ClassVar, Mapping
+from typing import ClassVar
 
 import numpy as np
 
 from estimate.errors import ModelParameterError
 
-__all__ = ["ParameterSpec", "Extension", "ImageExtension", "check_value"]
+__all__ = ["Extension", "ImageExtension", "ParameterSpec", "check_value"]
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,7 @@ import numpy as np
 
 from estimate.extensions.base import Extension, ParameterSpec
 
-__all__ = ["FilterBandwidth", "band_nodes", "NODES"]
+__all__ = ["NODES", "FilterBandwidth", "band_nodes"]
 
 NODES = 3
 

@@ -14,14 +14,14 @@ operator is self-adjoint. Derivative: exact through this image function.
 
 from __future__ import annotations
 
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
 from scipy import ndimage, signal
 
 from estimate.extensions.base import ImageExtension, ParameterSpec
 
-__all__ = ["LensBlur", "line_spread", "psf_2d", "TRUNCATION_PX"]
+__all__ = ["TRUNCATION_PX", "LensBlur", "line_spread", "psf_2d"]
 
 TRUNCATION_PX = 64
 

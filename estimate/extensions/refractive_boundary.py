@@ -19,7 +19,7 @@ import math
 
 from estimate.extensions.base import Extension, ParameterSpec
 
-__all__ = ["RefractiveBoundary", "INTERNAL_REFLECTIONS", "fresnel_unpolarized", "omitted_fraction"]
+__all__ = ["INTERNAL_REFLECTIONS", "RefractiveBoundary", "fresnel_unpolarized", "omitted_fraction"]
 
 INTERNAL_REFLECTIONS = 3
 

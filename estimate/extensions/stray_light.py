@@ -6,7 +6,7 @@ space), constant along y. Units: the render's radiance units. Derivative: exact.
 
 from __future__ import annotations
 
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
 
