@@ -13,8 +13,11 @@
    significantly negative (above -2 standard errors from the scatter of the losses about
    the line, i.e. the Monte Carlo noise of the loss), the fit has flattened at this spp: spp doubles and the step shrinks (x0.85); when
    it flattens at `spp_max` the fit stops ("converged");
-4. the result is the average of the last `window` iterates (in z), which averages
-   the Monte Carlo noise of the gradient steps;
+4. the Adam result is the average of the last `window` iterates (in z), which averages
+   the Monte Carlo noise of the gradient steps; it is then polished by a few
+   Levenberg-Marquardt steps on the log residuals at one fixed seed (`lm_iterations`,
+   `lm_spp`): with common random numbers the loss is a smooth function of the parameters,
+   so these steps converge to its minimum where Adam on fresh noise only hovers;
 5. final evaluation at `final_spp` with two seeds: fitted profiles (their mean), the model's
    own Monte Carlo variance per pixel ((p1 - p2)^2 / 4, the variance of the mean of two),
    scale, loss at the reference delta, chi^2 with var_meas + s^2 var_model;
@@ -29,36 +32,45 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
 from estimate.errors import ModelParameterError
 from estimate.forward import ForwardModel
-from estimate.loss import DEFAULT_DELTA_RANGE, chi2, log_loss, profile_scale, reference_delta
+from estimate.loss import (
+    DEFAULT_DELTA_RANGE,
+    chi2,
+    log_loss,
+    profile_scale,
+    reference_delta,
+)
 from estimate.problem import Problem
 from estimate.start import coarse_start
 from estimate.transforms import Transform, transform_for
 
-__all__ = ["FitSettings", "FitResult", "fit_channel", "model_phase", "evaluate", "fisher_uncertainties"]
+__all__ = ["FitResult", "FitSettings", "evaluate", "fisher_uncertainties", "fit_channel", "model_phase"]
 
 
 @dataclass
 class FitSettings:
     """Optimiser settings (defaults: the paper's exp3 fit within ~2 min on 2 cores)."""
 
-    max_iterations: int = 150
+    max_iterations: int = 80
     spp_start: int = 128
     spp_max: int = 512
     final_spp: int = 1024
-    start_spp: int = 32
+    start_spp: int = 64
     window: int = 8
     lr_scale: float = 1.0
     lr_decay: float = 0.85
     delta_range: tuple[float, float] = DEFAULT_DELTA_RANGE
     seed: int = 0
     time_limit_s: float | None = None
+    lm_iterations: int = 4
+    lm_spp: int = 1024
     uncertainties: bool = True
 
     def to_dict(self) -> dict[str, Any]:
@@ -93,6 +105,7 @@ class FitResult:
     fitted: np.ndarray               # (N, W) rendered profiles (model units, not scaled)
     model_variance: np.ndarray       # (N, W) MC variance of `fitted`
     start: dict[str, float]
+    lm_losses: list[float] = field(default_factory=list)   # loss after each accepted LM step
     settings: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -150,6 +163,76 @@ def _flattened(losses: Sequence[float], window: int) -> bool:
     resid = y - (slope * x + icpt)
     se = float(np.sqrt(np.sum(resid ** 2) / (n - 2) / np.sum((x - x.mean()) ** 2)))
     return slope > -2.0 * se
+
+
+def _lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], names: Sequence[str],
+               tr: Sequence[Transform], *, spp: int, seed: int, delta_rel: float, iterations: int
+               ) -> tuple[dict[str, float], list[float]]:
+    """Levenberg-Marquardt on the log residuals at the reference delta, one fixed seed.
+
+    With the seed fixed (common random numbers) the loss is a smooth deterministic function
+    of the parameters, so Gauss-Newton steps converge where Adam on fresh noise each
+    iteration only hovers. The Jacobian is `ForwardModel.jacobian` (central differences);
+    unknowns are the transformed variables z plus log scale. Returns the parameters and the
+    loss after each accepted step.
+    """
+    valid = problem.valid
+    meas = problem.measured
+    angles = problem.angles_deg
+
+    def residual(p: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray, float, float, float]:
+        prof = fm.render_profiles(p, angles, spp=spp, seed=seed)
+        sc = profile_scale(meas, prof, valid, delta_rel)
+        m = meas / sc
+        dlt = delta_rel * float(np.max(np.where(valid, m, -np.inf)))
+        mm = np.clip(m, -0.5 * dlt, None)
+        r = np.where(valid, np.log(mm + dlt) - np.log(np.clip(prof, 0, None) + dlt), 0.0)
+        return r, prof, sc, dlt, float(np.sum(r * r) / max(1, valid.sum()))
+
+    p = dict(params)
+    z = np.array([t.to_z(p[n]) for n, t in zip(names, tr)])
+    r, prof, sc, dlt, loss = residual(p)
+    losses = [loss]
+    lam = 1e-3
+    for _ in range(iterations):
+        jac = fm.jacobian(p, angles, list(names), spp=spp, seed=seed)
+        cols = [np.where(valid, -jac[n] / (np.clip(prof, 0, None) + dlt), 0.0).ravel() * t.dx_dz(float(zz))
+                for n, t, zz in zip(names, tr, z)]
+        m = meas / sc
+        cols.append(np.where(valid, -m / (np.clip(m, -0.5 * dlt, None) + dlt), 0.0).ravel())
+        A = np.stack(cols, axis=1)
+        AtA = A.T @ A
+        Atr = A.T @ r.ravel()
+        accepted = False
+        rel = 0.0
+        for _try in range(4):
+            H = AtA + lam * np.diag(np.diag(AtA) + 1e-12)
+            try:
+                step = -np.linalg.solve(H, Atr)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            z_new = np.array([t.clamp_z(float(zz + dz)) for t, zz, dz in zip(tr, z, step[:-1])])
+            p_new = dict(p)
+            p_new.update({n: t.to_x(float(zz)) for n, t, zz in zip(names, tr, z_new)})
+            try:
+                p_new = fm.validate(p_new)
+            except ModelParameterError:
+                lam *= 10
+                continue
+            r_n, prof_n, sc_n, dlt_n, loss_n = residual(p_new)
+            if loss_n < loss:
+                p, z, r, prof, sc, dlt = p_new, z_new, r_n, prof_n, sc_n, dlt_n
+                rel = (loss - loss_n) / loss
+                loss = loss_n
+                losses.append(loss)
+                lam = max(lam / 3.0, 1e-6)
+                accepted = True
+                break
+            lam *= 4.0
+        if not accepted or rel < 1e-3:
+            break
+    return p, losses
 
 
 def evaluate(fm: ForwardModel, problem: Problem, params: Mapping[str, float], *, spp: int, seed: int,
@@ -249,7 +332,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         delta_rel = math.exp(rng.uniform(lo, hi))
         ref: dict[str, float] = {}
 
-        def loss_fn(prof: np.ndarray) -> tuple[float, np.ndarray]:
+        def loss_fn(prof: np.ndarray, delta_rel: float = delta_rel, ref: dict[str, float] = ref
+                    ) -> tuple[float, np.ndarray]:
             nonlocal scale
             s = profile_scale(problem.measured, prof, problem.valid, delta_rel, guess=scale)
             scale = s
@@ -280,6 +364,10 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     n_avg = min(len(history), st.window)
     z_final = np.mean(history[-n_avg:], axis=0) if history else z
     final = params_of(z_final)
+    lm_losses: list[float] = []
+    if st.lm_iterations > 0:
+        final, lm_losses = _lm_polish(fm, problem, final, names, tr, spp=st.lm_spp,
+                                      seed=st.seed * 100_003 + 40_000, delta_rel=d_ref, iterations=st.lm_iterations)
     ev = evaluate(fm, problem, final, spp=st.final_spp, seed=st.seed * 100_003 + 50_000, delta_rel=d_ref)
     n_valid = int(problem.valid.sum())
     dof = max(1, n_valid - len(names) - 1)
@@ -295,7 +383,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         uncertainties=unc, fixed=fixed, scale=ev["scale"], scale_uncertainty=s_unc, loss=ev["loss"],
         delta_rel=d_ref, chi2=ev["chi2"], dof=dof, reduced_chi2=red, iterations=it,
         time_s=time.monotonic() - t0, stop_reason=stop, spp_schedule=schedule, loss_curve=curve,
-        angles_deg=[float(a) for a in problem.angles_deg], fitted=ev["profiles"],
+        angles_deg=[float(a) for a in problem.angles_deg], fitted=ev["profiles"], lm_losses=lm_losses,
         model_variance=ev["model_variance"], start=dict(init), settings=st.to_dict())
 
 

@@ -21,9 +21,10 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -31,7 +32,7 @@ from estimate.beam import BeamProfile
 from estimate.errors import DataError
 from estimate.geometry import RigGeometry
 
-__all__ = ["Problem", "load_problem", "DEFAULT_COLUMNS", "session_channels"]
+__all__ = ["DEFAULT_COLUMNS", "Problem", "load_problem", "session_channels"]
 
 #: Default width of the profile window (pixels of the ROI, i.e. binned pixels).
 DEFAULT_COLUMNS = 256
@@ -82,7 +83,7 @@ class Problem:
     def n_px(self) -> int:
         return int(self.measured.shape[1])
 
-    def subset(self, angle_indices: Sequence[int]) -> "Problem":
+    def subset(self, angle_indices: Sequence[int]) -> Problem:
         """The same problem restricted to some angles (for diagnosis / cross-validation)."""
         idx = list(angle_indices)
         return Problem(self.angles_deg[idx], self.x_mm, self.measured[idx], self.variance[idx],
@@ -212,9 +213,10 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
     if pitch is None:
         raise DataError(f"{s.path}: neither the session geometry nor the calibration gives pixel_pitch_mm")
     pitch = float(pitch)
-    center = geo.get("center_px", beam_cal.get("center_px"))
+    # CONTRACTS.md names `center_px` / `roi`; `rig capture` also writes `beam_center_px` / `camera_roi`.
+    center = geo.get("center_px", geo.get("beam_center_px", beam_cal.get("center_px")))
     cx, cy = _pair(center, "center_px") if center is not None else (sensor_w / 2.0, sensor_h / 2.0)
-    row = int(geo["profile_row"]) if geo.get("profile_row") is not None else int(round(cy))
+    row = int(geo["profile_row"]) if geo.get("profile_row") is not None else round(cy)
     thickness = float(geo.get("thickness_mm", 1.0))
 
     beam = _load_beam(s, cal, channel, pitch, (cx, cy))
@@ -238,7 +240,7 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
             missing.append(f"{r.id} (unreadable)")
             continue
         mask = np.asarray(img.channels.get("mask", np.ones_like(rad)), dtype=np.float64)
-        roi = dict(r.info.get("roi") or geo.get("roi") or {})
+        roi = dict(r.info.get("roi") or geo.get("roi") or geo.get("camera_roi") or {})
         roi = {"x": int(roi.get("x", 0)), "y": int(roi.get("y", 0)), "bin_x": int(roi.get("bin_x", 1)),
                "bin_y": int(roi.get("bin_y", 1))}
         if roi0 is None:
@@ -267,7 +269,7 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
     if not 0 <= centre_col < n_cols:
         raise DataError(f"the beam centre column {cx:g} lies outside the stacks' ROI columns "
                         f"{roi0['x']}..{roi0['x'] + n_cols * bx - 1}")
-    c0 = int(round(centre_col - width / 2.0))
+    c0 = round(centre_col - width / 2.0)
     c0 = max(0, min(n_cols - width, c0))
     c1 = c0 + width
     measured = np.stack([m[c0:c1] for m in meas_rows])
@@ -293,8 +295,8 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
 
     # Geometry in the stacks' pixel grid: a binned pixel is one bigger pixel; the ROI
     # origin shifts the continuous centre coordinate.
-    sensor_cols = max(n_cols + (roi0["x"] // bx), int(math.ceil(sensor_w / bx)))
-    sensor_rows = int(math.ceil(sensor_h / by))
+    sensor_cols = max(n_cols + (roi0["x"] // bx), math.ceil(sensor_w / bx))
+    sensor_rows = math.ceil(sensor_h / by)
     g_cx = (cx - roi0["x"]) / bx + roi0["x"] / bx
     g_cy = cy / by
     magnification = pixel_um * 1e-3 / pitch

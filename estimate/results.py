@@ -12,16 +12,17 @@ import hashlib
 import io
 import math
 import os
-from datetime import datetime, timezone
+from collections.abc import Mapping, Sequence
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import yaml
 
 from estimate.errors import DataError
 
-__all__ = ["new_run_dir", "write_run", "read_run", "list_runs", "plot_channel", "FORMAT"]
+__all__ = ["FORMAT", "list_runs", "new_run_dir", "plot_channel", "read_run", "write_run"]
 
 FORMAT = "rig-estimate/1"
 ESTIMATES_DIR = "estimates"
@@ -40,7 +41,7 @@ def new_run_dir(session_dir: str | os.PathLike[str], model: str, *, kind: str = 
     """Create SESSION/<kind>/<UTC timestamp>_<model>[_k] exclusively and return it."""
     root = Path(session_dir) / kind
     root.mkdir(parents=True, exist_ok=True)
-    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S")
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S")
     for k in range(1000):
         name = f"{stamp}_{model}" + (f"_{k}" if k else "")
         d = root / name
@@ -58,8 +59,8 @@ def _software() -> dict[str, str]:
         from capture.session import software_version
 
         out["rig"] = software_version()
-    except Exception:  # noqa: BLE001  (version lookup only)
-        pass
+    except ImportError:
+        out["rig"] = "unknown"
     from importlib import metadata
 
     for pkg in ("mitsuba", "drjit"):
@@ -109,7 +110,7 @@ def write_run(run_dir: Path, session_dir: str | os.PathLike[str], fits: Sequence
     doc = {
         "format": FORMAT,
         "run_id": run_dir.name,
-        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "software": _software(),
         "session": {"path": str(Path(session_dir).resolve()), "manifest_sha256": sha},
         "settings": {
@@ -167,7 +168,7 @@ def plot_channel(run_dir: Path, r: Any, pb: Any) -> list[Path]:
     out = []
     n = len(pb.angles_deg)
     cols = min(5, n)
-    rows = int(math.ceil(n / cols))
+    rows = math.ceil(n / cols)
     fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.6 * rows), squeeze=False)
     fit = r.fitted * r.scale
     for k in range(rows * cols):

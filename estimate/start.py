@@ -5,7 +5,7 @@ its scale profiled out. Costs (n_sigma x n_albedo + n_phase) renders at `spp`.
 
 from __future__ import annotations
 
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
 
@@ -13,7 +13,7 @@ from estimate.forward import ForwardModel
 from estimate.loss import log_loss, profile_scale
 from estimate.problem import Problem
 
-__all__ = ["coarse_start", "SIGMA_GRID", "ALBEDO_GRID", "phase_candidates"]
+__all__ = ["ALBEDO_GRID", "SIGMA_GRID", "coarse_start", "phase_candidates"]
 
 #: Extinction coefficients tried (1/mm): log-spaced over what a 1 mm slab's profiles can show.
 SIGMA_GRID = tuple(float(x) for x in np.geomspace(0.5, 16.0, 11))
@@ -47,7 +47,7 @@ def _score(fm: ForwardModel, problem: Problem, params: Mapping[str, float], spp:
     return log_loss(problem.measured, prof, problem.valid, s, delta_rel)[0]
 
 
-def coarse_start(fm: ForwardModel, problem: Problem, base: Mapping[str, float], *, spp: int = 32,
+def coarse_start(fm: ForwardModel, problem: Problem, base: Mapping[str, float], *, spp: int = 64,
                  seed: int = 0, delta_rel: float = 1e-2, fixed: Mapping[str, float] | None = None
                  ) -> tuple[dict[str, float], list[tuple[dict[str, float], float]]]:
     """Best grid point (parameters) and every (candidate, loss) tried.

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 from estimate.extensions.base import ParameterSpec
 
-__all__ = ["Transform", "transform_for", "BOUND_B"]
+__all__ = ["BOUND_B", "Transform", "transform_for"]
 
 BOUND_B = 200.0
 _EPS = 1e-6

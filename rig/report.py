@@ -8,7 +8,7 @@ import base64
 import html
 import io
 import os
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -68,7 +68,7 @@ def write_report(session_dir: str | os.PathLike[str], out: str | os.PathLike[str
 
     s = Session.open(session_dir)
     parts = [f"<h1>rig session {html.escape(str(s.path))}</h1>",
-             f"<p>report written {datetime.now(timezone.utc).isoformat(timespec='seconds')}</p>"]
+             f"<p>report written {datetime.now(UTC).isoformat(timespec='seconds')}</p>"]
     summ = s.summary()
     parts.append("<h2>Session</h2>")
     parts.append(_table([[k, v] for k, v in summ.items() if k != "devices"], ["", ""]))

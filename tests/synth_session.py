@@ -7,8 +7,8 @@ calibration directory with a Gaussian beam map. Test data, not the simulated ben
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Mapping, Sequence
 
 import numpy as np
 import yaml
@@ -31,8 +31,8 @@ def write_calibration(caldir: Path, filters: Sequence[str], beam_sigma_mm: float
     """A calibration directory with a Gaussian beam map per filter (e-/s per pixel)."""
     caldir.mkdir(parents=True, exist_ok=True)
     n = 24
-    x0 = int(round(CENTER_PX[0])) - n // 2
-    y0 = int(round(CENTER_PX[1])) - n // 2
+    x0 = round(CENTER_PX[0]) - n // 2
+    y0 = round(CENTER_PX[1]) - n // 2
     jj, ii = np.mgrid[0:n, 0:n]
     xm = (x0 + ii + 0.5 - CENTER_PX[0]) * PITCH_MM
     ym = -(y0 + jj + 0.5 - CENTER_PX[1]) * PITCH_MM
@@ -66,7 +66,7 @@ def make_session(path: Path, truth: Mapping[str, Mapping[str, float]], *, angles
     caldir = write_calibration(path.parent / (path.name + "_cal"), filters)
     plan = CapturePlan(angles_deg=tuple(float(a) for a in angles), filters=filters,
                        n_front=sum(1 for a in angles if a < 90))
-    x0 = int(round(CENTER_PX[0])) - width // 2
+    x0 = round(CENTER_PX[0]) - width // 2
     roi = {"x": x0, "y": ROI_ROWS[0], "width": width, "height": ROI_ROWS[1], "bin_x": 1, "bin_y": 1}
     geometry = {"thickness_mm": 1.0, "pixel_pitch_mm": PITCH_MM, "magnification": 0.3,
                 "center_px": list(CENTER_PX), "profile_row": PROFILE_ROW, "roi": roi}
@@ -81,8 +81,8 @@ def make_session(path: Path, truth: Mapping[str, Mapping[str, float]], *, angles
             img = np.asarray(read_exr(path.parent / (path.name + "_cal") / f"beam_{f}.exr")["radiance"], dtype=float)
             beam = BeamProfile.from_camera_image(
                 img / PITCH_MM ** 2, PITCH_MM,
-                (CENTER_PX[0] - 0.5 - (int(round(CENTER_PX[0])) - 12),
-                 CENTER_PX[1] - 0.5 - (int(round(CENTER_PX[1])) - 12)))
+                (CENTER_PX[0] - 0.5 - (round(CENTER_PX[0]) - 12),
+                 CENTER_PX[1] - 0.5 - (round(CENTER_PX[1]) - 12)))
             geo = RigGeometry(thickness_mm=1.0, magnification=0.3, image_center_px=CENTER_PX,
                               profile_row=PROFILE_ROW, profile_columns=(x0, x0 + width))
             fm = ForwardModel(geo, beam, phase=phase)

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 import yaml
+from synth_session import make_session
 
 from rig.cli import main
-from synth_session import make_session
 
 TRUTH = {"sigma_t": 3.0, "albedo": 0.85, "phase.b1": 3.0}
 
@@ -30,16 +31,17 @@ def test_json_shape_and_runs_never_overwritten(session, capsys):
     assert set(ch) >= {"model", "sigma_t", "albedo", "phase", "uncertainties", "reduced_chi2"}
     assert set(ch["phase"]) == {"phase.b1", "phase.b2", "phase.b3"}
     assert set(ch["uncertainties"]) == {"sigma_t", "albedo", "phase.b1", "phase.b2", "phase.b3"}
-    doc = yaml.safe_load(open(f"{run['path']}/results.yaml"))
+    results = Path(run["path"]) / "results.yaml"
+    doc = yaml.safe_load(results.read_text())
     assert doc["format"] == "rig-estimate/1" and doc["channels"]["g"]["iterations"] == 4
-    first = open(f"{run['path']}/results.yaml").read()
+    first = results.read_text()
     assert main(argv) == 0
     second = json.loads(capsys.readouterr().out)["runs"][0]["path"]
-    assert second != run["path"] and open(f"{run['path']}/results.yaml").read() == first
+    assert second != run["path"] and results.read_text() == first
     # The report gathers both runs into one page.
     assert main(["report", str(session)]) == 0
     html_path = capsys.readouterr().out.strip().splitlines()[-1]
-    html = open(html_path).read()
+    html = Path(html_path).read_text()
     assert run["run_id"] in html and "data:image/png;base64," in html
 
 

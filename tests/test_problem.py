@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from synth_session import CENTER_PX, PITCH_MM, make_session
 
 from estimate.errors import DataError
 from estimate.problem import load_problem
-from synth_session import CENTER_PX, PITCH_MM, make_session
 
 TRUTH = {"g": {"sigma_t": 3.0, "albedo": 0.85, "phase.b1": 3.0}, "r": {"sigma_t": 2.0, "albedo": 0.9, "phase.b1": 2.0}}
 

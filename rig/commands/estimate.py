@@ -32,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--extensions", default="", help="forward-model extensions to include, comma separated")
     p.add_argument("--allow-partial", action="store_true", help="fit the stacks present when some are missing")
     p.add_argument("--max-iterations", type=int, default=None, help="Adam iterations at most (150)")
-    p.add_argument("--spp-max", type=int, default=None, help="largest samples per pixel of the optimisation (512)")
+    p.add_argument("--spp-max", type=int, default=None, help="largest samples per pixel of Adam (512); the final polish and evaluation use twice that")
     p.add_argument("--seed", type=int, default=0, help="random seed (renders, delta draws)")
     p.add_argument("--json", action="store_true", help="print the results as JSON")
     p.add_argument("--diagnose", action="store_true", help="run the diagnosis on the new fit (estimate.diagnose)")
@@ -69,6 +69,7 @@ def run(args: argparse.Namespace) -> int:
         settings.max_iterations = args.max_iterations
     if args.spp_max is not None:
         settings.spp_max = max(settings.spp_start, args.spp_max)
+        settings.lm_spp = settings.final_spp = 2 * settings.spp_max
     out: dict[str, Any] = {"session": str(session), "runs": []}
     for m in models:
         phase = model_phase(m, args.degree)

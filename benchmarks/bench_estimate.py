@@ -1,0 +1,89 @@
+"""Benchmark: one channel, 10 angles, from a session on disk to converged parameters.
+
+The session is synthetic (tests/synth_session.py: profiles rendered by the forward model at
+known exp3 parameters at 4096 spp, scale 2e5 e-/s per unit, Poisson + read noise), or
+`--session DIR --channel f` for a captured / simulated-bench session.
+Prints a table and writes benchmarks/results/bench_estimate.json.
+
+    .venv/bin/python benchmarks/bench_estimate.py [--session DIR --channel g] [--model exp3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
+
+TRUTH = {"sigma_t": 2.0, "albedo": 0.9, "phase.b1": 3.0, "phase.b2": 1.0, "phase.b3": 0.5}
+ANGLES = [15.0, 30.0, 45.0, 60.0, 75.0, 105.0, 120.0, 135.0, 150.0, 165.0]
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--session")
+    ap.add_argument("--channel", default="g")
+    ap.add_argument("--model", default="exp3")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    from estimate.fit import FitSettings, fit_channel, loss_at
+    from estimate.problem import load_problem
+
+    tmp = None
+    truth = None
+    if args.session:
+        session = Path(args.session)
+    else:
+        from synth_session import make_session
+
+        tmp = Path(tempfile.mkdtemp(prefix="bench_estimate_"))
+        t = time.monotonic()
+        session = make_session(tmp / "s", {args.channel: TRUTH}, angles=ANGLES, spp=4096, width=320, scale=2e5)
+        print(f"synthetic session written in {time.monotonic() - t:.1f} s")
+        truth = TRUTH
+    try:
+        t0 = time.monotonic()
+        pb = load_problem(session, args.channel)
+        t_load = time.monotonic() - t0
+        r = fit_channel(pb, args.model, settings=FitSettings(seed=args.seed))
+        wall = time.monotonic() - t0
+        out = {"session": "synthetic" if truth else str(session), "channel": args.channel, "model": r.model,
+               "n_angles": pb.n_angles, "n_px": pb.n_px, "cpu_count": os.cpu_count(), "wall_s": wall,
+               "load_s": t_load, "fit_s": r.time_s, "iterations": r.iterations, "stop_reason": r.stop_reason,
+               "spp_schedule": r.spp_schedule, "lm_losses": r.lm_losses, "parameters": r.parameters,
+               "uncertainties": r.uncertainties, "loss": r.loss, "reduced_chi2": r.reduced_chi2,
+               "start": r.start}
+        if truth:
+            ev = loss_at(pb, args.model, truth, spp=r.settings["final_spp"])
+            out["truth"] = truth
+            out["loss_at_truth"] = ev["loss"]
+            out["reduced_chi2_at_truth"] = ev["chi2"] / r.dof
+            out["sigma_t_rel_error"] = abs(r.parameters["sigma_t"] / truth["sigma_t"] - 1)
+            out["albedo_abs_error"] = abs(r.parameters["albedo"] - truth["albedo"])
+        print(f"{'quantity':<24}value")
+        for k in ("n_angles", "n_px", "wall_s", "iterations", "stop_reason", "spp_schedule", "loss",
+                  "loss_at_truth", "reduced_chi2", "reduced_chi2_at_truth", "sigma_t_rel_error", "albedo_abs_error"):
+            if k in out:
+                v = out[k]
+                print(f"{k:<24}{v:.4g}" if isinstance(v, float) else f"{k:<24}{v}")
+        print("parameters", {k: round(v, 4) for k, v in r.parameters.items()})
+        print("uncertainties", {k: round(v, 4) for k, v in r.uncertainties.items()})
+        res = ROOT / "benchmarks" / "results" / "bench_estimate.json"
+        res.write_text(json.dumps(out, indent=1, default=float))
+        print(f"wrote {res}")
+    finally:
+        if tmp:
+            shutil.rmtree(tmp, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
