@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import re
+from dataclasses import replace
 import threading
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
@@ -50,8 +51,8 @@ _MAX_LANES = 2 ** 22
 
 #: Base parameters of every model.
 BASE_SPECS: dict[str, ParameterSpec] = {
-    # sigma_t: finite differences, see ForwardModel.vjp.
-    "sigma_t": ParameterSpec("sigma_t", 1.0, 0.0, 1e4, "1/mm", "fd", 0.01,
+    # sigma_t: reverse mode, finite differences with refractive_boundary (ForwardModel.__init__).
+    "sigma_t": ParameterSpec("sigma_t", 1.0, 0.0, 1e4, "1/mm", "ad", 0.01,
                              "extinction coefficient", open_lower=True),
     "albedo": ParameterSpec("albedo", 0.9, 0.0, 1.0, "", "ad", 0.01, "single-scattering albedo"),
 }
@@ -108,6 +109,13 @@ class ForwardModel:
         for name in self.extensions:
             for p in EXTENSIONS[name].parameters:
                 self.specs[f"{name}.{p.name}"] = p
+        if "refractive_boundary" in self.extensions:
+            # Next-event rays to the refracted beam must stop inside the medium (a
+            # dielectric would block them) and prbvolpath drops the attenuation derivative
+            # of such rays: sigma_t (and the band spread acting through it) by differences.
+            for name in ("sigma_t", "filter_bandwidth.spread"):
+                if name in self.specs:
+                    self.specs[name] = replace(self.specs[name], derivative="fd")
         self.mi = init_mitsuba(variant)
         import drjit as dr
 
@@ -276,12 +284,10 @@ class ForwardModel:
         from central differences with common random numbers (2 extra forward renders each).
         Uses the same seeds as `render_profiles(..., seed=seed)`; pass that call's result
         as `base_profiles` to make the finite differences one-sided (one extra render per
-        "fd" parameter instead of two). "sigma_t" is always differentiated this way:
-        prbvolpath's reverse-mode sigma_t gradient disagreed with finite differences and
-        with the analytic single-scattering derivative on this scene (wrong sign while the
-        shadow rays ended inside the medium, where prbvolpath drops their attenuation
-        derivative; still 25 % low once they cross the index-matched face).
-        `fd_parameters=False` skips the other "fd" (extension) parameters (reported as 0).
+        "fd" parameter instead of two). "sigma_t" is "ad" index-matched and "fd" with
+        `refractive_boundary` (next-event rays must end inside the medium there, and
+        prbvolpath drops the attenuation derivative of such rays); it is always computed,
+        `fd_parameters=False` skips only the other "fd" (extension) parameters (reported 0).
         """
         values = self.validate(params)
         angles = self._check_call(angles_deg, spp, seed)

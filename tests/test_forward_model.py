@@ -94,6 +94,8 @@ def test_refractive_boundary_n1_equals_index_matched() -> None:
 
 def test_refractive_boundary_n145_matches_mcml_reference() -> None:
     model = _model("hg", extensions=["refractive_boundary"])
+    # next-event rays end inside the medium there: sigma_t by finite differences
+    assert model.derivative_kind("sigma_t") == "fd"
     params = {"sigma_t": 6.0, "albedo": 0.9, "phase.g": 0.5, "refractive_boundary.n": 1.45}
     for phi in (30.0, 150.0):
         prof = model.render_profiles(params, [phi], spp=8192, seed=8)[0]
@@ -164,7 +166,8 @@ def test_sigma_t_gradient_matches_analytic_single_scattering(single_model: Forwa
 
     h = 0.01
     expected = ((ref(2 + h) - ref(2 - h)) * cot).sum() / (2 * h)
-    assert grads["sigma_t"] == pytest.approx(expected, rel=0.1)
+    assert single_model.derivative_kind("sigma_t") == "ad"
+    assert grads["sigma_t"] == pytest.approx(expected, rel=0.05)
     assert grads["albedo"] == pytest.approx((ref(2.0) * cot).sum() / 0.8, rel=0.02)
 
 

@@ -4,8 +4,8 @@ The rendered channel is the mixture over the filter's band of renders whose exti
 varies linearly across it: sigma_t(x) = sigma_t * (1 + spread * x), x in [-1, 1] over the
 band, flat passband. The mixture is integrated with `NODES`-point Gauss-Legendre
 quadrature (exact for the mixture of a smooth response to 2*NODES - 1 degree).
-`spread` = 0 is a single wavelength. Derivative: finite differences (it acts through
-sigma_t, whose prbvolpath reverse-mode gradient is unreliable, see ForwardModel.vjp).
+`spread` = 0 is a single wavelength. Derivative: Dr.Jit reverse mode (finite differences,
+like sigma_t, when `refractive_boundary` is on; see ForwardModel).
 """
 
 from __future__ import annotations
@@ -29,6 +29,6 @@ class FilterBandwidth(Extension):
     name = "filter_bandwidth"
     kind = "scene"
     parameters = (
-        ParameterSpec("spread", 0.0, 0.0, 0.9, "", "fd", 0.02,
+        ParameterSpec("spread", 0.0, 0.0, 0.9, "", "ad", 0.02,
                       "relative half-range of sigma_t across the band"),
     )
