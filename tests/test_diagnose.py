@@ -145,3 +145,24 @@ def test_cli_unknown_effect_and_unknown_run(tmp_path, capsys):
     assert "moonlight" in capsys.readouterr().err
     assert main(["diagnose", str(s), "--fit", "nope"]) == 2
     assert "no estimate run" in capsys.readouterr().err
+
+
+def test_cli_end_to_end_writes_diagnosis_and_json(tmp_path, capsys):
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from synth_session import make_session
+
+    truth = {"sigma_t": 3.0, "albedo": 0.85, "phase.b1": 3.0}
+    s = make_session(tmp_path / "s", {"g": truth}, angles=[30, 60, 120, 150], spp=256, width=48, scale=2e5)
+    assert main(["estimate", str(s), "--channels", "g", "--columns", "24", "--max-iterations", "3",
+                 "--spp-max", "64"]) == 0
+    capsys.readouterr()
+    assert main(["diagnose", str(s), "--effects", "stray_light", "--spp", "32", "--no-plots", "--json"]) == 0
+    doc = __import__("json").loads(capsys.readouterr().out)
+    ch = doc["channels"]["g"]
+    assert set(ch) >= {"significant", "localisation", "candidates", "confirmed_effects", "reduced_chi2_before",
+                       "reduced_chi2_after", "material_before", "material_after"}
+    assert [c["name"] for c in ch["candidates"]] in ([], ["stray_light"])
+    written = yaml.safe_load((s / "diagnoses" / doc["run_id"] / "diagnosis.yaml").read_text())
+    assert written["format"] == "rig-diagnosis/1" and written["channels"]["g"]["significant"] == ch["significant"]
