@@ -31,7 +31,7 @@ from scipy import ndimage
 from estimate.errors import EstimateError, ModelParameterError
 from estimate.extensions import EXTENSIONS
 from estimate.residuals import ALPHA, FitResiduals, fit_significance, localise, normalised_residuals
-from estimate.screening import CandidateScore, candidate_columns, screen
+from estimate.screening import CandidateScore, candidate_columns, score_test, screen
 
 __all__ = ["BaseFit", "Evaluation", "ChannelDiagnosis", "diagnose_channel", "evaluate", "refit",
            "screen_candidates", "run_diagnosis", "plot_diagnosis", "RefitResult",
@@ -144,6 +144,7 @@ class ChannelDiagnosis:
             "scale_before": b.scale, "scale_after": (a or b).scale,
             "parameters_after": _plain(a.parameters) if a else None,
             "verdict": self.verdict,
+            "unconverged": _unconverged(self.before),
             "time_s": self.time_s,
         }
 
@@ -484,7 +485,24 @@ def _screen(problem: Any, current: Evaluation, exts: Sequence[str], make_model: 
     del base_render
     excess = current.residuals.chi2 - current.residuals.dof
     r = np.nan_to_num(current.residuals.r, nan=0.0)
-    return screen(r, sigma, base_cols, current.scale, cols, excess)
+    scores = screen(r, sigma, base_cols, current.scale, cols, excess)
+    # How much of the residual lies along the fitted parameters themselves: a large share
+    # means the fit stopped short of its optimum (not a left-out effect).
+    scale_col = [np.ravel(current.model / sigma)[:, None]]
+    own = score_test(np.ravel(r), scale_col[0], np.stack([np.ravel(c / sigma) for c in base_cols[:-1]], axis=1),
+                     excess, "fitted parameters") if len(base_cols) > 1 else None
+    if own is not None:
+        current.residuals.extra["own_directions"] = own
+    return scores
+
+
+def _unconverged(ev: Evaluation) -> str | None:
+    """A sentence when a large share of the chi^2 excess lies along the fitted parameters."""
+    own = ev.residuals.extra.get("own_directions")
+    if own is None or own.explained < 0.2 or own.log10_p > SCREEN_LOG10_P:
+        return None
+    return (f"{100 * min(1.0, own.explained):.0f}% of the excess lies along the fitted material parameters: "
+            "the fit stopped short of its optimum (rerun rig estimate with more iterations)")
 
 
 def _verdict(before: Evaluation, loc: dict[str, Any], scores: list[CandidateScore], confirmed: list[str],

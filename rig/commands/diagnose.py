@@ -48,6 +48,11 @@ def _fmt(v: Any, u: Any = None) -> str:
     return f"{v:.4g} +- {u:.2g}"
 
 
+def _red(region: dict[str, Any]) -> str:
+    v = region.get("reduced_chi2")
+    return "-" if v is None or region.get("pixels", 0) == 0 else f"{v:.2f}"
+
+
 def print_summary(doc: dict[str, Any], out: Any = sys.stdout) -> None:
     """Plain-language summary of a diagnosis document."""
     for ch, d in doc["channels"].items():
@@ -57,9 +62,11 @@ def print_summary(doc: dict[str, Any], out: Any = sys.stdout) -> None:
         loc = d["localisation"]
         regions = []
         for a, b in (("front", "back"), ("grazing", "normal"), ("peak", "tails")):
-            regions.append(f"{a} {loc[a]['reduced_chi2']:.2f} / {b} {loc[b]['reduced_chi2']:.2f}")
+            regions.append(f"{a} {_red(loc[a])} / {b} {_red(loc[b])}")
         print("  where (reduced chi2 by region): " + "; ".join(regions)
               + f"; left-right asymmetry {loc['asymmetry']['difference_sigma']:+.1f} sigma", file=out)
+        if d.get("unconverged"):
+            print(f"  {d['unconverged']}", file=out)
         cands = d["candidates"]
         if cands:
             print("  score tests (statistic / dof, share of the excess it can explain):", file=out)
