@@ -74,7 +74,14 @@ def run_synthetic(case: dict[str, Any], spp: int) -> dict[str, Any]:
     from dataclasses import dataclass
 
     from estimate.beam import BeamProfile
-    from estimate.diagnose import BaseFit, _free_names, _smoothed_variance, diagnose_channel, evaluate, refit
+    from estimate.diagnose import (
+        BaseFit,
+        _free_names,
+        _smoothed_variance,
+        diagnose_channel,
+        evaluate,
+        refit,
+    )
     from estimate.forward import ForwardModel
     from estimate.geometry import RigGeometry
 
@@ -135,7 +142,7 @@ def _rig(*args: str, log: Path) -> str:
     cmd = [sys.executable, "-m", "rig.cli", *args]
     with open(log, "a") as f:
         f.write("$ " + " ".join(cmd) + "\n")
-        p = subprocess.run(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=f, text=True)
+        p = subprocess.run(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=f, text=True, check=False)
         f.write(p.stdout[-2000:] + f"\n[exit {p.returncode}]\n")
     if p.returncode != 0:
         raise RuntimeError(f"{' '.join(args[:2])} failed (exit {p.returncode}); see {log}")
@@ -201,7 +208,7 @@ def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tup
     singles = [r for r in rows if len(r["concealed"]) == 1]
     pairs = [r for r in rows if len(r["concealed"]) == 2]
     clean = [r for r in rows if not r["concealed"]]
-    frac = lambda rs: (sum(r["ok"] for r in rs) / len(rs)) if rs else float("nan")  # noqa: E731
+    frac = lambda rs: (sum(r["ok"] for r in rs) / len(rs)) if rs else float("nan")
     named_cases = [r for r in singles + pairs if r["named"]]
     summary = {
         "source": source, "cases_run": ran, "cases_planned": total,
@@ -219,8 +226,8 @@ def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tup
         "max_channel_time_s": max((r["time_s"] or 0.0) for r in rows) if rows else None,
     }
     lines = [f"Diagnosis proof suite ({source} recordings, {ran}/{total} cases run)", "",
-             "| case | concealed | screened first | named (confirmed) | ok | red. chi2 before -> after | "
-             "sigma_t err before -> after | time [s] |", "|---|---|---|---|---|---|---|---|"]
+             ("| case | concealed | screened first | named (confirmed) | ok | red. chi2 before -> after | "
+             "sigma_t err before -> after | time [s] |"), "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         e = r["material_error"]
         lines.append(f"| {r['id']} | {', '.join(r['concealed']) or '-'} | {r['screen_first']} | "

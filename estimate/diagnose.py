@@ -22,20 +22,42 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping, Sequence
+from datetime import UTC
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
 
 from estimate.errors import EstimateError, ModelParameterError
 from estimate.extensions import EXTENSIONS
-from estimate.residuals import ALPHA, FitResiduals, fit_significance, localise, normalised_residuals
+from estimate.residuals import (
+    ALPHA,
+    FitResiduals,
+    fit_significance,
+    localise,
+    normalised_residuals,
+)
 from estimate.screening import CandidateScore, candidate_columns, score_test, screen
 
-__all__ = ["BaseFit", "Evaluation", "ChannelDiagnosis", "diagnose_channel", "evaluate", "refit",
-           "screen_candidates", "run_diagnosis", "plot_diagnosis", "RefitResult",
-           "FREE_PARAMETERS", "CANDIDATES", "BIC_STRONG", "HOLDOUT_EVERY"]
+__all__ = [
+    "BIC_STRONG",
+    "CANDIDATES",
+    "FREE_PARAMETERS",
+    "HOLDOUT_EVERY",
+    "BaseFit",
+    "ChannelDiagnosis",
+    "Evaluation",
+    "RefitResult",
+    "diagnose_channel",
+    "evaluate",
+    "plot_diagnosis",
+    "refit",
+    "run_diagnosis",
+    "screen_candidates",
+    "summary_text",
+]
 
 CANDIDATES: tuple[str, ...] = tuple(EXTENSIONS)
 
@@ -574,7 +596,7 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
         DataError: no fit to diagnose, a fit from another session, unreadable inputs.
         ModelParameterError: an unknown effect name.
     """
-    from datetime import datetime, timezone
+    from datetime import datetime
     from pathlib import Path
 
     import yaml
@@ -596,7 +618,7 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
     chans = doc.get("channels") or {}
     chosen = list(channels) if channels else list(chans)
     out: dict[str, Any] = {"format": "rig-diagnosis/1", "fit_run": str(run_dir), "session": str(session.resolve()),
-                           "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                           "created": datetime.now(UTC).isoformat(timespec="seconds"),
                            "settings": {"spp": spp, "repeats": repeats, "iterations": iterations, "seed": seed,
                                         "effects": list(effects) if effects else list(CANDIDATES)},
                            "channels": {}}
@@ -648,6 +670,7 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
                                                 "refit_of": Path(run_dir).name}, plots=plots)
         refit_run = str(rd)
     out["refit_run"] = refit_run
+    out["summary"] = summary_text(out)
     if plots:
         out["plots"] = [p.name for ch, d in diags.items() for p in plot_diagnosis(diag_dir, d, problems[ch])]
     (diag_dir / "diagnosis.yaml").write_text(yaml.safe_dump(_plain(out), sort_keys=False), encoding="utf-8")
@@ -696,3 +719,56 @@ def plot_diagnosis(out_dir: Any, d: ChannelDiagnosis, problem: Any) -> list[Any]
     plt.close(fig)
     paths.append(p)
     return paths
+
+
+def _fmt(v: Any, u: Any = None) -> str:
+    if u is None or not isinstance(u, (int, float)):
+        return f"{v:.4g}"
+    return f"{v:.4g} +- {u:.2g}"
+
+
+def _red(region: dict[str, Any]) -> str:
+    v = region.get("reduced_chi2")
+    return "-" if v is None or region.get("pixels", 0) == 0 else f"{v:.2f}"
+
+
+def summary_text(doc: Mapping[str, Any]) -> str:
+    """Plain-language summary of a diagnosis document (terminal and HTML report)."""
+    import io
+
+    out = io.StringIO()
+    for ch, d in doc["channels"].items():
+        print(f"channel {ch}: {d['verdict']}", file=out)
+        if not d["significant"]:
+            continue
+        loc = d["localisation"]
+        regions = []
+        for a, b in (("front", "back"), ("grazing", "normal"), ("peak", "tails")):
+            regions.append(f"{a} {_red(loc[a])} / {b} {_red(loc[b])}")
+        print("  where (reduced chi2 by region): " + "; ".join(regions)
+              + f"; left-right asymmetry {loc['asymmetry']['difference_sigma']:+.1f} sigma", file=out)
+        if d.get("unconverged"):
+            print(f"  {d['unconverged']}", file=out)
+        cands = d["candidates"]
+        if cands:
+            print("  score tests (statistic / dof, share of the excess it can explain):", file=out)
+            for c in cands:
+                print(f"    {c['name']:<20} {c['statistic']:10.1f} / {c['dof']}   log10 p {c['log10_p']:8.1f}"
+                      f"   {100 * min(1.0, c['explained']):5.1f} %", file=out)
+        for e in d["confirmations"]:
+            held = (f", held-out chi2 {e['chi2_heldout_before']:.0f} -> {e['chi2_heldout_after']:.0f}"
+                    if "chi2_heldout_after" in e else "")
+            print(f"  refit with {e['effect']}: BIC improves by {e['delta_bic']:.1f}{held}"
+                  f" -> {'confirmed' if e['confirmed'] else 'not confirmed'}", file=out)
+        for name, ps in d["confirmed_effects"].items():
+            vals = ", ".join(f"{k.split('.', 1)[1]} = {_fmt(v['value'], v['uncertainty'])}" for k, v in ps.items())
+            print(f"  left-out physics: {name} ({vals})", file=out)
+        if d["confirmed_effects"]:
+            print(f"  reduced chi2 {d['reduced_chi2_before']:.3f} -> {d['reduced_chi2_after']:.3f}", file=out)
+            unc = d.get("material_uncertainty_after") or {}
+            for k, before in d["material_before"].items():
+                print(f"    {k:<10} {before:.4g} -> {_fmt(d['material_after'][k], unc.get(k))}", file=out)
+    if doc.get("refit_run"):
+        print(f"refit written as estimate run {doc['refit_run']}", file=out)
+    print(f"diagnosis written to diagnoses/{doc['run_id']}/diagnosis.yaml", file=out)
+    return out.getvalue().rstrip()

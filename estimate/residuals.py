@@ -21,8 +21,16 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-__all__ = ["FitResiduals", "normalised_residuals", "fit_significance", "localise",
-           "GRAZING_DEG", "PEAK_FRACTION", "ALPHA", "MIN_EXCESS"]
+__all__ = [
+    "ALPHA",
+    "GRAZING_DEG",
+    "MIN_EXCESS",
+    "PEAK_FRACTION",
+    "FitResiduals",
+    "fit_significance",
+    "localise",
+    "normalised_residuals",
+]
 
 #: Angle of incidence (deg from the slab normal) above which a light angle counts as grazing.
 GRAZING_DEG = 60.0
@@ -119,7 +127,7 @@ def localise(r: np.ndarray, angles_deg: np.ndarray, x_mm: np.ndarray, model: np.
     back = ~front
     inc = np.array([incidence_deg(a) for a in ang])
     grazing = inc > GRAZING_DEG
-    rowmask = lambda m: r[m]  # noqa: E731
+    rowmask = lambda m: r[m]
     out["front"] = _excess(rowmask(front))
     out["back"] = _excess(rowmask(back))
     out["grazing"] = _excess(rowmask(grazing))

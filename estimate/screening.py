@@ -25,8 +25,9 @@ exposure per angle).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 from scipy import stats
@@ -34,7 +35,7 @@ from scipy import stats
 from estimate.extensions import EXTENSIONS
 from estimate.extensions.lens_blur import LensBlur
 
-__all__ = ["CandidateScore", "PROBES", "candidate_columns", "score_test", "screen"]
+__all__ = ["PROBES", "CandidateScore", "candidate_columns", "score_test", "screen"]
 
 #: Probe values (secant end points) of the scene extensions' parameters.
 PROBES: dict[str, list[dict[str, float]]] = {

@@ -83,7 +83,7 @@ def test_screening_ranks_the_concealed_effect_first(effect):
 def test_clean_recording_has_no_significant_mismatch():
     rec = record({}, seed=11)
     base = BaseFit(dict(TRUE), 1e4, "hg")
-    ev, loc, scores = screen_candidates(rec, base, make_model, spp=128, repeats=3, candidates=["stray_light"])
+    ev, _loc, _scores = screen_candidates(rec, base, make_model, spp=128, repeats=3, candidates=["stray_light"])
     assert not ev.residuals.significant, ev.residuals.reduced_chi2
     assert ev.residuals.reduced_chi2 < 1.25
 
