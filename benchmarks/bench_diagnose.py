@@ -14,7 +14,8 @@ clean sessions. Two sources of recordings:
 Every case is cached in benchmarks/results/diagnose_cases/<source>/<case>.json: a re-run
 resumes where it stopped (`--fresh` ignores the cache). `--quick` runs one magnitude per
 effect, two pairs and two clean cases. Prints the confusion table (markdown, also written to
-benchmarks/results/bench_diagnose.md) and writes benchmarks/results/bench_diagnose.json.
+benchmarks/results/bench_diagnose_<source>.md) and writes benchmarks/results/bench_diagnose.json
+(one entry per source).
 
 Targets (issue 7): concealed effect named first in >= 90 % of single-effect sessions; both
 named in >= 70 % of pairs; nothing named on clean sessions; after the refit reduced
@@ -301,9 +302,11 @@ def main() -> int:
     print()
     print(text)
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "bench_diagnose.md").write_text(text + "\n")
-    (RESULTS / "bench_diagnose.json").write_text(json.dumps({"summary": summary, "cases": rows}, indent=1,
-                                                            default=float))
+    (RESULTS / f"bench_diagnose_{args.source}.md").write_text(text + "\n")
+    jpath = RESULTS / "bench_diagnose.json"
+    doc = json.loads(jpath.read_text()) if jpath.is_file() else {}
+    doc[args.source] = {"summary": summary, "cases": rows, "quick": args.quick}
+    jpath.write_text(json.dumps(doc, indent=1, default=float))
     return 0
 
 
