@@ -88,6 +88,8 @@ SCREEN_LOG10_P = math.log10(ALPHA / len(CANDIDATES))
 
 #: Secant columns of scene extensions are rendered with this many times the diagnosis spp.
 COLUMN_SPP_FACTOR = 4
+#: The final refit (all angles, confirmed effects) uses this many times the diagnosis spp.
+FINAL_SPP_FACTOR = 2
 #: Pixels pooled in the estimate of the model's Monte-Carlo variance.
 VARIANCE_POOL_PX = 15
 
@@ -465,8 +467,10 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         current_exts = current_exts + [best[1]]
         m = make_model(current_exts)
         free = _free_names(m, current_exts)
-        full = refit(m, problem, best[2].parameters, free, spp=spp, seed=seed + 303, iterations=iterations,
-                     model_variance=current.model_variance * repeats)
+        # The final model's parameters carry the Monte-Carlo error of the fixed-seed
+        # refit: render it with FINAL_SPP_FACTOR x the samples.
+        full = refit(m, problem, best[2].parameters, free, spp=FINAL_SPP_FACTOR * spp, seed=seed + 303,
+                     iterations=iterations, model_variance=current.model_variance * repeats / FINAL_SPP_FACTOR)
         current = evaluate(m, full.parameters, problem, len(free) + 1, spp=spp, seed=seed, repeats=repeats)
         current_unc = full.uncertainties
         say(f"  with {', '.join(confirmed)}: reduced chi2 {current.residuals.reduced_chi2:.3f}")
