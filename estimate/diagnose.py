@@ -583,7 +583,10 @@ def _check_same_session(session_dir: Any, run_doc: Mapping[str, Any], run_dir: A
     sha = rec.get("manifest_sha256")
     manifest = session / "session.yaml"
     here = hashlib.sha256(manifest.read_bytes()).hexdigest() if manifest.is_file() else None
-    if (path and Path(path).resolve() != session) or (sha and here and sha != here):
+    # The manifest checksum decides (a session directory may have been moved or copied);
+    # the recorded path only when there is no checksum to compare.
+    other = (sha != here) if (sha and here) else bool(path and Path(path).resolve() != session)
+    if other:
         raise DataError(f"fit {run_dir} was made from another session ({path}), not {session}")
 
 
