@@ -27,7 +27,6 @@ installed, else the analytic spot. Writes benchmarks/results/bench_crash.json.
 from __future__ import annotations
 
 import json
-import os
 import random
 import signal
 import subprocess
@@ -41,10 +40,10 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from capture.atomic import is_temp_name  # noqa: E402
-from capture.errors import SessionError  # noqa: E402
-from capture.session import Session  # noqa: E402
-from rig.config import PACKAGED_SIM_CONFIG  # noqa: E402
+from capture.atomic import is_temp_name
+from capture.errors import SessionError
+from capture.session import Session
+from rig.config import PACKAGED_SIM_CONFIG
 
 SEED = 20261121
 TRIALS = 24
@@ -191,7 +190,7 @@ def main() -> int:
                 for rec, img in s.iter_hdr():
                     if img["radiance"].shape != tuple(s.manifest["frame_shape"]):
                         violations.append(f"{rec.id}: HDR shape {img['radiance'].shape}")
-                info = subprocess.run([sys.executable, "-m", "rig.cli", "info", str(out)], cwd=ROOT, capture_output=True)
+                info = subprocess.run([sys.executable, "-m", "rig.cli", "info", str(out)], check=False, cwd=ROOT, capture_output=True)
                 if info.returncode != 0:
                     violations.append(f"rig info exited {info.returncode}")
             results.append({"trial": trial, "kills": kills, "runs": runs, "kill_phases": phases,

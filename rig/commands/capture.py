@@ -24,8 +24,10 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import importlib
+import itertools
 import json
 import math
+import signal
 import sys
 import time
 from dataclasses import dataclass, fields, replace
@@ -134,7 +136,7 @@ def _read_calibration(path: str) -> tuple[Path, tuple[float, float]]:
 
 
 def _default_out() -> Path:
-    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%d-%H%M%SZ")
+    stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%d-%H%M%SZ")
     out = DEFAULT_SESSIONS_DIR / stamp
     k = 2
     while out.exists():
@@ -251,7 +253,7 @@ def _profile_row(req: _Request, sensor: Any) -> tuple[int, str]:
         x, y = req.beam_center_px
         if not (0 <= x < sensor.width and 0 <= y < sensor.height):
             raise _usage(f"--calibration: beam centre ({x:g}, {y:g}) px lies outside the {sensor.width}x{sensor.height} sensor")
-        return int(round(y)), "calibration beam.center_px"
+        return round(y), "calibration beam.center_px"
     if req.cfg.camera.profile_row is not None:
         row = req.cfg.camera.profile_row
         if not 0 <= row < sensor.height:
@@ -284,7 +286,7 @@ def _check_with_devices(rig: Any, plan_angles: tuple[float, ...]) -> None:
     step = getattr(stage, "degrees_per_count", None)
     if step:
         ordered = sorted(plan_angles)
-        gaps = [b - a for a, b in zip(ordered, ordered[1:])]
+        gaps = [b - a for a, b in itertools.pairwise(ordered)]
         if gaps and min(gaps) < step:
             raise PlanError(f"{len(plan_angles)} angles are too many for the ranges: neighbours {min(gaps):.2g} deg apart, "
                             f"finer than the stage's step of {step:g} deg")
@@ -324,6 +326,28 @@ def _resume_hint(args: argparse.Namespace, path: Path) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    req = _check(args)
+    if req.resume is not None and req.resume.complete:
+        s = req.resume.summary()
+        if args.json:
+            print(json.dumps({**s, "completed": [], "skipped": [r.id for r in req.resume.stacks()], "elapsed_s": 0.0}, indent=2))
+        else:
+            print(f"{req.out}: all {s['stacks_total']} stacks are complete; nothing to do")
+        return 0
+
+    # a service manager's SIGTERM stops a capture as cleanly as Ctrl-C (stage stopped, shutter closed)
+    previous_term = signal.signal(signal.SIGTERM, _raise_interrupt)
+    try:
+        return _run_checked(args, req)
+    finally:
+        signal.signal(signal.SIGTERM, previous_term)
+
+
+def _raise_interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+def _run_checked(args: argparse.Namespace, req: _Request) -> int:
     from capture.errors import CaptureError
     from capture.executor import run_capture
     from capture.hdr import MergeOptions, NoiseModel
@@ -333,19 +357,10 @@ def run(args: argparse.Namespace) -> int:
     from drivers.interfaces import ROI
     from rig import wiring
 
-    req = _check(args)
     err = sys.stderr
 
     def say(msg: str) -> None:
         print(msg, file=err)
-
-    if req.resume is not None and req.resume.complete:
-        s = req.resume.summary()
-        if args.json:
-            print(json.dumps({**s, "completed": [], "skipped": [k.id for k in req.resume.plan.keys()], "elapsed_s": 0.0}, indent=2))
-        else:
-            print(f"{req.out}: all {s['stacks_total']} stacks are complete; nothing to do")
-        return 0
 
     uses_sim = req.sim or req.cfg.stage.port.startswith("sim") or (req.cfg.filter.port or "").startswith("sim")
     scene, scene_fn = _install_scene(req.cfg, req.world) if uses_sim else (None, None)
@@ -394,6 +409,10 @@ def run(args: argparse.Namespace) -> int:
             cam.set_roi(roi)
             session = Session.resume(req.out, devices=devices)
             noise = None  # the session's own
+            for kind, ident in devices.items():
+                was = session.devices.get(kind)
+                if was is not None and was != ident:
+                    say(f"note: the {kind} is now '{ident}'; the session began with '{was}' (both are recorded)")
         total = len(plan.keys())
         done_before = total - len(session.pending_keys())
         if not args.json:
