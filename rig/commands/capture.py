@@ -336,14 +336,21 @@ def run(args: argparse.Namespace) -> int:
         return 0
 
     # a service manager's SIGTERM stops a capture as cleanly as Ctrl-C (stage stopped, shutter closed)
-    previous_term = signal.signal(signal.SIGTERM, _raise_interrupt)
+    previous = {sig: signal.signal(sig, _raise_interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+    _SIGNALS.clear()
     try:
         return _run_checked(args, req)
     finally:
-        signal.signal(signal.SIGTERM, previous_term)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+#: Signals received during this capture (see _raise_interrupt).
+_SIGNALS: list[int] = []
 
 
 def _raise_interrupt(signum: int, frame: Any) -> None:
+    _SIGNALS.append(signum)
     raise KeyboardInterrupt
 
 
@@ -429,23 +436,22 @@ def _run_checked(args: argparse.Namespace, req: _Request) -> int:
             else:
                 progress = True
         summary = run_capture(session, stage, cam, changer, progress=progress, noise=noise, merge=merge)
-    except KeyboardInterrupt:
+    except BaseException as e:
         if session is None:
             raise
         total = len(session.plan.keys())
         done = total - len(session.pending_keys())
-        print(f"rig capture: interrupted; {done}/{total} stacks saved in {session.path}; "
-              f"continue with: {_resume_hint(args, session.path)}", file=err)
-        return 130
-    except (DeviceError, CaptureError) as e:
-        if session is None:
-            raise
-        total = len(session.plan.keys())
-        done = total - len(session.pending_keys())
-        notes = "".join(f" ({' '.join(n.split())})" for n in getattr(e, "__notes__", []))
-        print(f"rig capture: error: {' '.join(str(e).split())}{notes}; {done}/{total} stacks saved in {session.path}; "
-              f"continue with: {_resume_hint(args, session.path)}", file=err)
-        return 3 if isinstance(e, DeviceError) else 2
+        where = f"{done}/{total} stacks saved in {session.path}; continue with: {_resume_hint(args, session.path)}"
+        # a library may wrap the KeyboardInterrupt our handler raised (drjit turns it into a
+        # RuntimeError inside a render of the simulated bench): the signal decides, not the type
+        if isinstance(e, KeyboardInterrupt) or (_SIGNALS and isinstance(e, Exception)):
+            print(f"rig capture: interrupted; {where}", file=err)
+            return 130
+        if isinstance(e, (DeviceError, CaptureError)):
+            notes = "".join(f" ({' '.join(n.split())})" for n in getattr(e, "__notes__", []))
+            print(f"rig capture: error: {' '.join(str(e).split())}{notes}; {where}", file=err)
+            return 3 if isinstance(e, DeviceError) else 2
+        raise
     finally:
         if session is not None:
             session.close()
