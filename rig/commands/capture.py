@@ -39,11 +39,21 @@ DEFAULT_SESSIONS_DIR = Path("sessions")
 #: Rows read around the profile row by default (the KAF-0261E reads 512; a band
 #: saves readout time and disk, and still holds the spot's vertical extent).
 DEFAULT_BAND_ROWS = 32
+#: Nominal slab thickness when none is given, mm (the paper's slabs; recorded in the session).
+DEFAULT_THICKNESS_MM = 1.0
 #: Longest wait for the CCD to reach its cooler set-point before capturing anyway, s.
 DEFAULT_COOL_TIMEOUT_S = 900.0
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from capture.bracket import (
+        DEFAULT_FIRST_EXPOSURE_S,
+        DEFAULT_MAX_EXPOSURE_S,
+        BracketPolicy,
+    )
+    from capture.plan import AngleSpec
+
+    plan, bracket = AngleSpec(), BracketPolicy()
     p = sub.add_parser(
         "capture",
         help="capture HDR stacks at N stage angles through each filter into a session directory",
@@ -52,21 +62,26 @@ def register(sub: argparse._SubParsersAction) -> None:
         "continue with --resume DIR.",
     )
     g = p.add_argument_group("plan")
-    g.add_argument("--angles", type=int, metavar="N", help="number of stage angles (default 10: 5 front, 5 back)")
-    g.add_argument("--filters", metavar="LIST", help="filters, e.g. rgb or r,g,b (default rgb)")
+    g.add_argument("--angles", type=int, metavar="N", help=f"number of stage angles (default {plan.n_angles})")
+    g.add_argument("--filters", metavar="LIST", help=f"filters, e.g. rgb or r,g,b (default {''.join(plan.filters)})")
     g.add_argument("--front-angles", type=int, metavar="N", help="how many of the angles light the front (default: half, rounded up)")
-    g.add_argument("--front-range", type=float, nargs=2, metavar=("LO", "HI"), help="front-lighting angles, deg (default 15 75)")
-    g.add_argument("--back-range", type=float, nargs=2, metavar=("LO", "HI"), help="back-lighting angles, deg (default 105 165)")
-    g.add_argument("--cone", type=float, metavar="DEG", help="half-angle of the camera's cone the plan avoids, deg (default 10)")
+    g.add_argument("--front-range", type=float, nargs=2, metavar=("LO", "HI"),
+                   help="front-lighting angles, deg (default {:g} {:g})".format(*plan.front_range_deg))
+    g.add_argument("--back-range", type=float, nargs=2, metavar=("LO", "HI"),
+                   help="back-lighting angles, deg (default {:g} {:g})".format(*plan.back_range_deg))
+    g.add_argument("--cone", type=float, metavar="DEG",
+                   help=f"half-angle of the camera's cone the plan avoids, deg (default {plan.cone_half_angle_deg:g})")
     b = p.add_argument_group("exposure bracket")
-    b.add_argument("--first-exposure", type=float, metavar="S", help="first (short) exposure, s (default 0.001)")
-    b.add_argument("--max-exposure", type=float, metavar="S", help="longest exposure, s (default 60)")
-    b.add_argument("--max-exposures", type=int, metavar="N", help="most light frames per stack (default 6)")
-    b.add_argument("--target-snr", type=float, metavar="SNR", help="SNR the dim profile pixels should reach (default 20)")
-    b.add_argument("--darks", type=int, metavar="N", help="dark frames per exposure time (default 2)")
+    b.add_argument("--first-exposure", type=float, metavar="S", help=f"first (short) exposure, s (default {DEFAULT_FIRST_EXPOSURE_S:g})")
+    b.add_argument("--max-exposure", type=float, metavar="S",
+                   help=f"longest exposure, s (default {DEFAULT_MAX_EXPOSURE_S:g} or the camera's longest if shorter)")
+    b.add_argument("--max-exposures", type=int, metavar="N", help=f"most light frames per stack (default {bracket.max_exposures})")
+    b.add_argument("--target-snr", type=float, metavar="SNR",
+                   help=f"SNR the dim profile pixels should reach (default {bracket.target_snr:g})")
+    b.add_argument("--darks", type=int, metavar="N", help=f"dark frames per exposure time (default {bracket.n_darks})")
     r = p.add_argument_group("camera and geometry")
     r.add_argument("--calibration", metavar="CALDIR", help="beam calibration (rig calibrate-beam output); copied into the session")
-    r.add_argument("--thickness-mm", type=float, metavar="MM", help="nominal slab thickness, mm (default 1.0)")
+    r.add_argument("--thickness-mm", type=float, metavar="MM", help=f"nominal slab thickness, mm (default {DEFAULT_THICKNESS_MM:g})")
     r.add_argument("--full-frame", action="store_true", help="read all 512 rows instead of a band around the profile row")
     r.add_argument("--band-rows", type=int, metavar="N", help=f"rows read around the profile row (default {DEFAULT_BAND_ROWS})")
     r.add_argument("--cool-timeout", type=float, default=DEFAULT_COOL_TIMEOUT_S, metavar="S",
@@ -219,7 +234,7 @@ def _check(args: argparse.Namespace) -> _Request:
     calibration, centre = _read_calibration(args.calibration) if args.calibration else (None, None)
     out = Path(args.out) if args.out else _default_out()
     _check_out_dir(out)
-    thickness = args.thickness_mm if args.thickness_mm is not None else 1.0
+    thickness = args.thickness_mm if args.thickness_mm is not None else DEFAULT_THICKNESS_MM
     band = None if args.full_frame else (args.band_rows or DEFAULT_BAND_ROWS)
     return _Request(cfg, spec, bracket, out, None, calibration, centre, thickness, band, sim, world)
 
