@@ -51,12 +51,16 @@ def main() -> int:
         truth = TRUTH
     try:
         t0 = time.monotonic()
+        c0 = time.process_time()
         pb = load_problem(session, args.channel)
         t_load = time.monotonic() - t0
         r = fit_channel(pb, args.model, settings=FitSettings(seed=args.seed))
         wall = time.monotonic() - t0
+        cpu = time.process_time() - c0  # all threads; / 2 ~ the wall time on 2 free cores
+        load = os.getloadavg()[0]
         out = {"session": "synthetic" if truth else str(session), "channel": args.channel, "model": r.model,
                "n_angles": pb.n_angles, "n_px": pb.n_px, "cpu_count": os.cpu_count(), "wall_s": wall,
+               "cpu_s": cpu, "load_average_1min_at_end": load,
                "load_s": t_load, "fit_s": r.time_s, "iterations": r.iterations, "stop_reason": r.stop_reason,
                "spp_schedule": r.spp_schedule, "lm_losses": r.lm_losses, "parameters": r.parameters,
                "uncertainties": r.uncertainties, "loss": r.loss, "reduced_chi2": r.reduced_chi2,
@@ -69,7 +73,7 @@ def main() -> int:
             out["sigma_t_rel_error"] = abs(r.parameters["sigma_t"] / truth["sigma_t"] - 1)
             out["albedo_abs_error"] = abs(r.parameters["albedo"] - truth["albedo"])
         print(f"{'quantity':<24}value")
-        for k in ("n_angles", "n_px", "wall_s", "iterations", "stop_reason", "spp_schedule", "loss",
+        for k in ("n_angles", "n_px", "wall_s", "cpu_s", "load_average_1min_at_end", "iterations", "stop_reason", "spp_schedule", "loss",
                   "loss_at_truth", "reduced_chi2", "reduced_chi2_at_truth", "sigma_t_rel_error", "albedo_abs_error"):
             if k in out:
                 v = out[k]

@@ -39,11 +39,14 @@ WORLD_TEMPLATE = """\
 # Written by benchmarks/bench_paper_sim.py; schema docs/world-format.md.
 name: paper_d{d}_s{s:g}
 slab: {{thickness_mm: 1.0}}
+# Only filter g is captured; the world needs an entry for every filter of the rig.
 materials:
+  r: {{sigma_t: {s}, albedo: {a}, phase: {{type: mie, dispersion: poly, diameter_um: {d}, spread: 0.1, wavelength_nm: 600}}}}
   g: {{sigma_t: {s}, albedo: {a}, phase: {{type: mie, dispersion: poly, diameter_um: {d}, spread: 0.1, wavelength_nm: 600}}}}
+  b: {{sigma_t: {s}, albedo: {a}, phase: {{type: mie, dispersion: poly, diameter_um: {d}, spread: 0.1, wavelength_nm: 600}}}}
 beam:
   profile: {{type: gaussian, sigma_mm: 0.25}}
-  power_e_per_s: {{g: 3.2e10}}
+  power_e_per_s: {{r: 3.2e10, g: 3.2e10, b: 3.2e10}}
 stage: {{zero_error_deg: 0.0}}
 effects: {{}}
 render: {{mie_degree: 8}}
@@ -84,6 +87,11 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
     if not (ses / "session.yaml").exists():
         _rig("capture", "--sim", str(world), "--calibration", str(cal), "--filters", "g", "--out", str(ses),
              "--no-progress")
+    else:
+        from capture.session import Session
+
+        if not Session.open(ses).complete:  # an interrupted capture: finish it
+            _rig("capture", "--sim", str(world), "--resume", str(ses), "--no-progress")
     pb = load_problem(ses, "g")
     mat = load_world(world).materials["g"]
     truth = mat.parameters()
