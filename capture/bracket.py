@@ -72,7 +72,7 @@ class BracketPolicy:
 
     first_exposure_s: float | None = None
     max_exposure_s: float | None = None
-    max_exposures: int = 6
+    max_exposures: int = 8
     ratio: float = 4.0
     target_snr: float = 20.0
     dim_fraction: float = 1e-3
