@@ -124,6 +124,7 @@ def main() -> int:
     ap.add_argument("--cases", default=None, help="comma list like d0.5_s2 (default: all 8)")
     ap.add_argument("--models", default="exp3,tthg")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--table-only", action="store_true", help="print / write the cached fits only, compute nothing")
     args = ap.parse_args()
     models = [m for m in args.models.split(",") if m]
     want = set(args.cases.split(",")) if args.cases else None
@@ -131,6 +132,12 @@ def main() -> int:
     for s in SIGMAS:
         for d in DIAMETERS:
             if want and case_name(d, s) not in want:
+                continue
+            if args.table_only:
+                for m in models:
+                    f = CACHE / case_name(d, s) / f"fit_{m}.json"
+                    if f.exists():
+                        rows.append(json.loads(f.read_text()))
                 continue
             rows.extend(run_case(d, s, models, args.seed))
     print(f"\n{'case':<12}{'model':<7}{'loss/floor':>11}{'|dsig|/sig':>11}{'|dalb|':>8}{'time s':>8}  targets(exp3)")
