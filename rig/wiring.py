@@ -52,6 +52,12 @@ def _is_sim(port: str | None, sim: bool) -> bool:
     return sim or (port or "").startswith("sim")
 
 
+def config_is_simulated(cfg: RigConfig) -> bool:
+    """True when the configuration's ports name twins (``sim-*://``): a simulated rig even
+    without ``--sim``; its world comes from the config's ``sim.world``."""
+    return _is_sim(cfg.stage.port, False) or _is_sim(cfg.filter.port, False)
+
+
 def _sim_url(driver: str, port: str | None, cfg: RigConfig, **extra: object) -> str:
     """Twin URL for a driver: keep an explicit ``sim-*://`` port, else build one."""
     query = {"timescale": cfg.sim.time_scale, "seed": cfg.sim.seed, **extra}

@@ -56,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     filters = parse_filters(args.filters, list(cfg.filter.positions))
     out = args.out or f"calibration-{dt.datetime.now(dt.UTC).strftime('%Y%m%dT%H%M%SZ')}"
-    sim = args.sim is not None
+    sim = args.sim is not None or wiring.config_is_simulated(cfg)
     scene = None
     if sim:
         from rig.simbench import SimOperator, install_world

@@ -384,7 +384,7 @@ def _run_checked(args: argparse.Namespace, req: _Request) -> int:
     def say(msg: str) -> None:
         print(msg, file=err)
 
-    uses_sim = req.sim or req.cfg.stage.port.startswith("sim") or (req.cfg.filter.port or "").startswith("sim")
+    uses_sim = req.sim or wiring.config_is_simulated(req.cfg)
     scene, scene_fn = _install_scene(req.cfg, req.world) if uses_sim else (None, None)
     rig = wiring.open_rig(req.cfg, sim=req.sim, log_io=args.log_io, scene=scene_fn)
     session = None

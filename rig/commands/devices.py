@@ -58,11 +58,11 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config)
     sim = bool(args.sim)
-    if sim or cfg.stage.port.startswith("sim") or (cfg.filter.port or "").startswith("sim"):
+    if sim or wiring.config_is_simulated(cfg):
         wiring.prepare_bench(cfg)
     tr = Transcript(args.log_io) if args.log_io else None
     # the camera is simulated when the serial devices are (a simulated rig has no USB camera)
-    cam_sim = sim or cfg.stage.port.startswith("sim")
+    cam_sim = sim or wiring.config_is_simulated(cfg)
 
     def stage_info(s: Any) -> dict:
         r = s.allowed_range

@@ -47,10 +47,11 @@ def run(args: argparse.Namespace, *, open_rig: Callable[..., Any] | None = None)
     from drivers.errors import DeviceConnectionError
     from rig.config import load_config
     from rig.selftest import CheckResult, selftest_from_config
+    from rig.wiring import config_is_simulated
 
     cfg = load_config(args.config)
     path = _transcript_path(args.transcript)
-    simulated = args.sim or cfg.stage.port.startswith("sim") or (cfg.filter.port or "").startswith("sim")
+    simulated = args.sim or config_is_simulated(cfg)
 
     def show(r: CheckResult) -> None:
         print(r.line(), flush=True)
