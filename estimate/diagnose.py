@@ -75,6 +75,19 @@ FREE_PARAMETERS: dict[str, dict[str, float | None]] = {
     "filter_bandwidth": {"filter_bandwidth.spread": 0.2},
 }
 
+#: Parameters whose departure from neutral is the effect's magnitude (the others shape it).
+MAGNITUDE_PARAMETERS: dict[str, tuple[str, ...]] = {
+    "refractive_boundary": ("refractive_boundary.n",),
+    "lens_blur": ("lens_blur.core_sigma_px", "lens_blur.tail_fraction"),
+    "stray_light": ("stray_light.offset", "stray_light.slope_per_mm"),
+    "angle_offset": ("angle_offset.delta_deg",),
+    "thickness_error": ("thickness_error.e",),
+    "beam_halo": ("beam_halo.fraction",),
+    "sensor_nonlinearity": ("sensor_nonlinearity.compression",),
+    "filter_bandwidth": ("filter_bandwidth.spread",),
+}
+#: A confirmed effect's magnitude differs from neutral by more than this many sigma.
+MAGNITUDE_SIGMA = 3.0
 #: BIC improvement (chi^2 drop minus k ln n) that confirms an effect ("very strong" evidence).
 BIC_STRONG = 10.0
 #: Every HOLDOUT_EVERY-th light angle (sorted) is held out when confirming.
@@ -352,6 +365,18 @@ def _start(model: Any, params: Mapping[str, float], ext: str, brightest: float) 
     return p
 
 
+def _magnitude_z(fit: RefitResult, ext: str) -> float:
+    """Largest |value - neutral| / uncertainty over the effect's magnitude parameters."""
+    spec = {p.name: p for p in EXTENSIONS[ext].parameters}
+    best = 0.0
+    for full in MAGNITUDE_PARAMETERS[ext]:
+        u = fit.uncertainties.get(full)
+        if not u or not math.isfinite(u) or u <= 0:
+            continue
+        best = max(best, abs(fit.parameters[full] - spec[full.split(".", 1)[1]].neutral) / u)
+    return best
+
+
 def _holdout(n: int) -> tuple[list[int], list[int]]:
     if n < 4:
         return list(range(n)), []
@@ -444,7 +469,12 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                                      "chi2_train_before": cur_train.residuals.chi2,
                                      "chi2_train_after": tr.residuals.chi2,
                                      "parameters": {kk: fit.parameters[kk] for kk in FREE_PARAMETERS[cand.name]}}
-            ok = dbic > BIC_STRONG
+            # The effect itself must carry the improvement: a refit also re-optimises the
+            # material parameters, which alone can lower chi^2 when the current fit sits off
+            # its optimum.
+            z = _magnitude_z(fit, cand.name)
+            entry["magnitude_sigma"] = z
+            ok = dbic > BIC_STRONG and z > MAGNITUDE_SIGMA
             if held:
                 ho = evaluate(m, fit.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats, angle_idx=held,
                               scale=tr.scale)
@@ -765,7 +795,8 @@ def summary_text(doc: Mapping[str, Any]) -> str:
         for e in d["confirmations"]:
             held = (f", held-out chi2 {e['chi2_heldout_before']:.0f} -> {e['chi2_heldout_after']:.0f}"
                     if "chi2_heldout_after" in e else "")
-            print(f"  refit with {e['effect']}: BIC improves by {e['delta_bic']:.1f}{held}"
+            mag = f", magnitude {e['magnitude_sigma']:.1f} sigma from absent" if "magnitude_sigma" in e else ""
+            print(f"  refit with {e['effect']}: BIC improves by {e['delta_bic']:.1f}{held}{mag}"
                   f" -> {'confirmed' if e['confirmed'] else 'not confirmed'}", file=out)
         for name, ps in d["confirmed_effects"].items():
             vals = ", ".join(f"{k.split('.', 1)[1]} = {_fmt(v['value'], v['uncertainty'])}" for k, v in ps.items())
