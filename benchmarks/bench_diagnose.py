@@ -72,7 +72,7 @@ TRUE = {"sigma_t": 2.0, "albedo": 0.9, "phase.g": 0.5}
 #: spp of the synthetic base fit.
 BASE_SPP = 1024
 #: Cache version of the synthetic cases (bumped when the recipe changes).
-SYNTHETIC_VERSION = "v2"
+SYNTHETIC_VERSION = "v3"
 
 
 def run_synthetic(case: dict[str, Any], spp: int) -> dict[str, Any]:
@@ -138,7 +138,7 @@ def run_synthetic(case: dict[str, Any], spp: int) -> dict[str, Any]:
                model_variance=e0.model_variance * 3)
     t_base = time.perf_counter() - t0
     d = diagnose_channel(rec, BaseFit(bf.parameters, bf.scale, "hg", [], bf.uncertainties), make_model, spp=spp,
-                         iterations=8, repeats=3)
+                         iterations=8, repeats=6)
     out = d.as_dict()
     out["base_fit_time_s"] = t_base
     out["truth"] = {k: TRUE[k] for k in TRUE}

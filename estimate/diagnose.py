@@ -402,7 +402,7 @@ def screen_candidates(problem: Any, base: BaseFit, make_model: ModelFactory, *,
 
 def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                      candidates: Sequence[str] | None = None, spp: int = 256, seed: int = 1000,
-                     repeats: int = 4, iterations: int = 12,
+                     repeats: int = 6, iterations: int = 12,
                      log: Callable[[str], None] | None = None) -> ChannelDiagnosis:
     """Diagnose one channel.
 
@@ -621,7 +621,7 @@ def _check_same_session(session_dir: Any, run_doc: Mapping[str, Any], run_dir: A
 
 
 def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[str] | None = None,
-                  channels: Sequence[str] | None = None, spp: int = 256, repeats: int = 3, iterations: int = 8,
+                  channels: Sequence[str] | None = None, spp: int = 256, repeats: int = 6, iterations: int = 8,
                   seed: int = 1000, plots: bool = True, log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Diagnose every channel of an estimate run of a session and write the results.
 
