@@ -15,11 +15,20 @@ from typing import Sequence
 
 import rig
 import rig.commands
+from rig.errors import UsageError
+
+
+class ArgumentsError(UsageError):
+    """Raised by the parser for bad command-line arguments (one line, with the command's name)."""
+
+    def __init__(self, prog: str, message: str) -> None:
+        super().__init__(f"{message} (see '{prog} --help')")
+        self.prog = prog
 
 
 class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # one line instead of usage + error
-        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+    def error(self, message: str) -> None:  # type: ignore[override]  # one line, not usage + error
+        raise ArgumentsError(self.prog, message)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -45,7 +54,11 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except ArgumentsError as e:
+        print(f"{e.prog}: error: {e}", file=sys.stderr)
+        return 2
     from drivers.errors import DeviceError
 
     try:
