@@ -46,6 +46,8 @@ from estimate.errors import ModelParameterError
 from estimate.forward import ForwardModel
 from estimate.loss import (
     DEFAULT_DELTA_RANGE,
+    ScaleCalibration,
+    calibrated_scale,
     chi2,
     log_loss,
     profile_scale,
@@ -77,6 +79,7 @@ class FitSettings:
     decorrelated: bool = True
     lm_spp: int = 1024
     uncertainties: bool = True
+    scale: str = "free"              # "free": fitted (profiled) per channel; "calibrated": from the beam power
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -112,6 +115,9 @@ class FitResult:
     start: dict[str, float]
     lm_losses: list[float] = field(default_factory=list)   # loss after each accepted LM step
     settings: dict[str, Any] = field(default_factory=dict)
+    scale_mode: str = "free"
+    scale_calibration: dict[str, Any] | None = None   # ScaleCalibration.to_dict() when calibrated
+    fisher_uncertainties: dict[str, float] = field(default_factory=dict)   # before the sandwich
 
     @property
     def free(self) -> list[str]:
@@ -171,15 +177,15 @@ def _flattened(losses: Sequence[float], window: int) -> bool:
 
 
 def _lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], names: Sequence[str],
-               tr: Sequence[Transform], *, spp: int, seed: int, delta_rel: float, iterations: int
-               ) -> tuple[dict[str, float], list[float]]:
+               tr: Sequence[Transform], *, spp: int, seed: int, delta_rel: float, iterations: int,
+               fixed_scale: float | None = None) -> tuple[dict[str, float], list[float]]:
     """Levenberg-Marquardt on the log residuals at the reference delta, one fixed seed.
 
     With the seed fixed (common random numbers) the loss is a smooth deterministic function
     of the parameters, so Gauss-Newton steps converge where Adam on fresh noise each
     iteration only hovers. The Jacobian is `ForwardModel.jacobian` (central differences);
-    unknowns are the transformed variables z plus log scale. Returns the parameters and the
-    loss after each accepted step.
+    unknowns are the transformed variables z plus log scale (unless `fixed_scale`). Returns
+    the parameters and the loss after each accepted step.
     """
     valid = problem.valid
     meas = problem.measured
@@ -187,7 +193,7 @@ def _lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], nam
 
     def residual(p: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray, float, float, float]:
         prof = fm.render_profiles(p, angles, spp=spp, seed=seed)
-        sc = profile_scale(meas, prof, valid, delta_rel)
+        sc = fixed_scale if fixed_scale is not None else profile_scale(meas, prof, valid, delta_rel)
         m = meas / sc
         dlt = delta_rel * float(np.max(np.where(valid, m, -np.inf)))
         mm = np.clip(m, -0.5 * dlt, None)
@@ -204,7 +210,9 @@ def _lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], nam
         cols = [np.where(valid, -jac[n] / (np.clip(prof, 0, None) + dlt), 0.0).ravel() * t.dx_dz(float(zz))
                 for n, t, zz in zip(names, tr, z)]
         m = meas / sc
-        cols.append(np.where(valid, -m / (np.clip(m, -0.5 * dlt, None) + dlt), 0.0).ravel())
+        if fixed_scale is None:
+            cols.append(np.where(valid, -m / (np.clip(m, -0.5 * dlt, None) + dlt), 0.0).ravel())
+        n_z = len(names)
         A = np.stack(cols, axis=1)
         AtA = A.T @ A
         Atr = A.T @ r.ravel()
@@ -217,7 +225,7 @@ def _lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], nam
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
-            z_new = np.array([t.clamp_z(float(zz + dz)) for t, zz, dz in zip(tr, z, step[:-1])])
+            z_new = np.array([t.clamp_z(float(zz + dz)) for t, zz, dz in zip(tr, z, step[:n_z])])
             p_new = dict(p)
             p_new.update({n: t.to_x(float(zz)) for n, t, zz in zip(names, tr, z_new)})
             try:
@@ -241,8 +249,9 @@ def _lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], nam
 
 
 def evaluate(fm: ForwardModel, problem: Problem, params: Mapping[str, float], *, spp: int, seed: int,
-             delta_rel: float) -> dict[str, Any]:
-    """Profiles (mean of two seeds), their MC variance, profiled scale, loss and chi^2."""
+             delta_rel: float, fixed_scale: float | None = None) -> dict[str, Any]:
+    """Profiles (mean of two seeds), their MC variance, scale (profiled unless `fixed_scale`),
+    loss and chi^2."""
     p1 = fm.render_profiles(params, problem.angles_deg, spp=spp, seed=seed)
     p2 = fm.render_profiles(params, problem.angles_deg, spp=spp, seed=seed + 7_777)
     prof = 0.5 * (p1 + p2)
@@ -250,21 +259,29 @@ def evaluate(fm: ForwardModel, problem: Problem, params: Mapping[str, float], *,
     # One pixel's two-sample variance estimate is itself very noisy: smooth it along x.
     k = np.ones(5) / 5.0
     mvar = np.stack([np.convolve(r, k, mode="same") for r in mvar])
-    s = profile_scale(problem.measured, prof, problem.valid, delta_rel)
+    s = fixed_scale if fixed_scale is not None else profile_scale(problem.measured, prof, problem.valid, delta_rel)
     loss = log_loss(problem.measured, prof, problem.valid, s, delta_rel)[0]
     c2 = chi2(problem.measured, problem.variance, prof, problem.valid, s, mvar)
     return {"profiles": prof, "model_variance": mvar, "scale": s, "loss": loss, "chi2": c2}
 
 
+def _jacobian_columns(fm: ForwardModel, problem: Problem, params: Mapping[str, float], names: Sequence[str],
+                      *, spp: int, seed: int) -> dict[str, np.ndarray]:
+    return fm.jacobian(params, problem.angles_deg, list(names), spp=spp, seed=seed)
+
+
 def fisher_uncertainties(fm: ForwardModel, problem: Problem, params: Mapping[str, float],
                          names: Sequence[str], scale: float, model_variance: np.ndarray,
-                         profiles: np.ndarray, *, spp: int, seed: int, inflate: float = 1.0
+                         profiles: np.ndarray, *, spp: int, seed: int, inflate: float = 1.0,
+                         fit_scale: bool = True, jac: Mapping[str, np.ndarray] | None = None
                          ) -> tuple[dict[str, float], float]:
-    """1-sigma uncertainties of `names` and of the scale from the Gauss-Newton Fisher matrix."""
-    jac = fm.jacobian(params, problem.angles_deg, list(names), spp=spp, seed=seed)
+    """1-sigma uncertainties of `names` and of the scale from the Gauss-Newton Fisher matrix
+    of the linear chi^2 (the bound of an ideal variance-weighted fit; the log-loss fit is
+    not that fit, see `sandwich_uncertainties`). Scale uncertainty NaN when not fitted."""
+    jac = jac if jac is not None else _jacobian_columns(fm, problem, params, names, spp=spp, seed=seed)
     w = np.where(problem.valid, 1.0 / (problem.variance + scale ** 2 * model_variance), 0.0)
     w = np.where(np.isfinite(w), w, 0.0).ravel()
-    cols = [scale * jac[n].ravel() for n in names] + [profiles.ravel()]
+    cols = [scale * jac[n].ravel() for n in names] + ([profiles.ravel()] if fit_scale else [])
     J = np.stack(cols, axis=1)
     F = J.T @ (J * w[:, None])
     try:
@@ -272,13 +289,58 @@ def fisher_uncertainties(fm: ForwardModel, problem: Problem, params: Mapping[str
     except np.linalg.LinAlgError:
         return {n: float("nan") for n in names}, float("nan")
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    return {n: float(sd[i]) for i, n in enumerate(names)}, float(sd[-1])
+    return {n: float(sd[i]) for i, n in enumerate(names)}, (float(sd[-1]) * (1.0 if fit_scale else float("nan")))
+
+
+def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names: Sequence[str], scale: float,
+                           profiles: np.ndarray, model_variance: np.ndarray, jac: Mapping[str, np.ndarray],
+                           *, delta_rel: float, fit_scale: bool, render_variance_factor: float = 2.0
+                           ) -> tuple[dict[str, float], float, float]:
+    """1-sigma uncertainties of the log-loss estimator (sandwich), its scale's, and the
+    log-space reduced chi^2.
+
+    The fit minimises sum r^2 with r = log(m/s + delta) - log(I + delta), so its covariance
+    is H^-1 (A^T S A) H^-1 with A = dr/d(theta, log s), H = A^T A (Gauss-Newton curvature
+    of the log loss) and S the covariance of r: the sensor noise var_m / (m + s delta)^2
+    plus the Monte Carlo noise of the render the polish used (`render_variance_factor` x
+    the variance of the two-seed mean in `model_variance`: one render at the same spp)
+    / (I + delta)^2, independent per pixel. The result is multiplied by
+    max(1, chi^2_log / dof), chi^2_log = sum r^2 / S: residuals larger than the noise
+    (model error, correlated Monte Carlo structure in the data) widen the intervals.
+    """
+    valid = problem.valid
+    m = problem.measured / scale
+    dl = max(delta_rel * float(np.max(np.where(valid, m, -np.inf))), 1e-30)
+    mm = np.clip(m, -0.5 * dl, None)
+    ip = np.clip(profiles, 0, None)
+    r = np.where(valid, np.log(mm + dl) - np.log(ip + dl), 0.0)
+    var_r = (problem.variance / scale ** 2) / (mm + dl) ** 2 + render_variance_factor * model_variance / (ip + dl) ** 2
+    var_r = np.where(valid & np.isfinite(var_r), var_r, 0.0)
+    cols = [np.where(valid, -jac[n] / (ip + dl), 0.0).ravel() for n in names]
+    if fit_scale:
+        cols.append(np.where(valid, -m / (mm + dl), 0.0).ravel())
+    A = np.stack(cols, axis=1)
+    H = A.T @ A
+    meat = A.T @ (A * var_r.ravel()[:, None])
+    n = int(valid.sum())
+    dof = max(1, n - A.shape[1])
+    c2 = float(np.sum(np.where(var_r > 0, r * r / np.where(var_r > 0, var_r, 1.0), 0.0)))
+    red = c2 / dof
+    try:
+        Hi = np.linalg.pinv(H, rcond=1e-12)
+    except np.linalg.LinAlgError:
+        return {k: float("nan") for k in names}, float("nan"), red
+    cov = Hi @ meat @ Hi * max(1.0, red)
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    s_unc = float(sd[-1]) * scale if fit_scale else float("nan")
+    return {k: float(sd[i]) for i, k in enumerate(names)}, s_unc, red
 
 
 def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[str] = (),
                 start: Mapping[str, float] | None = None, fixed: Mapping[str, float] | None = None,
                 settings: FitSettings | None = None, forward: ForwardModel | None = None,
-                progress: Callable[[int, float, int], None] | None = None) -> FitResult:
+                progress: Callable[[int, float, int], None] | None = None,
+                scale_calibration: ScaleCalibration | None = None) -> FitResult:
     """Fit one channel.
 
     Args:
@@ -292,6 +354,11 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         settings: optimiser settings.
         forward: a ready ForwardModel for this problem (else built).
         progress: called as progress(iteration, reference loss, spp).
+        scale_calibration: the measured scale for `settings.scale == "calibrated"` (else
+            `estimate.loss.calibrated_scale` of the problem's session).
+
+    Raises:
+        DataError: calibrated scale without a beam power in the session's calibration.
     """
     st = settings or FitSettings()
     t0 = time.monotonic()
@@ -299,6 +366,12 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     fm = forward or ForwardModel(problem.geometry, problem.beam, phase=phase, extensions=extensions)
     fixed = dict(fixed or {})
     fm.validate(fixed)
+    if st.scale not in ("free", "calibrated"):
+        raise ModelParameterError(f"unknown scale mode {st.scale!r}; use free or calibrated")
+    cal: ScaleCalibration | None = None
+    if st.scale == "calibrated":
+        cal = scale_calibration or calibrated_scale(problem.session_path, problem.channel)
+    fixed_scale = cal.scale if cal is not None else None
     d_ref = reference_delta(st.delta_range)
     base = fm.default_parameters()
     base.update(fixed)
@@ -310,7 +383,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         b = dict(base)
         b.update(start or {})
         init, _ = coarse_start(fm, problem, b, spp=st.start_spp, seed=st.seed + 99_991, delta_rel=d_ref,
-                               fixed=fixed)
+                               fixed=fixed, scale=fixed_scale)
     init = fm.validate(init)
     names = [n for n in fm.parameter_names if n not in fixed]
     tr: list[Transform] = [transform_for(n, fm.specs[n]) for n in names]
@@ -329,7 +402,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     history: list[np.ndarray] = []
     since_change = 0
     stop = "max_iterations"
-    scale = None
+    scale = fixed_scale
     it = 0
     lo, hi = math.log(st.delta_range[0]), math.log(st.delta_range[1])
     for it in range(1, st.max_iterations + 1):
@@ -344,7 +417,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             pa = fm.render_profiles(p, problem.angles_deg, spp=half, seed=seed_a)
             pb_ = fm.render_profiles(p, problem.angles_deg, spp=half, seed=seed_a + 1)
             mean = 0.5 * (pa + pb_)
-            scale = profile_scale(problem.measured, mean, problem.valid, delta_rel, guess=scale)
+            if fixed_scale is None:
+                scale = profile_scale(problem.measured, mean, problem.valid, delta_rel, guess=scale)
             curve_loss = log_loss(problem.measured, mean, problem.valid, scale, d_ref)[0]
             m = problem.measured / scale
             dl = max(delta_rel * float(np.max(np.where(problem.valid, m, -np.inf))), 1e-30)
@@ -363,7 +437,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             def loss_fn(prof: np.ndarray, delta_rel: float = delta_rel, ref: dict[str, float] = ref
                         ) -> tuple[float, np.ndarray]:
                 nonlocal scale
-                s = profile_scale(problem.measured, prof, problem.valid, delta_rel, guess=scale)
+                s = fixed_scale if fixed_scale is not None else profile_scale(
+                    problem.measured, prof, problem.valid, delta_rel, guess=scale)
                 scale = s
                 ref["loss"] = log_loss(problem.measured, prof, problem.valid, s, d_ref)[0]
                 return log_loss(problem.measured, prof, problem.valid, s, delta_rel)
@@ -396,29 +471,42 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     lm_losses: list[float] = []
     if st.lm_iterations > 0:
         final, lm_losses = _lm_polish(fm, problem, final, names, tr, spp=st.lm_spp,
-                                      seed=st.seed * 100_003 + 40_000, delta_rel=d_ref, iterations=st.lm_iterations)
-    ev = evaluate(fm, problem, final, spp=st.final_spp, seed=st.seed * 100_003 + 50_000, delta_rel=d_ref)
+                                      seed=st.seed * 100_003 + 40_000, delta_rel=d_ref, iterations=st.lm_iterations,
+                                      fixed_scale=fixed_scale)
+    ev = evaluate(fm, problem, final, spp=st.final_spp, seed=st.seed * 100_003 + 50_000, delta_rel=d_ref,
+                  fixed_scale=fixed_scale)
     n_valid = int(problem.valid.sum())
-    dof = max(1, n_valid - len(names) - 1)
+    dof = max(1, n_valid - len(names) - (1 if fixed_scale is None else 0))
     red = ev["chi2"] / dof
     unc: dict[str, float] = {n: float("nan") for n in names}
+    fisher: dict[str, float] = {}
     s_unc = float("nan")
     if st.uncertainties:
-        unc, s_unc = fisher_uncertainties(fm, problem, final, names, ev["scale"], ev["model_variance"],
-                                          ev["profiles"], spp=st.spp_max, seed=st.seed * 100_003 + 60_000,
-                                          inflate=red)
+        jac = _jacobian_columns(fm, problem, final, names, spp=st.spp_max, seed=st.seed * 100_003 + 60_000)
+        fisher, _ = fisher_uncertainties(fm, problem, final, names, ev["scale"], ev["model_variance"],
+                                         ev["profiles"], spp=st.spp_max, seed=0, inflate=red,
+                                         fit_scale=fixed_scale is None, jac=jac)
+        unc, s_unc, _ = sandwich_uncertainties(problem, final, names, ev["scale"], ev["profiles"],
+                                               ev["model_variance"], jac, delta_rel=d_ref,
+                                               fit_scale=fixed_scale is None,
+                                               render_variance_factor=2.0 * st.final_spp / max(1, st.lm_spp))
+        # never below the ideal linear-chi^2 bound
+        unc = {k: max(v, fisher.get(k, 0.0)) for k, v in unc.items()}
     return FitResult(
         channel=problem.channel, model=phase, extensions=list(fm.extensions), parameters=final,
         uncertainties=unc, fixed=fixed, scale=ev["scale"], scale_uncertainty=s_unc, loss=ev["loss"],
         delta_rel=d_ref, chi2=ev["chi2"], dof=dof, reduced_chi2=red, iterations=it,
         time_s=time.monotonic() - t0, stop_reason=stop, spp_schedule=schedule, loss_curve=curve,
         angles_deg=[float(a) for a in problem.angles_deg], fitted=ev["profiles"], lm_losses=lm_losses,
-        model_variance=ev["model_variance"], start=dict(init), settings=st.to_dict())
+        model_variance=ev["model_variance"], start=dict(init), settings=st.to_dict(), scale_mode=st.scale,
+        scale_calibration=cal.to_dict() if cal is not None else None, fisher_uncertainties=fisher)
 
 
 def loss_at(problem: Problem, model: str, params: Mapping[str, float], *, extensions: Sequence[str] = (),
             spp: int = 1024, seed: int = 12_345, delta_range: tuple[float, float] = DEFAULT_DELTA_RANGE,
-            forward: ForwardModel | None = None) -> dict[str, Any]:
-    """Loss / chi^2 of given parameters (e.g. the true ones: the noise floor), scale profiled."""
+            forward: ForwardModel | None = None, fixed_scale: float | None = None) -> dict[str, Any]:
+    """Loss / chi^2 of given parameters (e.g. the true ones: the noise floor), scale profiled
+    unless `fixed_scale`."""
     fm = forward or ForwardModel(problem.geometry, problem.beam, phase=model_phase(model), extensions=extensions)
-    return evaluate(fm, problem, params, spp=spp, seed=seed, delta_rel=reference_delta(delta_range))
+    return evaluate(fm, problem, params, spp=spp, seed=seed, delta_rel=reference_delta(delta_range),
+                    fixed_scale=fixed_scale)

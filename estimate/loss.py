@@ -19,16 +19,43 @@ A small delta weighs the dim tails (log space), a large one the bright core; the
 delta_rel log-uniformly from `delta_range` at every iteration (the paper's alternation) so
 no intensity range dominates. Convergence and reported loss values use the fixed geometric
 mid-point `reference_delta(delta_range)`.
+
+The scale need not be fitted: the rig measures it. `rig calibrate-beam` records the beam's
+detected rate per filter with the slab removed and the beam straight into the lens through a
+neutral-density filter of transmission T_nd (`power_e_per_s` = P_f T_nd), so the e-/s per
+pixel of the light the slab scatters is
+
+    I_meas = L_rendered * P_f * A_px * Omega,   P_f = power_e_per_s / T_nd
+
+with L_rendered the forward model's radiance for a unit-power beam [1/(mm^2 sr)], A_px the
+object-space area of one (binned) pixel [mm^2] and Omega the solid angle the telecentric
+lens collects from each object point [sr]. Omega and T_nd are constants of the lens and of
+the calibration ND filter (the same for every filter), read from the session's rig
+configuration snapshot (`camera.collection_sr`, `camera.calibration_nd`; see
+`calibrated_scale`). A free scale is nearly degenerate with the albedo (a brighter,
+more scattering slab and a dimmer beam give similar shapes): fixing it removes that valley.
 """
 
 from __future__ import annotations
 
 import math
+import os
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-__all__ = ["DEFAULT_DELTA_RANGE", "chi2", "log_loss", "profile_scale", "reference_delta"]
+from estimate.errors import DataError
+
+__all__ = ["DEFAULT_CALIBRATION_ND", "DEFAULT_COLLECTION_SR", "DEFAULT_DELTA_RANGE", "ScaleCalibration",
+           "calibrated_scale", "chi2", "log_loss", "profile_scale", "reference_delta"]
+
+#: Collection solid angle of the lens [sr] when the rig configuration gives none
+#: (`camera.collection_sr`); equal to the default simulated world's `optics.collection_sr`.
+DEFAULT_COLLECTION_SR = 0.01
+#: Transmission of the ND filter in the beam during `rig calibrate-beam` when the rig
+#: configuration gives none (`camera.calibration_nd`); the default world's `optics.calibration_nd`.
+DEFAULT_CALIBRATION_ND = 1.0e-3
 
 #: Range of delta relative to the (scaled) data maximum.
 DEFAULT_DELTA_RANGE = (1e-2, 2e-1)
@@ -77,3 +104,93 @@ def chi2(measured: np.ndarray, variance: np.ndarray, model: np.ndarray, valid: n
         var = var + scale ** 2 * model_variance
     r = (measured - scale * model) ** 2 / var
     return float(np.sum(np.where(valid, r, 0.0)))
+
+
+@dataclass(frozen=True)
+class ScaleCalibration:
+    """The measured scale of one channel: measured [e-/s per pixel] = scale * rendered.
+
+    Attributes:
+        scale: power_e_per_s / calibration_nd * pixel_area_mm2 * collection_sr.
+        power_e_per_s: detected beam rate through the ND filter (calibration.yaml).
+        calibration_nd: ND transmission during the calibration.
+        collection_sr: collection solid angle of the lens [sr].
+        pixel_area_mm2: object-space area of one (binned) stack pixel [mm^2].
+        defaults: configuration keys that were absent (their defaults were used).
+    """
+
+    scale: float
+    power_e_per_s: float
+    calibration_nd: float
+    collection_sr: float
+    pixel_area_mm2: float
+    defaults: tuple[str, ...] = ()
+
+    def to_dict(self) -> dict[str, object]:
+        return {"scale": self.scale, "power_e_per_s": self.power_e_per_s, "calibration_nd": self.calibration_nd,
+                "collection_sr": self.collection_sr, "pixel_area_mm2": self.pixel_area_mm2,
+                "defaults": list(self.defaults)}
+
+
+def _positive(value: object, what: str) -> float:
+    try:
+        v = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise DataError(f"{what} must be a number, got {value!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise DataError(f"{what} must be > 0, got {value!r}")
+    return v
+
+
+def calibrated_scale(session_dir: str | os.PathLike[str], channel: str, *, collection_sr: float | None = None,
+                     calibration_nd: float | None = None) -> ScaleCalibration:
+    """The scale of `channel` from the session's beam calibration and rig configuration.
+
+    Omega = `collection_sr` if given, else the snapshot's `camera.collection_sr`, else
+    DEFAULT_COLLECTION_SR; T_nd likewise from `camera.calibration_nd` (DEFAULT_CALIBRATION_ND).
+    The pixel area is the session geometry's `pixel_pitch_mm` (else the calibration's)
+    squared times the ROI binning (bin_x * bin_y), matching `load_problem`'s pixel grid.
+
+    Raises:
+        DataError: no calibration, or it lacks this channel's `power_e_per_s`.
+    """
+    from capture.errors import SessionError
+    from capture.session import Session
+
+    try:
+        s = Session.open(session_dir)
+        cal = s.load_calibration() if s.calibration_dir is not None else None
+    except SessionError as e:
+        raise DataError(str(e)) from None
+    if cal is None:
+        raise DataError(f"{session_dir} has no beam calibration: the calibrated scale needs the beam power; "
+                        "use --scale free")
+    entry = ((cal.get("beam") or {}).get("filters") or {}).get(channel) or {}
+    if "power_e_per_s" not in entry:
+        raise DataError(f"the calibration of {session_dir} has no beam power for channel {channel!r}; "
+                        "use --scale free")
+    power = _positive(entry["power_e_per_s"], f"calibration beam.filters.{channel}.power_e_per_s")
+    cam = (s.rig_config.get("camera") or {}) if isinstance(s.rig_config.get("camera"), dict) else {}
+    defaults = []
+    if collection_sr is None:
+        if cam.get("collection_sr") is None:
+            defaults.append("camera.collection_sr")
+        collection_sr = cam.get("collection_sr", DEFAULT_COLLECTION_SR)
+    if calibration_nd is None:
+        if cam.get("calibration_nd") is None:
+            defaults.append("camera.calibration_nd")
+        calibration_nd = cam.get("calibration_nd", DEFAULT_CALIBRATION_ND)
+    omega = _positive(collection_sr, "camera.collection_sr")
+    nd = _positive(calibration_nd, "camera.calibration_nd")
+    if nd > 1.0:
+        raise DataError(f"camera.calibration_nd is a transmission (0, 1], got {nd}")
+    geo = s.geometry()
+    pitch = _positive(geo.get("pixel_pitch_mm", cal.get("pixel_pitch_mm")), "pixel_pitch_mm")
+    roi = dict(geo.get("roi") or geo.get("camera_roi") or {})
+    for r in s.stacks():
+        if r.key.filter == channel and r.done and r.info.get("roi"):
+            roi = dict(r.info["roi"])
+            break
+    area = pitch * pitch * int(roi.get("bin_x", 1)) * int(roi.get("bin_y", 1))
+    return ScaleCalibration(scale=power / nd * area * omega, power_e_per_s=power, calibration_nd=nd,
+                            collection_sr=omega, pixel_area_mm2=area, defaults=tuple(defaults))

@@ -1,6 +1,6 @@
 """A starting point for the fit: coarse search over sigma_t x albedo (x a few phase shapes)
 at low samples per pixel, each candidate scored by the log loss at the reference delta with
-its scale profiled out. Costs (n_sigma x n_albedo + n_phase) renders at `spp`.
+its scale profiled out (or the calibrated scale). Costs (n_sigma x n_albedo + n_phase) renders at `spp`.
 """
 
 from __future__ import annotations
@@ -41,19 +41,20 @@ def phase_candidates(phase: str) -> list[dict[str, float]]:
 
 
 def _score(fm: ForwardModel, problem: Problem, params: Mapping[str, float], spp: int, seed: int,
-           delta_rel: float) -> float:
+           delta_rel: float, scale: float | None = None) -> float:
     prof = fm.render_profiles(params, problem.angles_deg, spp=spp, seed=seed)
-    s = profile_scale(problem.measured, prof, problem.valid, delta_rel)
+    s = scale if scale is not None else profile_scale(problem.measured, prof, problem.valid, delta_rel)
     return log_loss(problem.measured, prof, problem.valid, s, delta_rel)[0]
 
 
 def coarse_start(fm: ForwardModel, problem: Problem, base: Mapping[str, float], *, spp: int = 64,
-                 seed: int = 0, delta_rel: float = 1e-2, fixed: Mapping[str, float] | None = None
-                 ) -> tuple[dict[str, float], list[tuple[dict[str, float], float]]]:
+                 seed: int = 0, delta_rel: float = 1e-2, fixed: Mapping[str, float] | None = None,
+                 scale: float | None = None) -> tuple[dict[str, float], list[tuple[dict[str, float], float]]]:
     """Best grid point (parameters) and every (candidate, loss) tried.
 
     Pass 1: sigma_t x albedo with the middle phase candidate; pass 2: the phase candidates
-    at the best (sigma_t, albedo). Parameters in `fixed` are never changed.
+    at the best (sigma_t, albedo). Parameters in `fixed` are never changed. `scale`: the
+    measured scale (calibrated mode), else profiled per candidate.
     """
     fixed = dict(fixed or {})
     tried: list[tuple[dict[str, float], float]] = []
@@ -68,7 +69,7 @@ def coarse_start(fm: ForwardModel, problem: Problem, base: Mapping[str, float], 
             p.update({k: v for k, v in mid.items() if k not in fixed})
             p.update({"sigma_t": st, "albedo": a})
             p.update(fixed)
-            loss = _score(fm, problem, p, spp, seed, delta_rel)
+            loss = _score(fm, problem, p, spp, seed, delta_rel, scale)
             tried.append((p, loss))
             if best is None or loss < best[0]:
                 best = (loss, p)
@@ -78,7 +79,7 @@ def coarse_start(fm: ForwardModel, problem: Problem, base: Mapping[str, float], 
             continue
         p = dict(best[1])
         p.update({k: v for k, v in ph.items() if k not in fixed})
-        loss = _score(fm, problem, p, spp, seed, delta_rel)
+        loss = _score(fm, problem, p, spp, seed, delta_rel, scale)
         tried.append((p, loss))
         if loss < best[0]:
             best = (loss, p)

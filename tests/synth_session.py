@@ -3,6 +3,11 @@
 A session (capture.session format) whose HDR stacks hold profiles rendered by the forward
 model at known parameters, times a known scale, plus Poisson-like sensor noise, and a
 calibration directory with a Gaussian beam map. Test data, not the simulated bench.
+
+The rig configuration snapshot carries `camera.collection_sr` and `camera.calibration_nd`
+chosen so that the calibrated scale (`estimate.loss.calibrated_scale`:
+power_e_per_s / calibration_nd * pixel_area * collection_sr) equals the `scale` the profiles
+were multiplied by, unless `collection_sr_error` makes it deliberately wrong.
 """
 
 from __future__ import annotations
@@ -24,10 +29,12 @@ PITCH_MM = 0.020 / 0.3
 CENTER_PX = (256.3, 255.6)
 PROFILE_ROW = 256
 ROI_ROWS = (252, 8)
+BEAM_POWER = 1.0e6          # e-/s through the calibration ND (calibration.yaml power_e_per_s)
+CALIBRATION_ND = 1.0e-3
 
 
 def write_calibration(caldir: Path, filters: Sequence[str], beam_sigma_mm: float = 0.25,
-                      power: float = 1.0e6) -> Path:
+                      power: float = BEAM_POWER) -> Path:
     """A calibration directory with a Gaussian beam map per filter (e-/s per pixel)."""
     caldir.mkdir(parents=True, exist_ok=True)
     n = 24
@@ -53,10 +60,12 @@ def write_calibration(caldir: Path, filters: Sequence[str], beam_sigma_mm: float
 def make_session(path: Path, truth: Mapping[str, Mapping[str, float]], *, angles: Sequence[float],
                  phase: str = "exp3", scale: float = 5.0e3, spp: int = 2048, seed: int = 0,
                  noise: bool = True, width: int = 512, skip: Sequence[str] = (),
-                 calibration: bool = True) -> Path:
+                 calibration: bool = True, collection_sr_error: float = 1.0, lens_config: bool = True) -> Path:
     """Write a session whose channel f holds profiles of `truth[f]` (ForwardModel parameters).
 
-    `skip` lists stack ids left pending. Returns the session path.
+    `skip` lists stack ids left pending; the configuration's collection_sr is the true one
+    times `collection_sr_error` (`lens_config` False: no camera keys at all). Returns the
+    session path.
     """
     from estimate.beam import BeamProfile
     from estimate.forward import ForwardModel
@@ -70,8 +79,12 @@ def make_session(path: Path, truth: Mapping[str, Mapping[str, float]], *, angles
     roi = {"x": x0, "y": ROI_ROWS[0], "width": width, "height": ROI_ROWS[1], "bin_x": 1, "bin_y": 1}
     geometry = {"thickness_mm": 1.0, "pixel_pitch_mm": PITCH_MM, "magnification": 0.3,
                 "center_px": list(CENTER_PX), "profile_row": PROFILE_ROW, "roi": roi}
+    rig_config: dict = {"filter": {"wavelengths_nm": {"r": 630.0, "g": 530.0, "b": 465.0}}}
+    if lens_config:
+        rig_config["camera"] = {"collection_sr": collection_sr_error * scale * CALIBRATION_ND / (BEAM_POWER * PITCH_MM ** 2),
+                                "calibration_nd": CALIBRATION_ND}
     s = Session.create(path, plan=plan, frame_shape=(ROI_ROWS[1], width),
-                       rig_config={"filter": {"wavelengths_nm": {"r": 630.0, "g": 530.0, "b": 465.0}}},
+                       rig_config=rig_config,
                        devices={"stage": "synthetic", "camera": "synthetic", "filter": "synthetic"},
                        sensor=SENSOR, noise=NoiseModel.from_sensor(SENSOR), geometry=geometry,
                        calibration=caldir if calibration else None)

@@ -34,6 +34,10 @@ def test_json_shape_and_runs_never_overwritten(session, capsys):
     results = Path(run["path"]) / "results.yaml"
     doc = yaml.safe_load(results.read_text())
     assert doc["format"] == "rig-estimate/1" and doc["channels"]["g"]["iterations"] == 4
+    # Default: the calibrated scale (beam power x pixel area x the lens's collection solid angle).
+    assert doc["settings"]["scale"] == "calibrated" and doc["settings"]["fit"]["scale"] == "calibrated"
+    assert doc["channels"]["g"]["scale"] == pytest.approx(2e5)
+    assert doc["settings"]["scale_calibration"]["g"]["scale"] == pytest.approx(2e5)
     first = results.read_text()
     assert main(argv) == 0
     second = json.loads(capsys.readouterr().out)["runs"][0]["path"]
@@ -53,6 +57,15 @@ def test_bad_input_one_line_exit_2(session, capsys, extra, message):
     assert main(["estimate", str(session), "--max-iterations", "1", *extra]) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1
+
+
+def test_free_scale_is_fitted(session, capsys):
+    assert main(["estimate", str(session), "--channels", "g", "--columns", "32", "--max-iterations", "2",
+                 "--spp-max", "64", "--scale", "free", "--json"]) == 0
+    (run,) = json.loads(capsys.readouterr().out)["runs"]
+    doc = yaml.safe_load((Path(run["path"]) / "results.yaml").read_text())
+    assert doc["settings"]["scale"] == "free" and doc["settings"]["scale_calibration"] == {}
+    assert doc["channels"]["g"]["scale"] != pytest.approx(2e5, rel=1e-6)
 
 
 def test_missing_session_exit_2(tmp_path, capsys):

@@ -8,9 +8,16 @@ import numpy as np
 import pytest
 from synth_session import make_session
 
-from estimate.fit import FitSettings, fit_channel, loss_at
-from estimate.loss import log_loss, profile_scale
-from estimate.problem import load_problem
+from estimate.errors import DataError
+from estimate.fit import FitSettings, fit_channel, loss_at, sandwich_uncertainties
+from estimate.loss import (
+    DEFAULT_CALIBRATION_ND,
+    DEFAULT_COLLECTION_SR,
+    calibrated_scale,
+    log_loss,
+    profile_scale,
+)
+from estimate.problem import Problem, load_problem
 
 TRUTH = {"sigma_t": 3.0, "albedo": 0.85, "phase.b1": 3.0, "phase.b2": 0.0, "phase.b3": 0.0}
 PHASE = {k: v for k, v in TRUTH.items() if k.startswith("phase.")}
@@ -39,29 +46,84 @@ def test_scale_profiling_and_loss_gradient():
     assert g[1, 3] == pytest.approx(fd, rel=1e-5)
 
 
+def test_calibrated_scale_from_beam_power_and_lens(problem, tmp_path):
+    cal = calibrated_scale(problem.session_path, "g")
+    assert cal.scale == pytest.approx(2e5, rel=1e-9) and cal.defaults == ()
+    assert cal.scale == pytest.approx(cal.power_e_per_s / cal.calibration_nd * cal.pixel_area_mm2 * cal.collection_sr)
+    # The scale decides the loss: the truth fits better with the right one than with 1.3 x it.
+    right = loss_at(problem, "exp3", TRUTH, spp=256, fixed_scale=cal.scale)["loss"]
+    assert right < loss_at(problem, "exp3", TRUTH, spp=256, fixed_scale=1.3 * cal.scale)["loss"]
+    # A rig configuration without the keys: the documented defaults, named.
+    s = make_session(tmp_path / "s", {"g": TRUTH}, angles=[30, 150], spp=4, width=32, lens_config=False)
+    d = calibrated_scale(s, "g")
+    assert set(d.defaults) == {"camera.collection_sr", "camera.calibration_nd"}
+    assert (d.collection_sr, d.calibration_nd) == (DEFAULT_COLLECTION_SR, DEFAULT_CALIBRATION_ND)
+    with pytest.raises(DataError, match="no beam power for channel 'r'"):
+        calibrated_scale(problem.session_path, "r")
+
+
+def test_sandwich_uncertainties_match_scatter():
+    """A toy log-loss fit (I = a exp(-b x), no renders) over many noise draws: the sandwich
+    1-sigma matches the scatter of the estimates; the scale, when fitted, is profiled."""
+    from scipy.optimize import least_squares
+
+    x = np.linspace(0.0, 3.0, 60)
+    a, b, s_true = 1.0, 1.2, 50.0
+    model = a * np.exp(-b * x)
+    var = 0.005 * s_true * model * s_true + 0.2   # Poisson-like, e-/s units (HDR: a few % per pixel)
+    rng = np.random.default_rng(1)
+    dl = 0.03
+    est, pred = [], []
+    for _ in range(60):
+        meas = (s_true * model + rng.normal(0.0, np.sqrt(var)))[None, :]
+
+        def res(th, meas=meas):
+            m = meas[0] / s_true
+            d = dl * m.max()
+            return np.log(np.clip(m, -0.5 * d, None) + d) - np.log(th[0] * np.exp(-th[1] * x) + d)
+
+        th = least_squares(res, [0.9, 1.0]).x
+        prof = (th[0] * np.exp(-th[1] * x))[None, :]
+        pb = Problem(np.array([0.0]), x, meas, var[None, :], None, None, "t", None)  # type: ignore[arg-type]
+        jac = {"a": prof / th[0], "b": -x * prof}
+        u, su, red = sandwich_uncertainties(pb, {"a": th[0], "b": th[1]}, ["a", "b"], s_true, prof,
+                                            np.zeros_like(prof), jac, delta_rel=dl, fit_scale=False)
+        est.append(th)
+        pred.append([u["a"], u["b"]])
+        assert math.isnan(su) and 0.3 < red < 3.0
+    spread = np.std(np.array(est), axis=0, ddof=1)
+    mean_pred = np.mean(np.array(pred), axis=0)
+    assert np.all(np.abs(mean_pred / spread - 1.0) < 0.35), (mean_pred, spread)
+
+
 def test_recovers_sigma_t_and_albedo(problem):
     est = []
     for seed in (0,):
-        r = fit_channel(problem, "exp3", fixed=PHASE, settings=FitSettings(seed=seed, **FAST))
+        r = fit_channel(problem, "exp3", fixed=PHASE, settings=FitSettings(seed=seed, scale="calibrated", **FAST))
         est.append(r)
         assert set(r.uncertainties) == {"sigma_t", "albedo"}
         assert all(math.isfinite(u) and u > 0 for u in r.uncertainties.values())
         assert r.fitted.shape == problem.measured.shape
         assert r.iterations <= FAST["max_iterations"] and r.spp_schedule[0] == [0, 128]
+        assert r.scale == pytest.approx(2e5) and r.scale_mode == "calibrated"
+        assert r.dof == int(problem.valid.sum()) - 2
+        # the sandwich is never below the ideal linear-chi^2 bound
+        assert all(r.uncertainties[k] >= r.fisher_uncertainties[k] for k in r.uncertainties)
     for r in est:
-        assert r.parameters["sigma_t"] == pytest.approx(3.0, rel=0.25)
-        assert abs(r.parameters["albedo"] - 0.85) < 0.1
+        assert r.parameters["sigma_t"] == pytest.approx(3.0, rel=0.1)
+        assert abs(r.parameters["albedo"] - 0.85) < 0.03
     # The fit is no worse than a wrong parameter set by far (loss at a clearly wrong point).
-    wrong = loss_at(problem, "exp3", {**TRUTH, "sigma_t": 0.7, "albedo": 0.5}, spp=256)["loss"]
+    wrong = loss_at(problem, "exp3", {**TRUTH, "sigma_t": 0.7, "albedo": 0.5}, spp=256, fixed_scale=2e5)["loss"]
     assert est[0].loss < wrong
     # Final loss near the noise floor (the loss at the true parameters, same spp and delta).
-    assert est[0].loss < 1.5 * loss_at(problem, "exp3", TRUTH, spp=512)["loss"]
+    assert est[0].loss < 1.5 * loss_at(problem, "exp3", TRUTH, spp=512, fixed_scale=2e5)["loss"]
 
 
 def test_fixed_parameters_stay(problem):
     r = fit_channel(problem, "tthg", start={"sigma_t": 3.0, "albedo": 0.85},
                     fixed={"phase.g_backward": -0.2, "phase.w_forward": 0.95},
                     settings=FitSettings(seed=3, max_iterations=6, spp_start=16, spp_max=16, final_spp=32,
-                                         window=3, uncertainties=False, lm_iterations=0))
+                                         window=3, uncertainties=False, lm_iterations=0, scale="free"))
+    assert r.scale_mode == "free" and r.scale_calibration is None
     assert r.parameters["phase.g_backward"] == -0.2 and r.parameters["phase.w_forward"] == 0.95
     assert r.start["sigma_t"] == 3.0 and r.iterations == 6 and r.stop_reason == "max_iterations"

@@ -2,7 +2,7 @@
 
     rig estimate SESSION/ [--model exp|tthg|both] [--degree 3] [--channels rgb]
                           [--columns 256] [--allow-partial] [--max-iterations N] [--seed S]
-                          [--extensions a,b] [--json] [--diagnose]
+                          [--extensions a,b] [--scale calibrated|free] [--json] [--diagnose]
 
 Each model is one run: SESSION/estimates/<UTC time>_<model>/ (never overwritten), see
 estimate/results.py and CONTRACTS.md. Channels are fitted one after another: the renderer
@@ -34,6 +34,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-iterations", type=int, default=None, help="Adam iterations at most (150)")
     p.add_argument("--spp-max", type=int, default=None, help="largest samples per pixel of Adam (512); the final polish and evaluation use twice that")
     p.add_argument("--seed", type=int, default=0, help="random seed (renders, delta draws)")
+    p.add_argument("--scale", choices=("calibrated", "free"), default="calibrated",
+                   help="measured/rendered intensity scale: from the calibrated beam power and the lens's "
+                        "collection solid angle (calibrated, default) or fitted per channel (free)")
     p.add_argument("--json", action="store_true", help="print the results as JSON")
     p.add_argument("--diagnose", action="store_true", help="run the diagnosis on the new fit (estimate.diagnose)")
     p.set_defaults(func=run)
@@ -48,6 +51,7 @@ def _channels(spec: str | None, available: list[str]) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     from estimate.fit import FitSettings, fit_channel, model_phase
+    from estimate.loss import calibrated_scale
     from estimate.problem import load_problem, session_channels
     from estimate.results import new_run_dir, write_run
 
@@ -63,8 +67,9 @@ def run(args: argparse.Namespace) -> int:
     exts = [e.strip() for e in args.extensions.split(",") if e.strip()]
     # Load every problem first: bad input fails before any fitting.
     problems = {c: load_problem(session, c, args.columns, allow_partial=args.allow_partial) for c in channels}
+    scales = {c: calibrated_scale(session, c) for c in channels} if args.scale == "calibrated" else {}
     models = ["exp", "tthg"] if args.model == "both" else [args.model]
-    settings = FitSettings(seed=args.seed)
+    settings = FitSettings(seed=args.seed, scale=args.scale)
     if args.max_iterations is not None:
         settings.max_iterations = args.max_iterations
     if args.spp_max is not None:
@@ -77,13 +82,16 @@ def run(args: argparse.Namespace) -> int:
         for c in channels:
             if not args.json:
                 print(f"fitting channel {c} ({phase}) ...", file=sys.stderr, flush=True)
-            fits.append(fit_channel(problems[c], phase, extensions=exts, settings=settings))
+            fits.append(fit_channel(problems[c], phase, extensions=exts, settings=settings,
+                                    scale_calibration=scales.get(c)))
         run_dir = new_run_dir(session, phase)
         write_run(run_dir, session, fits, problems,
                   {"columns": int(problems[channels[0]].n_px), "iterations": settings.max_iterations,
                    "spp_schedule": {f.channel: f.spp_schedule for f in fits},
                    "delta": {"range_rel": list(settings.delta_range), "reference_rel": fits[0].delta_rel},
-                   "seed": settings.seed, "loss": "mean (log(I_meas/scale + delta) - log(I_model + delta))^2",
+                   "seed": settings.seed, "scale": args.scale,
+                   "scale_calibration": {c: sc.to_dict() for c, sc in scales.items()},
+                   "loss": "mean (log(I_meas/scale + delta) - log(I_model + delta))^2",
                    "fit": settings.to_dict()})
         out["runs"].append({"run_id": run_dir.name, "path": str(run_dir), "model": phase,
                             "channels": {f.channel: f.summary() for f in fits}})
