@@ -10,7 +10,8 @@ from pathlib import Path
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("snap", help="move the stage, select a filter and take raw frames (first light)")
     p.add_argument("--config", metavar="RIG.yaml", help="rig configuration (default: the simulated rig)")
-    p.add_argument("--sim", action="store_true", help="use the simulated twins")
+    p.add_argument("--sim", nargs="?", const="", default=None, metavar="WORLD.yaml",
+                   help="use the simulated rig; optionally with a world file (default world otherwise)")
     p.add_argument("--angle", type=float, help="stage angle in degrees (default: stay where it is)")
     p.add_argument("--filter", help="filter name (default: leave the filter in place)")
     p.add_argument("--exposure", type=float, default=0.01, help="exposure time in seconds (default 0.01)")
@@ -28,7 +29,7 @@ def run(args: argparse.Namespace) -> int:
     from capture.exr_io import write_frames
     from rig.config import load_config
     from rig.errors import UsageError
-    from rig.wiring import open_rig
+    from rig.wiring import config_is_simulated, open_rig
 
     out = Path(args.out)
     if out.suffix != ".npz":
@@ -43,7 +44,13 @@ def run(args: argparse.Namespace) -> int:
     if args.filter is not None and args.filter not in cfg.filter.positions:
         raise UsageError(f"--filter {args.filter!r}: unknown; configured filters: {', '.join(cfg.filter.positions)}")
 
-    with open_rig(cfg, sim=args.sim, log_io=args.log_io) as rig:
+    sim = args.sim is not None
+    scene = None
+    if sim or config_is_simulated(cfg):
+        from rig.simbench import install_world
+
+        scene = install_world(cfg, args.sim or None).scene
+    with open_rig(cfg, sim=sim, log_io=args.log_io, scene=scene) as rig:
         try:
             if args.angle is not None:
                 rig.stage.move_to(args.angle)
