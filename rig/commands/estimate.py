@@ -4,7 +4,10 @@
                           [--columns 256] [--allow-partial] [--max-iterations N] [--seed S]
                           [--extensions a,b] [--scale calibrated|free] [--json] [--diagnose]
 
-Each model is one run: SESSION/estimates/<UTC time>_<model>/ (never overwritten), see
+The intensity scale is calibrated by default (`--scale calibrated`: the beam power
+measured by `rig calibrate-beam`, the calibration ND transmission `camera.calibration_nd`
+and the lens's collection solid angle `camera.collection_sr` of the rig configuration,
+see estimate/loss.py); `--scale free` fits it per channel. Each model is one run: SESSION/estimates/<UTC time>_<model>/ (never overwritten), see
 estimate/results.py and CONTRACTS.md. Channels are fitted one after another: the renderer
 already uses every core.
 """
@@ -107,7 +110,12 @@ def run(args: argparse.Namespace) -> int:
         if args.diagnose:
             from estimate import diagnose  # type: ignore[attr-defined]
 
-            diagnose.run_diagnosis(session, fit_run=run_dir)
+            log = None if args.json else (lambda m: print(m, file=sys.stderr))
+            doc = diagnose.run_diagnosis(session, fit_run=run_dir, log=log)
+            if args.json:
+                out.setdefault("diagnoses", []).append(doc)
+            else:
+                print(doc["summary"])
     if args.json:
         print(json.dumps(out, indent=1, default=float))
     return 0
