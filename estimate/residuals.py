@@ -11,10 +11,42 @@ front- (0 < phi < 90) vs back-lit (90 < phi < 180) angles, grazing (angle of inc
 > `GRAZING_DEG` from the slab normal) vs normal angles, the peak of the profile (model
 above `PEAK_FRACTION` of its maximum) vs the tails, and the left/right asymmetry of the
 signed residual about each angle's spot centroid.
+
+Noise floor. The HDR variance holds the shot, read and dark noise of the merged bracket, not
+pixel-to-pixel noise that is frozen into every frame: fixed-pattern noise, PRNU and dust on a
+real sensor, the truth's Monte-Carlo render noise on the simulated bench (there 10^2..10^3 x
+the HDR variance). Such noise is white (independent between pixels) but of unknown size, so
+each angle gets an empirical noise scale f >= 1 from its normalised residuals r:
+
+    d_i = r_i - r_{i+1}                  (adjacent pixels: a smooth mismatch cancels,
+                                          white noise of variance f^2 gives var d = 2 f^2)
+    f^2 = max(1, mean(min(d^2/2, c m)) / k_c)   m = median(d^2/2), c = `NOISE_CLIP`,
+                                          k_c = E[min(X, c med X)] for X ~ chi^2(1)
+
+a winsorised mean of the squared differences (efficient like a variance, robust to the few
+steep pixels of a sharp mismatch and to fireflies), divided by its value under pure
+Gaussian noise. It has m_eff ~ 2/3 (pixels - 1) degrees of freedom per angle (adjacent
+d_i^2 correlate with coefficient 1/4).
+
+Statistics of a fit (all reported):
+* chi^2 with the HDR variance, sum r^2 ~ chi^2(dof) under a correct model *and* no excess
+  noise (the classical test; with excess noise it rejects every fit).
+* the noise-floor adjusted chi^2_f = sum (r / f)^2: the same with the variance scaled by f^2.
+* the smooth-structure test, which decides `significant`: per angle, the adjusted residual
+  r/f is summed over bins of B adjacent pixels, T_B = sum_bins (sum_bin r/f)^2 / B. Under
+  a correct model each term is chi^2(1) whatever the (white) excess, while a smooth
+  mismatch adds up coherently within a bin (B times its squared level) and white noise does
+  not. The fitted parameters are smooth directions, so dof_B = bins - n_params. With f
+  estimated, T_B / dof_B ~ F(dof_B, m_eff) (m_eff of one angle: conservative). Scales
+  B in `SMOOTH_BINS_PX` are tested (a blur changes the spot over a few pixels, stray light
+  over the whole profile), each at alpha / scales (Bonferroni). A scale is significant when
+  p < that and T_B / dof_B > 1 + `MIN_SMOOTH_EXCESS` (the floor tolerates a noise excess
+  that varies along an angle's profile by up to ~20 %, which one f per angle cannot follow).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -27,7 +59,12 @@ __all__ = [
     "MIN_EXCESS",
     "PEAK_FRACTION",
     "FitResiduals",
+    "MIN_SMOOTH_EXCESS",
+    "NOISE_CLIP",
+    "SMOOTH_BINS_PX",
     "fit_significance",
+    "noise_floor",
+    "smooth_test",
     "localise",
     "normalised_residuals",
 ]
@@ -41,6 +78,13 @@ ALPHA = 1e-3
 #: A fit whose reduced chi^2 exceeds 1 by less than this is called consistent even when the
 #: p-value is small (huge pixel counts make sub-percent model errors "significant").
 MIN_EXCESS = 0.05
+#: Squared adjacent differences are winsorised at this multiple of their median.
+NOISE_CLIP = 20.0
+#: Bin widths (pixels) of the smooth-structure test.
+SMOOTH_BINS_PX: tuple[int, ...] = (4, 16)
+#: The smooth-structure test calls a mismatch significant only when T_B / dof_B exceeds 1 by
+#: more than this (besides its p-value).
+MIN_SMOOTH_EXCESS = 0.2
 
 
 @dataclass
@@ -48,10 +92,15 @@ class FitResiduals:
     """Residuals of one channel's fit, arrays shaped (angles, pixels).
 
     Attributes:
-        r: noise-normalised residuals (dimensionless).
-        chi2: sum of r^2; dof: pixels - n_params; reduced_chi2: chi2 / dof.
-        p_value: probability of a chi^2 at least this large under a correct model.
-        significant: p_value < ALPHA and reduced_chi2 > 1 + MIN_EXCESS.
+        r: noise-normalised residuals with the HDR variance (dimensionless).
+        chi2: sum of r^2; dof: pixels - n_params; reduced_chi2: chi2 / dof; p_value: chi^2
+            tail probability (the classical test, no excess noise allowed).
+        noise_scale: empirical noise scale f >= 1 per angle (`noise_floor`).
+        chi2_adjusted, reduced_chi2_adjusted: the same with the variance scaled by f^2.
+        smooth: the smooth-structure test per bin width (`smooth_test`).
+        p_value_smooth: smallest p of the smooth test over bin widths, Bonferroni-corrected.
+        significant: the smooth test rejects a correct model at level alpha with an excess
+            above MIN_SMOOTH_EXCESS at some bin width.
     """
 
     r: np.ndarray
@@ -60,7 +109,29 @@ class FitResiduals:
     reduced_chi2: float
     p_value: float
     significant: bool
+    noise_scale: np.ndarray = field(default_factory=lambda: np.ones(0))
+    chi2_adjusted: float = float("nan")
+    reduced_chi2_adjusted: float = float("nan")
+    smooth: list[dict[str, float]] = field(default_factory=list)
+    p_value_smooth: float = 1.0
     extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def r_adjusted(self) -> np.ndarray:
+        """r / f (the residuals in units of the noise floor), shape of r."""
+        r2 = np.atleast_2d(self.r)
+        f = self.noise_scale if self.noise_scale.size == r2.shape[0] else np.ones(r2.shape[0])
+        return (r2 / f[:, None]).reshape(np.shape(self.r))
+
+    def summary(self) -> dict[str, Any]:
+        """Plain numbers for reports."""
+        f = self.noise_scale
+        return {"chi2": self.chi2, "dof": self.dof, "reduced_chi2": self.reduced_chi2, "p_value": self.p_value,
+                "chi2_adjusted": self.chi2_adjusted, "reduced_chi2_adjusted": self.reduced_chi2_adjusted,
+                "noise_scale_median": float(np.median(f)) if f.size else 1.0,
+                "noise_scale_max": float(np.max(f)) if f.size else 1.0,
+                "smooth": [dict(t) for t in self.smooth], "p_value_smooth": self.p_value_smooth,
+                "significant": self.significant}
 
 
 def normalised_residuals(measured: np.ndarray, variance: np.ndarray, model: np.ndarray, scale: float = 1.0,
@@ -74,17 +145,100 @@ def normalised_residuals(measured: np.ndarray, variance: np.ndarray, model: np.n
     return (m - scale * np.asarray(model, dtype=np.float64)) / np.sqrt(var)
 
 
-def fit_significance(r: np.ndarray, n_params: int, *, alpha: float = ALPHA,
-                     min_excess: float = MIN_EXCESS) -> FitResiduals:
-    """chi^2 test of a whole fit given its normalised residuals and fitted-parameter count."""
+def _clip_factor(c: float) -> float:
+    """E[min(X, c * median X)] for X ~ chi^2(1)."""
+    t = c * float(stats.chi2.ppf(0.5, 1))
+    return float(stats.chi2.cdf(t, 3) + t * stats.chi2.sf(t, 1))
+
+
+def noise_floor(r: np.ndarray, *, clip: float = NOISE_CLIP) -> tuple[np.ndarray, np.ndarray]:
+    """Empirical white-noise scale of normalised residuals, per row (angle).
+
+    Args:
+        r: normalised residuals (angles, pixels) or (pixels,); NaN marks unused pixels
+            (a difference needs both of its pixels).
+        clip: winsorising multiple of the median squared difference.
+
+    Returns:
+        (f, m_eff): f >= 1 per row (dimensionless, 1 = the HDR variance is complete) and the
+        effective degrees of freedom of each f^2 estimate (2/3 of its differences; 0 when a
+        row has fewer than 3, then f = 1).
+    """
+    r2 = np.atleast_2d(np.asarray(r, dtype=np.float64))
+    k = _clip_factor(clip)
+    f = np.ones(r2.shape[0])
+    m = np.zeros(r2.shape[0])
+    for i, row in enumerate(r2):
+        d = np.diff(row)
+        q = 0.5 * d[np.isfinite(d)] ** 2
+        if q.size < 3:
+            continue
+        med = float(np.median(q))
+        est = float(np.mean(np.minimum(q, clip * med))) / k
+        f[i] = math.sqrt(max(1.0, est))
+        m[i] = 2.0 * q.size / 3.0
+    return f, m
+
+
+def smooth_test(r_adjusted: np.ndarray, n_params: int, m_eff: float, bin_px: int) -> dict[str, float]:
+    """Binned chi^2 of adjusted residuals r/f at bin width `bin_px` (see the module docstring).
+
+    Bins are contiguous pixels of one row; a bin needs all its pixels finite (bins cut by
+    invalid pixels are dropped). Returns bin_px, statistic T, dof, reduced (T/dof), log10_p
+    (F(dof, m_eff) tail; chi^2(dof) when m_eff is 0 or infinite).
+    """
+    r2 = np.atleast_2d(np.asarray(r_adjusted, dtype=np.float64))
+    w = r2.shape[1] // bin_px
+    sums = r2[:, :w * bin_px].reshape(r2.shape[0], w, bin_px).sum(axis=2)
+    sums = sums[np.isfinite(sums)]
+    t = float(np.sum(sums ** 2) / bin_px)
+    dof = max(1, int(sums.size) - int(n_params))
+    red = t / dof
+    if m_eff and math.isfinite(m_eff) and m_eff > 0:
+        logp = float(stats.f.logsf(red, dof, m_eff))
+    else:
+        logp = float(stats.chi2.logsf(t, dof))
+    return {"bin_px": int(bin_px), "statistic": t, "dof": dof, "reduced": red, "log10_p": logp / math.log(10.0)}
+
+
+def fit_significance(r: np.ndarray, n_params: int, *, alpha: float = ALPHA, min_excess: float = MIN_SMOOTH_EXCESS,
+                     noise_scale: np.ndarray | None = None, bins_px: tuple[int, ...] = SMOOTH_BINS_PX
+                     ) -> FitResiduals:
+    """Tests of a whole fit given its normalised residuals and fitted-parameter count.
+
+    Args:
+        r: normalised residuals with the HDR variance (angles, pixels); NaN = unused pixel.
+        n_params: fitted parameters (the scale counts as one).
+        alpha: significance level of the smooth test (split over the bin widths).
+        min_excess: smallest T_B/dof_B - 1 called significant.
+        noise_scale: f per row to use instead of estimating it (to compare models on the
+            same noise metric); its m_eff is then taken as infinite.
+        bins_px: bin widths of the smooth test (widths above half a row are skipped).
+    """
     rr = np.asarray(r, dtype=np.float64)
-    finite = np.isfinite(rr)
-    chi2 = float(np.sum(rr[finite] ** 2))
+    r2 = np.atleast_2d(rr)
+    finite = np.isfinite(r2)
+    chi2 = float(np.sum(r2[finite] ** 2))
     dof = max(1, int(finite.sum()) - int(n_params))
     red = chi2 / dof
     p = float(stats.chi2.sf(chi2, dof))
-    return FitResiduals(r=rr, chi2=chi2, dof=dof, reduced_chi2=red, p_value=p,
-                        significant=bool(p < alpha and red > 1.0 + min_excess))
+    if noise_scale is None:
+        f, m = noise_floor(r2)
+        live = m[m > 0]
+        m_eff = float(live.min()) if live.size else 0.0
+    else:
+        f = np.broadcast_to(np.asarray(noise_scale, dtype=np.float64), (r2.shape[0],)).copy()
+        m_eff = math.inf
+    ra = r2 / f[:, None]
+    chi2a = float(np.sum(ra[finite] ** 2))
+    widths = [b for b in bins_px if 2 * b <= r2.shape[1]] or [1]
+    tests = [smooth_test(ra, n_params, m_eff, b) for b in widths]
+    corr = math.log10(len(tests))
+    best = min(t["log10_p"] for t in tests) + corr
+    sig = any(t["log10_p"] + corr < math.log10(alpha) and t["reduced"] > 1.0 + min_excess for t in tests)
+    return FitResiduals(r=rr, chi2=chi2, dof=dof, reduced_chi2=red, p_value=p, significant=bool(sig),
+                        noise_scale=f, chi2_adjusted=chi2a, reduced_chi2_adjusted=chi2a / dof, smooth=tests,
+                        p_value_smooth=float(min(1.0, 10 ** best)))
 
 
 def _excess(r: np.ndarray) -> dict[str, float]:

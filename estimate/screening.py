@@ -10,6 +10,11 @@ much of r lies in their span:
 
 k = rank of Z'. No refit is needed: one set of derivative columns per candidate.
 
+The metric is the noise-floor adjusted one (`estimate.residuals`): r = residual / (f sigma)
+and columns whitened by f sigma, with f >= 1 the empirical white-noise scale of each angle.
+With the HDR variance alone, excess pixel noise (fixed-pattern noise, the bench's frozen
+render noise) would inflate every LM statistic by f^2 and make every candidate "significant".
+
 Some extensions have a zero first derivative at their neutral value (a Gaussian blur of
 width s changes the image by O(s^2); a symmetric band mixture by O(spread^2)), and some
 neutral values sit on a bound (n = 1, fraction = 0) where only one-sided changes are
@@ -153,12 +158,13 @@ def screen(r: np.ndarray, sigma: np.ndarray, base_columns: Sequence[np.ndarray],
     """Rank candidates by their score test (smallest p-value first).
 
     Args:
-        r: normalised residuals (N, W).
-        sigma: noise standard deviation per pixel (N, W) used to whiten columns.
+        r: normalised residuals (N, W), in units of the noise floor (r / f).
+        sigma: noise standard deviation per pixel (N, W) used to whiten columns, including
+            the noise floor (f sigma).
         base_columns: d(measured model)/d(base parameter) incl. the scale column, each (N, W).
         scale: fitted scale (candidate columns are unscaled renders).
         candidates: name -> unscaled columns.
-        excess: chi2 - dof of the base fit.
+        excess: chi2 - dof of the base fit (the adjusted chi2).
     """
     X = np.stack([np.ravel(c / sigma) for c in base_columns], axis=1)
     out = []

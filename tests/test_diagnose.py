@@ -4,7 +4,10 @@ a clean recording found consistent, and the CLI's bad-input errors.
 Synthetic recordings: the forward model with one effect switched on, rendered at high spp
 (its Monte-Carlo variance added to the data variance), plus shot-like noise; the diagnosis
 sees the base model at the true material parameters (no base fit: fast) and must rank the
-concealed effect first. Tiny windows and low spp keep this well under a minute.
+concealed effect first. Optionally the recording carries frozen white noise `excess` times
+the variance channel that the variance channel does not report (the simulated bench's
+render noise, a real sensor's fixed-pattern noise). Tiny windows and low spp keep this well
+under a minute.
 """
 
 from __future__ import annotations
@@ -17,10 +20,10 @@ import pytest
 import yaml
 
 from estimate.beam import BeamProfile
-from estimate.diagnose import BaseFit, _smoothed_variance, screen_candidates
+from estimate.diagnose import BaseFit, _smoothed_variance, diagnose_channel, screen_candidates
 from estimate.forward import ForwardModel
 from estimate.geometry import RigGeometry
-from estimate.residuals import fit_significance, localise
+from estimate.residuals import fit_significance, localise, noise_floor
 from estimate.screening import score_test
 from rig.cli import main
 
@@ -49,7 +52,7 @@ class Recording:
     channel: str = "g"
 
 
-def record(effect: dict[str, float], seed: int = 3) -> Recording:
+def record(effect: dict[str, float], seed: int = 3, excess: float = 0.0) -> Recording:
     exts = sorted({k.split(".")[0] for k in effect})
     m = make_model(exts)
     renders = np.stack([m.render_profiles({**TRUE, **effect}, ANGLES, spp=4096, seed=50 + k) for k in range(4)])
@@ -59,6 +62,8 @@ def record(effect: dict[str, float], seed: int = 3) -> Recording:
     var = signal / 5.0 + (1e-3 * signal.max()) ** 2 + scale ** 2 * _smoothed_variance(renders) / 4
     rng = np.random.default_rng(seed)
     meas = signal + rng.normal(size=signal.shape) * np.sqrt(var)
+    # Frozen pixel noise that the variance channel does not hold.
+    meas = meas + rng.normal(size=signal.shape) * np.sqrt(excess * var)
     x = np.asarray(GEOMETRY.pixel_x_mm(GEOMETRY.profile_window()))
     return Recording(ANGLES, x, meas, var, GEOMETRY, BEAM)
 
@@ -86,6 +91,68 @@ def test_clean_recording_has_no_significant_mismatch():
     ev, _loc, _scores = screen_candidates(rec, base, make_model, spp=128, repeats=3, candidates=["stray_light"])
     assert not ev.residuals.significant, ev.residuals.reduced_chi2
     assert ev.residuals.reduced_chi2 < 1.25
+
+
+def test_clean_recording_with_frozen_excess_noise_has_no_significant_mismatch():
+    rec = record({}, seed=12, excess=30.0)
+    base = BaseFit(dict(TRUE), 1e4, "hg")
+    ev, _loc, _scores = screen_candidates(rec, base, make_model, spp=128, repeats=3, candidates=["stray_light"])
+    res = ev.residuals
+    assert res.reduced_chi2 > 4.0  # the HDR variance alone calls the perfect model wrong
+    assert not res.significant, (res.reduced_chi2_adjusted, res.smooth, _scores)
+    # The true excess of the normalised residuals: (31 var + s^2 var_model) / (var + s^2 var_model).
+    mv = ev.scale ** 2 * ev.model_variance
+    truth = np.sqrt(np.mean((31.0 * rec.variance + mv) / (rec.variance + mv), axis=1))
+    assert np.all(np.abs(res.noise_scale / truth - 1.0) < 0.35), (res.noise_scale, truth)
+    assert res.reduced_chi2_adjusted < 1.3
+
+
+@pytest.mark.parametrize("effect", [{"stray_light.offset": 0.003},
+                                    {"lens_blur.core_sigma_px": 2.5, "lens_blur.tail_fraction": 0.05}])
+def test_concealed_effect_under_frozen_excess_noise_is_significant_and_named_first(effect):
+    concealed = next(iter(effect)).split(".")[0]
+    rec = record(effect, seed=13, excess=30.0)
+    base = BaseFit(dict(TRUE), 1e4, "hg")
+    d = diagnose_channel(rec, base, make_model, candidates=["stray_light", "lens_blur", "angle_offset"], spp=128,
+                         repeats=3, iterations=4)
+    assert d.significant, d.before.residuals.smooth
+    assert d.candidates[0].name == concealed, [(c.name, round(c.statistic)) for c in d.candidates]
+    assert d.confirmed[:1] == [concealed], d.confirmations
+    assert d.after is not None and d.after.residuals.reduced_chi2_adjusted < d.before.residuals.reduced_chi2_adjusted
+
+
+def test_noise_floor_recovers_the_white_excess_and_ignores_smooth_mismatch():
+    rng = np.random.default_rng(5)
+    f_true = np.array([1.0, 3.0, 10.0, 40.0])
+    smooth = 50.0 * np.sin(np.linspace(0, np.pi, 200))  # a mismatch far above the noise
+    r = rng.normal(size=(4, 200)) * f_true[:, None] + smooth
+    f, m = noise_floor(r)
+    assert np.all(np.abs(f / f_true - 1.0) < 0.15), f
+    assert np.all(m > 100)
+    res = fit_significance(r, 3)
+    assert res.significant and res.reduced_chi2_adjusted > 10
+
+
+@pytest.mark.parametrize("noise", ["gauss", "student5", "drifting"])
+def test_false_positive_rate_on_white_noise_with_random_excess(noise):
+    """Pure white-noise residuals, each angle with its own random excess factor 1..50 (a
+    t(5) variant for heavy tails, a variant whose excess drifts by 20 % along the profile):
+    the smooth test must reject at most at its nominal level alpha = 1e-3."""
+    rng = np.random.default_rng({"gauss": 21, "student5": 22, "drifting": 23}[noise])
+    trials, hits, small_p = 600, 0, 0
+    for _ in range(trials):
+        n_ang, width = int(rng.integers(4, 12)), int(rng.choice([32, 64, 256]))
+        if noise == "gauss":
+            e = rng.normal(size=(n_ang, width))
+        elif noise == "student5":
+            e = rng.standard_t(5, size=(n_ang, width)) / np.sqrt(5 / 3)
+        else:
+            e = rng.normal(size=(n_ang, width)) * (1.0 + 0.2 * np.sin(np.linspace(0, np.pi, width)))
+        res = fit_significance(e * rng.uniform(1, 50, size=n_ang)[:, None], 0)
+        hits += res.significant
+        small_p += res.p_value_smooth < 0.01
+    assert hits <= 2, hits  # expected 0.6 at alpha = 1e-3
+    assert small_p <= 0.02 * trials  # the p-value is conservative, not anti-conservative
 
 
 def test_score_test_is_chi2_under_the_null_and_large_under_the_alternative():
