@@ -57,16 +57,16 @@ __all__ = [
     "ALPHA",
     "GRAZING_DEG",
     "MIN_EXCESS",
-    "PEAK_FRACTION",
-    "FitResiduals",
     "MIN_SMOOTH_EXCESS",
     "NOISE_CLIP",
+    "PEAK_FRACTION",
     "SMOOTH_BINS_PX",
+    "FitResiduals",
     "fit_significance",
-    "noise_floor",
-    "smooth_test",
     "localise",
+    "noise_floor",
     "normalised_residuals",
+    "smooth_test",
 ]
 
 #: Angle of incidence (deg from the slab normal) above which a light angle counts as grazing.

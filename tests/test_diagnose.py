@@ -20,7 +20,12 @@ import pytest
 import yaml
 
 from estimate.beam import BeamProfile
-from estimate.diagnose import BaseFit, _smoothed_variance, diagnose_channel, screen_candidates
+from estimate.diagnose import (
+    BaseFit,
+    _smoothed_variance,
+    diagnose_channel,
+    screen_candidates,
+)
 from estimate.forward import ForwardModel
 from estimate.geometry import RigGeometry
 from estimate.residuals import fit_significance, localise, noise_floor
