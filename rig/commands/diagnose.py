@@ -3,7 +3,10 @@
     rig diagnose SESSION/ [--fit RUN] [--effects a,b,...] [--channels rgb] [--spp 256] [--json]
 
 Diagnoses the latest estimate run (or `--fit RUN`: a run id under SESSION/estimates/ or its
-path): tests the whole fit against the noise, locates the mismatch, screens the eight
+path): tests the whole fit against the noise (the HDR variance scaled by an empirical
+noise floor per angle, which absorbs white pixel noise the HDR variance misses: fixed-pattern
+noise, PRNU, the simulated bench's frozen render noise; significant = smooth structure in
+the residuals or a candidate's score test), locates the mismatch, screens the eight
 catalogue extensions with score tests, confirms the leading ones by refitting (held-out
 light angles, BIC), and refits with the confirmed effects. Writes
 SESSION/diagnoses/<run_id>/diagnosis.yaml with residual plots, and the refit as a new
