@@ -25,11 +25,16 @@ detected rate per filter with the slab removed and the beam straight into the le
 neutral-density filter of transmission T_nd (`power_e_per_s` = P_f T_nd), so the e-/s per
 pixel of the light the slab scatters is
 
-    I_meas = L_rendered * P_f * A_px * Omega,   P_f = power_e_per_s / T_nd
+    I_meas = L_unit * P_f * A_px * Omega,   P_f = power_e_per_s / T_nd
 
-with L_rendered the forward model's radiance for a unit-power beam [1/(mm^2 sr)], A_px the
-object-space area of one (binned) pixel [mm^2] and Omega the solid angle the telecentric
-lens collects from each object point [sr]. Omega and T_nd are constants of the lens and of
+with L_unit the radiance for a unit-power beam [1/(mm^2 sr)], A_px the object-space area of
+one (binned) pixel [mm^2] and Omega the solid angle the telecentric lens collects from each
+object point [sr]. The forward model renders with the calibration's beam map as it was
+measured (e-/s per pixel through the ND, `load_problem`), i.e. I_model = L_unit * B with B
+the map's total (`BeamProfile.power()`, ~ power_e_per_s up to the map window), so
+
+    scale = I_meas / I_model = power_e_per_s / T_nd * A_px * Omega / B.
+ Omega and T_nd are constants of the lens and of
 the calibration ND filter (the same for every filter), read from the session's rig
 configuration snapshot (`camera.collection_sr`, `camera.calibration_nd`; see
 `calibrated_scale`). A free scale is nearly degenerate with the albedo (a brighter,
@@ -111,8 +116,9 @@ class ScaleCalibration:
     """The measured scale of one channel: measured [e-/s per pixel] = scale * rendered.
 
     Attributes:
-        scale: power_e_per_s / calibration_nd * pixel_area_mm2 * collection_sr.
+        scale: power_e_per_s / calibration_nd * pixel_area_mm2 * collection_sr / beam_power.
         power_e_per_s: detected beam rate through the ND filter (calibration.yaml).
+        beam_power: total of the beam map the forward model renders with [e-/s].
         calibration_nd: ND transmission during the calibration.
         collection_sr: collection solid angle of the lens [sr].
         pixel_area_mm2: object-space area of one (binned) stack pixel [mm^2].
@@ -121,13 +127,15 @@ class ScaleCalibration:
 
     scale: float
     power_e_per_s: float
+    beam_power: float
     calibration_nd: float
     collection_sr: float
     pixel_area_mm2: float
     defaults: tuple[str, ...] = ()
 
     def to_dict(self) -> dict[str, object]:
-        return {"scale": self.scale, "power_e_per_s": self.power_e_per_s, "calibration_nd": self.calibration_nd,
+        return {"scale": self.scale, "power_e_per_s": self.power_e_per_s, "beam_power": self.beam_power,
+                "calibration_nd": self.calibration_nd,
                 "collection_sr": self.collection_sr, "pixel_area_mm2": self.pixel_area_mm2,
                 "defaults": list(self.defaults)}
 
@@ -142,9 +150,12 @@ def _positive(value: object, what: str) -> float:
     return v
 
 
-def calibrated_scale(session_dir: str | os.PathLike[str], channel: str, *, collection_sr: float | None = None,
-                     calibration_nd: float | None = None) -> ScaleCalibration:
+def calibrated_scale(session_dir: str | os.PathLike[str], channel: str, beam_power: float, *,
+                     collection_sr: float | None = None, calibration_nd: float | None = None) -> ScaleCalibration:
     """The scale of `channel` from the session's beam calibration and rig configuration.
+
+    `beam_power`: total of the beam map the forward model renders with (the problem's
+    `beam.power()`, e-/s through the ND as the calibration measured it).
 
     Omega = `collection_sr` if given, else the snapshot's `camera.collection_sr`, else
     DEFAULT_COLLECTION_SR; T_nd likewise from `camera.calibration_nd` (DEFAULT_CALIBRATION_ND).
@@ -192,5 +203,6 @@ def calibrated_scale(session_dir: str | os.PathLike[str], channel: str, *, colle
             roi = dict(r.info["roi"])
             break
     area = pitch * pitch * int(roi.get("bin_x", 1)) * int(roi.get("bin_y", 1))
-    return ScaleCalibration(scale=power / nd * area * omega, power_e_per_s=power, calibration_nd=nd,
+    b = _positive(beam_power, "beam map power")
+    return ScaleCalibration(scale=power / nd * area * omega / b, power_e_per_s=power, beam_power=b, calibration_nd=nd,
                             collection_sr=omega, pixel_area_mm2=area, defaults=tuple(defaults))

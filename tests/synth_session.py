@@ -6,7 +6,7 @@ calibration directory with a Gaussian beam map. Test data, not the simulated ben
 
 The rig configuration snapshot carries `camera.collection_sr` and `camera.calibration_nd`
 chosen so that the calibrated scale (`estimate.loss.calibrated_scale`:
-power_e_per_s / calibration_nd * pixel_area * collection_sr) equals the `scale` the profiles
+power_e_per_s / calibration_nd * pixel_area * collection_sr / beam map power) equals the `scale` the profiles
 were multiplied by, unless `collection_sr_error` makes it deliberately wrong.
 """
 
@@ -81,7 +81,10 @@ def make_session(path: Path, truth: Mapping[str, Mapping[str, float]], *, angles
                 "center_px": list(CENTER_PX), "profile_row": PROFILE_ROW, "roi": roi}
     rig_config: dict = {"filter": {"wavelengths_nm": {"r": 630.0, "g": 530.0, "b": 465.0}}}
     if lens_config:
-        rig_config["camera"] = {"collection_sr": collection_sr_error * scale * CALIBRATION_ND / (BEAM_POWER * PITCH_MM ** 2),
+        # The profiles are rendered with the calibration's beam map (total BEAM_POWER), so
+        # scale = BEAM_POWER / nd * area * Omega / BEAM_POWER: Omega = scale nd / area (a
+        # synthetic lens: with scale 2e5 this is no physical solid angle, only consistent).
+        rig_config["camera"] = {"collection_sr": collection_sr_error * scale * CALIBRATION_ND / PITCH_MM ** 2,
                                 "calibration_nd": CALIBRATION_ND}
     s = Session.create(path, plan=plan, frame_shape=(ROI_ROWS[1], width),
                        rig_config=rig_config,

@@ -47,19 +47,20 @@ def test_scale_profiling_and_loss_gradient():
 
 
 def test_calibrated_scale_from_beam_power_and_lens(problem, tmp_path):
-    cal = calibrated_scale(problem.session_path, "g")
-    assert cal.scale == pytest.approx(2e5, rel=1e-9) and cal.defaults == ()
-    assert cal.scale == pytest.approx(cal.power_e_per_s / cal.calibration_nd * cal.pixel_area_mm2 * cal.collection_sr)
+    cal = calibrated_scale(problem.session_path, "g", problem.beam.power())
+    assert cal.scale == pytest.approx(2e5, rel=1e-6) and cal.defaults == ()
+    assert cal.scale == pytest.approx(cal.power_e_per_s / cal.calibration_nd * cal.pixel_area_mm2 * cal.collection_sr
+                                      / cal.beam_power)
     # The scale decides the loss: the truth fits better with the right one than with 1.3 x it.
     right = loss_at(problem, "exp3", TRUTH, spp=256, fixed_scale=cal.scale)["loss"]
     assert right < loss_at(problem, "exp3", TRUTH, spp=256, fixed_scale=1.3 * cal.scale)["loss"]
     # A rig configuration without the keys: the documented defaults, named.
     s = make_session(tmp_path / "s", {"g": TRUTH}, angles=[30, 150], spp=4, width=32, lens_config=False)
-    d = calibrated_scale(s, "g")
+    d = calibrated_scale(s, "g", 1.0e6)
     assert set(d.defaults) == {"camera.collection_sr", "camera.calibration_nd"}
     assert (d.collection_sr, d.calibration_nd) == (DEFAULT_COLLECTION_SR, DEFAULT_CALIBRATION_ND)
     with pytest.raises(DataError, match="no beam power for channel 'r'"):
-        calibrated_scale(problem.session_path, "r")
+        calibrated_scale(problem.session_path, "r", 1.0e6)
 
 
 def test_sandwich_uncertainties_match_scatter():

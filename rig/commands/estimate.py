@@ -70,7 +70,8 @@ def run(args: argparse.Namespace) -> int:
     exts = [e.strip() for e in args.extensions.split(",") if e.strip()]
     # Load every problem first: bad input fails before any fitting.
     problems = {c: load_problem(session, c, args.columns, allow_partial=args.allow_partial) for c in channels}
-    scales = {c: calibrated_scale(session, c) for c in channels} if args.scale == "calibrated" else {}
+    scales = ({c: calibrated_scale(session, c, problems[c].beam.power()) for c in channels}
+              if args.scale == "calibrated" else {})
     models = ["exp", "tthg"] if args.model == "both" else [args.model]
     settings = FitSettings(seed=args.seed, scale=args.scale)
     if args.max_iterations is not None:
