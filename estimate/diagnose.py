@@ -313,7 +313,7 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
     meas = np.asarray(problem.measured, dtype=np.float64)[idx]
     var = _variance(problem)[idx]
     mv = None if model_variance is None else np.asarray(model_variance)[idx]
-    f2 = (np.ones(len(idx)) if noise_scale is None else np.asarray(noise_scale, dtype=np.float64)[idx] ** 2)[:, None]
+    floor2 = (np.ones(len(idx)) if noise_scale is None else np.asarray(noise_scale, dtype=np.float64)[idx] ** 2)[:, None]
     theta = dict(model.validate(start))
     free = list(free)
     bounds = [_bounds(model, n) for n in free]
@@ -322,9 +322,9 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
 
     def residual(th: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
         f = model.render_profiles(th, angles, spp=spp, seed=seed)
-        s = _best_scale(meas, var * f2, f)
+        s = _best_scale(meas, var * floor2, f)
         v = var if mv is None else var + s * s * mv
-        sig = np.sqrt(v * f2)
+        sig = np.sqrt(v * floor2)
         r = (meas - s * f) / sig
         r = np.where(np.isfinite(sig), r, 0.0)
         return r, f, s, sig
