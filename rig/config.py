@@ -45,6 +45,8 @@ class CameraConfig:
     magnification: float = 0.3
     cooler_setpoint_c: float = -20.0
     profile_row: int | None = None  # None: from the beam calibration
+    collection_sr: float = 0.01  # lens collection solid angle [sr] (absolute intensity scale)
+    calibration_nd: float = 1.0e-3  # transmission of the ND filter used for the straight beam
 
 
 @dataclass(frozen=True)
@@ -178,7 +180,13 @@ def parse_config(data: dict, name: str = "<config>") -> RigConfig:
         magnification=c.get("magnification", float, 0.3),
         cooler_setpoint_c=c.get("cooler_setpoint_c", float, -20.0),
         profile_row=c.get("profile_row", int, None),
+        collection_sr=c.get("collection_sr", float, 0.01),
+        calibration_nd=c.get("calibration_nd", float, 1.0e-3),
     )
+    if not 0 < camera.collection_sr < 2 * math.pi:
+        raise c.fail("collection_sr", "must be in (0, 2 pi) sr (pi * NA^2 for a lens of numerical aperture NA)")
+    if not 0 < camera.calibration_nd <= 1:
+        raise c.fail("calibration_nd", "must be in (0, 1]: the transmission of the ND filter used during calibrate-beam")
     if camera.magnification <= 0:
         raise c.fail("magnification", "must be > 0 (telecentric lens magnification)")
 

@@ -1,15 +1,32 @@
 #!/usr/bin/env bash
-# The main job end to end on the simulated rig (the twins speak the real byte protocols).
+# The main job end to end on the simulated rig: the drivers talk to byte-level twins of
+# the stage, camera and filter wheel; the camera twin sees the slab of the default world
+# (worlds/default.yaml) rendered by the forward model. Renders are cached, so a second
+# demo is faster.
 set -euo pipefail
 VENV=${VENV:-.venv}
 OUT=${DEMO_OUT:-demo-out}
 RIG="$VENV/bin/rig"
-STAMP=$(date -u +%Y%m%dT%H%M%SZ)
-RUN="$OUT/$STAMP"
+RUN="$OUT/$(date -u +%Y%m%dT%H%M%SZ)"
 mkdir -p "$RUN"
-echo "== rig devices --sim"
+step() { echo; echo "== $*"; }
+
+step "rig devices --sim   (identities read through the byte protocols)"
 "$RIG" devices --sim --log-io "$RUN/devices-io.log"
-echo "== rig snap --sim (first light: a light and a dark frame)"
-"$RIG" snap --sim --angle 45 --filter g --exposure 0.05 --out "$RUN/first-light.npz"
-"$RIG" snap --sim --exposure 0.05 --dark --out "$RUN/first-dark.npz"
-echo "demo: done; outputs in $RUN/"
+
+step "rig calibrate-beam --sim   (slab removed: rotation zero, beam profile and power per filter)"
+"$RIG" calibrate-beam --sim --filters rgb --out "$RUN/calibration"
+
+step "rig capture --sim --angles 10 --filters rgb   (HDR stack per angle and filter)"
+"$RIG" capture --sim --angles 10 --filters rgb --calibration "$RUN/calibration" \
+    --thickness-mm 1.0 --out "$RUN/session"
+"$RIG" info "$RUN/session" | tail -n 1
+
+step "rig estimate   (sigma_t, albedo, exponential phase function per channel)"
+"$RIG" estimate "$RUN/session" ${DEMO_ESTIMATE_ARGS:-}
+
+step "rig report"
+"$RIG" report "$RUN/session"
+
+echo
+echo "demo: done. Open $RUN/session/report.html; everything the demo made is in $RUN/"
