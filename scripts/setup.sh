@@ -4,11 +4,21 @@
 set -euo pipefail
 VENV=${VENV:-.venv}
 
+# true if any of the glob patterns matches an existing file
+any_file() {
+    local pattern f
+    for pattern in "$@"; do
+        for f in $pattern; do
+            [ -e "$f" ] && return 0
+        done
+    done
+    return 1
+}
 have_llvm19() {
-    ls /usr/lib/*/libLLVM-19.so* /usr/lib/*/libLLVM.so.19* /usr/lib/llvm-19/lib/libLLVM*.so* >/dev/null 2>&1
+    any_file '/usr/lib/*/libLLVM-19.so*' '/usr/lib/*/libLLVM.so.19*' '/usr/lib/llvm-19/lib/libLLVM*.so*'
 }
 have_libusb() {
-    ls /usr/lib/*/libusb-1.0.so* /lib/*/libusb-1.0.so* >/dev/null 2>&1
+    any_file '/usr/lib/*/libusb-1.0.so*' '/lib/*/libusb-1.0.so*'
 }
 
 if ! have_llvm19 || ! have_libusb; then
