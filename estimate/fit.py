@@ -86,7 +86,7 @@ class FitSettings:
     delta_range: tuple[float, float] = DEFAULT_DELTA_RANGE
     seed: int = 0
     time_limit_s: float | None = None
-    lm_iterations: int = 4
+    lm_iterations: int = 10          # at most; stops when a step gains < 0.1 % or none is accepted
     decorrelated: bool = True
     lm_spp: int = 1024
     uncertainties: bool = True

@@ -22,7 +22,7 @@ from estimate.problem import Problem, load_problem
 TRUTH = {"sigma_t": 3.0, "albedo": 0.85, "phase.b1": 3.0, "phase.b2": 0.0, "phase.b3": 0.0}
 PHASE = {k: v for k, v in TRUTH.items() if k.startswith("phase.")}
 FAST = {"max_iterations": 30, "spp_start": 128, "spp_max": 256, "final_spp": 512, "start_spp": 64, "window": 4,
-        "lm_spp": 512}
+        "lm_spp": 512, "lm_iterations": 4}
 
 
 @pytest.fixture(scope="module")
