@@ -118,7 +118,7 @@ def test_concealed_effect_under_frozen_excess_noise_is_significant_and_named_fir
     concealed = next(iter(effect)).split(".")[0]
     rec = record(effect, seed=13, excess=30.0)
     base = BaseFit(dict(TRUE), 1e4, "hg")
-    d = diagnose_channel(rec, base, make_model, candidates=["stray_light", "lens_blur", "angle_offset"], spp=128,
+    d = diagnose_channel(rec, base, make_model, candidates=["stray_light", "lens_blur", "sensor_nonlinearity"], spp=128,
                          repeats=3, iterations=4)
     assert d.significant, d.before.residuals.smooth
     assert d.candidates[0].name == concealed, [(c.name, round(c.statistic)) for c in d.candidates]
