@@ -33,6 +33,8 @@ def main() -> int:
     ap.add_argument("--channel", default="g")
     ap.add_argument("--model", default="exp3")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--scale", choices=("calibrated", "free"), default="calibrated",
+                    help="intensity scale: from the calibration and the lens (default, as rig estimate) or fitted")
     args = ap.parse_args()
     from estimate.fit import FitSettings, fit_channel, loss_at
     from estimate.problem import load_problem
@@ -54,11 +56,12 @@ def main() -> int:
         c0 = time.process_time()
         pb = load_problem(session, args.channel)
         t_load = time.monotonic() - t0
-        r = fit_channel(pb, args.model, settings=FitSettings(seed=args.seed))
+        r = fit_channel(pb, args.model, settings=FitSettings(seed=args.seed, scale=args.scale))
         wall = time.monotonic() - t0
         cpu = time.process_time() - c0  # all threads; / 2 ~ the wall time on 2 free cores
         load = os.getloadavg()[0]
         out = {"session": "synthetic" if truth else str(session), "channel": args.channel, "model": r.model,
+               "scale_mode": args.scale,
                "n_angles": pb.n_angles, "n_px": pb.n_px, "cpu_count": os.cpu_count(), "wall_s": wall,
                "cpu_s": cpu, "load_average_1min_at_end": load,
                "load_s": t_load, "fit_s": r.time_s, "iterations": r.iterations, "stop_reason": r.stop_reason,

@@ -33,6 +33,7 @@ CACHE = ROOT / "benchmarks" / "results" / "paper_sim"
 DIAMETERS = (0.5, 0.3, 0.2, 0.01)
 SIGMAS = (2.0, 6.0)
 ALBEDO = 0.9
+SCALE = "calibrated"  # intensity scale of the fits (--scale); as rig estimate's default
 
 WORLD_TEMPLATE = """\
 # Paper section 4 simulation case: poly-disperse Mie, mean diameter {d} um, sigma_t {s} /mm.
@@ -97,11 +98,11 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
     truth = mat.parameters()
     rows = []
     for model in models:
-        f = cdir / f"fit_{model}.json"
+        f = cdir / (f"fit_{model}.json" if SCALE == "free" else f"fit_{model}_{SCALE}.json")
         if f.exists():
             rows.append(json.loads(f.read_text()))
             continue
-        st = FitSettings(seed=seed)
+        st = FitSettings(seed=seed, scale=SCALE)
         t0 = time.monotonic()
         r = fit_channel(pb, model, settings=st)
         wall = time.monotonic() - t0
@@ -110,7 +111,7 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
                "sigma_t": r.parameters["sigma_t"], "albedo": r.parameters["albedo"],
                "sigma_t_rel_error": abs(r.parameters["sigma_t"] / s - 1), "albedo_abs_error": abs(r.parameters["albedo"] - ALBEDO),
                "loss": r.loss, "loss_at_truth": floor, "loss_ratio": r.loss / floor, "reduced_chi2": r.reduced_chi2,
-               "iterations": r.iterations, "spp_schedule": r.spp_schedule, "time_s": wall,
+               "scale_mode": SCALE, "iterations": r.iterations, "spp_schedule": r.spp_schedule, "time_s": wall,
                "parameters": r.parameters, "uncertainties": r.uncertainties, "true_model": mat.model}
         f.write_text(json.dumps(row, indent=1, default=float))
         rows.append(row)
@@ -125,7 +126,11 @@ def main() -> int:
     ap.add_argument("--models", default="exp3,tthg")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--table-only", action="store_true", help="print / write the cached fits only, compute nothing")
+    ap.add_argument("--scale", choices=("calibrated", "free"), default="calibrated",
+                    help="intensity scale of the fits: calibrated (default, as rig estimate) or free")
     args = ap.parse_args()
+    global SCALE
+    SCALE = args.scale
     models = [m for m in args.models.split(",") if m]
     want = set(args.cases.split(",")) if args.cases else None
     rows: list[dict] = []
