@@ -180,9 +180,12 @@ def run_bench(case: dict[str, Any], work: Path, channel: str, angles: int, spp: 
             _rig("capture", "--sim", str(wpath), "--calibration", str(cal), "--filters", channel,
                  "--angles", str(angles), "--out", str(session), "--no-progress", log=log)
         _rig("estimate", str(session), "--channels", channel, "--json", log=log)
+    # The estimate run itself, not a refit an earlier diagnosis wrote next to it.
+    runs = sorted(d for d in (session / "estimates").iterdir() if (d / "results.yaml").is_file()
+                  and "+diagnosis" not in d.name)
     t0 = time.perf_counter()
-    doc = json.loads(_rig("diagnose", str(session), "--channels", channel, "--spp", str(spp), "--json", "--no-plots",
-                          log=log))
+    doc = json.loads(_rig("diagnose", str(session), "--fit", str(runs[-1]), "--channels", channel, "--spp", str(spp),
+                          "--json", "--no-plots", log=log))
     out = doc["channels"][channel]
     out["diagnose_wall_s"] = time.perf_counter() - t0
     mat = world["materials"][channel]
@@ -332,10 +335,11 @@ def main() -> int:
     print()
     print(text)
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / f"bench_diagnose_{args.source}.md").write_text(text + "\n")
+    label = args.source if args.source == "bench" or args.excess == 30.0 else f"synthetic-excess{args.excess:g}"
+    (RESULTS / f"bench_diagnose_{label}.md").write_text(text + "\n")
     jpath = RESULTS / "bench_diagnose.json"
     doc = json.loads(jpath.read_text()) if jpath.is_file() else {}
-    doc[args.source] = {"summary": summary, "cases": rows, "quick": args.quick}
+    doc[label] = {"summary": summary, "cases": rows, "quick": args.quick}
     jpath.write_text(json.dumps(doc, indent=1, default=float))
     return 0
 
