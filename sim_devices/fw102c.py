@@ -21,7 +21,6 @@ exchange sent back; ``ng``: a valid command is refused with ``Command error``.
 
 from __future__ import annotations
 
-import heapq
 import threading
 from dataclasses import dataclass
 
@@ -144,22 +143,9 @@ class FW102CTwin(SerialTwin):
     # ------------------------------------------------------------------ host side
 
     def read_ready(self, size: int | None = None) -> bytes:
-        # Same contract as SerialTwin.read_ready, but the unread rest of a chunk
-        # keeps that chunk's place in the queue: the base pushes it back with the
-        # present time, behind older chunks, which scrambles byte order when the
-        # host reads one byte at a time (pyserial's read_until does).
-        with self.lock:
-            now = self.clock.now()
-            out = bytearray()
-            while self._out and self._out[0][0] <= now and (size is None or len(out) < size):
-                t, seq, chunk = heapq.heappop(self._out)
-                if size is not None and len(out) + len(chunk) > size:
-                    keep = size - len(out)
-                    heapq.heappush(self._out, (t, seq, chunk[keep:]))
-                    chunk = chunk[:keep]
-                out += chunk
+        out = super().read_ready(size)
         self._sync_bench()  # after the read: a prompt seen implies the bench is updated
-        return bytes(out)
+        return out
 
     # ------------------------------------------------------------------ command handling
 
@@ -197,13 +183,8 @@ class FW102CTwin(SerialTwin):
         data = proto.format_exchange(line, reply, error)
         if garble and not garble_inbound:
             data = self.faults.garble(data)
-        self._emit_at(echo_time, data[:echo_len])
-        self._emit_at(done_time, data[echo_len:])
-
-    def _emit_at(self, t: float, data: bytes) -> None:
-        """Queue ``data`` readable from simulated time ``t`` (absolute, unlike
-        ``reply``'s relative delay, so that chunks of one exchange keep their order)."""
-        heapq.heappush(self._out, (t, next(self._seq), data))
+        self.reply_at(echo_time, data[:echo_len])
+        self.reply_at(done_time, data[echo_len:])
 
     def _execute(self, cmd: proto.Command, t0: float) -> tuple[str | None, str | None, float]:
         """Act on a well-formed command at simulated time ``t0``: (reply, error, time of the prompt)."""
