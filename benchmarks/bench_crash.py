@@ -53,17 +53,13 @@ PLAN = ["--angles", "3", "--filters", "rg", "--band-rows", "8", "--max-exposures
 
 
 def cheap_world(tmp: Path) -> Path | None:
-    """A cheap copy of the default world (few samples per pixel, renders cached under ``tmp``), or
-    None without the rendered bench: these runs test robustness, not the physics."""
+    """A cheap copy of the default world (renders cached under ``tmp``), or None without the
+    rendered bench: these runs test robustness, not the physics."""
     try:
-        from sim_devices.world import DEFAULT_WORLD_PATH
+        from sim_devices.world import write_quick_world
     except ImportError:
         return None
-    data = yaml.safe_load(DEFAULT_WORLD_PATH.read_text())
-    data["render"].update(spp_profile=16, spp_band=4, band_halfwidth_rows=4, spp_outside=0, cache_dir=str(tmp / "cache"))
-    p = tmp / "cheap-world.yaml"
-    p.write_text(yaml.safe_dump(data))
-    return p
+    return write_quick_world(tmp / "cheap-world.yaml", cache_dir=tmp / "cache")
 
 
 def _cmd(cfg: Path, *rest: str) -> list[str]:

@@ -13,21 +13,15 @@ import argparse
 import json
 from pathlib import Path
 
-import yaml
 
 from rig import api
 
 
 def cheap_world(out: Path) -> Path:
     """A copy of the default world rendered at a few samples per pixel (fast, noisier)."""
-    from sim_devices.world import DEFAULT_WORLD_PATH
+    from sim_devices.world import write_quick_world
 
-    data = yaml.safe_load(Path(DEFAULT_WORLD_PATH).read_text())
-    data["render"].update(spp_profile=64, spp_band=4, band_halfwidth_rows=4, spp_outside=0,
-                          cache_dir=str(out / "render-cache"))
-    path = out / "world-quick.yaml"
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
-    return path
+    return write_quick_world(out / "world-quick.yaml", cache_dir=out / "render-cache", spp_profile=64)
 
 
 def main() -> None:

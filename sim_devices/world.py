@@ -464,3 +464,18 @@ def check_filters(world: World, filters: Mapping[str, Any] | list[str]) -> None:
     if missing:
         raise WorldError(f"{world.source}: materials: no entry for filter {missing[0]!r} of the rig; "
                          f"add one (the world has {', '.join(world.materials)})")
+
+
+def write_quick_world(path: str | os.PathLike[str], *, cache_dir: str | os.PathLike[str],
+                      spp_profile: int = 16, source: str | os.PathLike[str] | None = None) -> Path:
+    """Write a copy of a world (default: the default world) rendered at a few samples per pixel,
+    with its render cache in ``cache_dir``: the same physics, noisier and fast. Tests, benchmarks of
+    robustness and the quick example use it. Returns ``path``."""
+    import yaml
+
+    data = yaml.safe_load(Path(source or DEFAULT_WORLD_PATH).read_text(encoding="utf-8"))
+    data.setdefault("render", {}).update(spp_profile=spp_profile, spp_band=4, band_halfwidth_rows=4,
+                                         spp_outside=0, cache_dir=str(cache_dir))
+    out = Path(path)
+    out.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
+    return out

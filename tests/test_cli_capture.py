@@ -37,14 +37,11 @@ _WORLD: list[Path] = []  # the cheap test world, made once per module (see the `
 def world(tmp_path_factory: pytest.TempPathFactory) -> Path | None:
     """A cheap copy of the default world: the rendered bench's physics at a few samples per pixel."""
     try:
-        from sim_devices.world import DEFAULT_WORLD_PATH
+        from sim_devices.world import write_quick_world
     except ImportError:
         return None
     tmp = tmp_path_factory.mktemp("world")
-    data = yaml.safe_load(DEFAULT_WORLD_PATH.read_text())
-    data["render"].update(spp_profile=16, spp_band=4, band_halfwidth_rows=4, spp_outside=0, cache_dir=str(tmp / "cache"))
-    p = tmp / "cheap.yaml"
-    p.write_text(yaml.safe_dump(data))
+    p = write_quick_world(tmp / "cheap.yaml", cache_dir=tmp / "cache")
     _WORLD[:] = [p]
     return p
 

@@ -45,14 +45,11 @@ def test_the_guide_shows_the_whole_job():
 
 @pytest.mark.slow
 def test_every_guide_command_runs_on_the_simulated_rig(tmp_path):
-    from sim_devices.world import DEFAULT_WORLD_PATH
+    from sim_devices.world import write_quick_world
 
-    world = yaml.safe_load(Path(DEFAULT_WORLD_PATH).read_text())
-    world["render"].update(spp_profile=16, spp_band=4, band_halfwidth_rows=4, spp_outside=0,
-                           cache_dir=str(tmp_path / "render-cache"))
-    (tmp_path / "world.yaml").write_text(yaml.safe_dump(world, sort_keys=False))
+    world = write_quick_world(tmp_path / "world.yaml", cache_dir=tmp_path / "render-cache")
     cfg = yaml.safe_load((ROOT / "configs" / "rig-sim.yaml").read_text())
-    cfg["sim"]["world"] = str(tmp_path / "world.yaml")
+    cfg["sim"]["world"] = str(world)
     (tmp_path / "rig.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
 
     rig = [sys.executable, "-m", "rig.cli"]
