@@ -63,8 +63,9 @@ def _check_basis(basis: str) -> None:
         raise ModelParameterError(f"basis must be one of {_BASES}, got {basis!r}")
 
 
-def _as_coeffs(coeffs: Sequence[float] | np.ndarray, name: str = "b") -> np.ndarray:
-    """b_1..b_M as a float array, checked finite (error names the bad b_i)."""
+def as_coefficients(coeffs: Sequence[float] | np.ndarray, name: str = "b") -> np.ndarray:
+    """Coefficients name_1..name_M as a float array, checked finite (the error names the bad one).
+    Shared by the phase-function families."""
     try:
         c = np.asarray(coeffs, dtype=float).reshape(-1)
     except (TypeError, ValueError) as e:
@@ -164,7 +165,7 @@ def quadrature_nodes(
     its midpoint and both halves are graded geometrically towards their outer end.
     """
     _check_basis(basis)
-    return _nodes_for(_full_monomial(_as_coeffs(coeffs), basis), n_nodes)
+    return _nodes_for(_full_monomial(as_coefficients(coeffs), basis), n_nodes)
 
 
 def _nodes_for(mono: np.ndarray, n_nodes: int = _GL_NODES) -> tuple[np.ndarray, np.ndarray]:
@@ -203,7 +204,7 @@ def log_norm(coeffs: Sequence[float] | np.ndarray, basis: Basis = "monomial") ->
         basis: "monomial" (Q_i = mu^i, the paper's) or "legendre" (Q_i = P_i).
     """
     _check_basis(basis)
-    c = _as_coeffs(coeffs)
+    c = as_coefficients(coeffs)
     if c.size == 0 or not np.any(c):
         return -math.log(4.0 * math.pi)
     mono = _full_monomial(c, basis)
@@ -217,7 +218,7 @@ def log_norm_and_grad(
 ) -> tuple[float, np.ndarray]:
     """b_0 (see :func:`log_norm`) and d b_0 / d b_i = -<Q_i>_p for i = 1..M."""
     _check_basis(basis)
-    c = _as_coeffs(coeffs)
+    c = as_coefficients(coeffs)
     m = c.size
     if m == 0:
         return -math.log(4.0 * math.pi), np.zeros(0)
@@ -250,7 +251,7 @@ class ExponentialPhase:
 
     def __init__(self, coeffs: Sequence[float] | np.ndarray, basis: Basis = "monomial") -> None:
         _check_basis(basis)
-        self._c = _as_coeffs(coeffs)
+        self._c = as_coefficients(coeffs)
         self.basis: Basis = basis
         self._mono = _full_monomial(self._c, basis)
         if np.max(np.abs(self._mono)) > 1e6:

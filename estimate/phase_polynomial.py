@@ -15,28 +15,16 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.polynomial import polynomial as _poly
 
-from estimate.errors import ModelParameterError
+from estimate.phase_exponential import as_coefficients
 
 __all__ = ["IsotropicPhase", "PolynomialPhase", "normalised_design", "polynomial_a0"]
 
 ISOTROPIC = 1.0 / (4.0 * math.pi)
 
 
-def _coeffs(a: Sequence[float] | np.ndarray) -> np.ndarray:
-    try:
-        c = np.asarray(a, dtype=float).reshape(-1)
-    except (TypeError, ValueError) as e:
-        raise ModelParameterError(f"a_1..a_N must be numbers: {e}") from None
-    bad = np.flatnonzero(~np.isfinite(c))
-    if bad.size:
-        i = int(bad[0])
-        raise ModelParameterError(f"a_{i + 1} is {c[i]!r}; coefficients must be finite")
-    return c
-
-
 def polynomial_a0(a: Sequence[float] | np.ndarray) -> float:
     """a_0 that normalises sum a_i mu^i over the sphere, given a_1..a_N."""
-    c = _coeffs(a)
+    c = as_coefficients(a, "a")
     s = sum(c[i - 1] / (i + 1) for i in range(2, c.size + 1, 2))
     return ISOTROPIC - s
 
@@ -61,7 +49,7 @@ class PolynomialPhase:
     """
 
     def __init__(self, coeffs: Sequence[float] | np.ndarray) -> None:
-        self._a = _coeffs(coeffs)
+        self._a = as_coefficients(coeffs, "a")
         self.a0 = polynomial_a0(self._a)
         self._full = np.concatenate([[self.a0], self._a])
 
