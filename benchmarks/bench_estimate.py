@@ -52,6 +52,7 @@ def main() -> int:
         print(f"synthetic session written in {time.monotonic() - t:.1f} s")
         truth = TRUTH
     try:
+        load0 = os.getloadavg()[0]
         t0 = time.monotonic()
         c0 = time.process_time()
         pb = load_problem(session, args.channel)
@@ -61,7 +62,8 @@ def main() -> int:
         cpu = time.process_time() - c0  # all threads; / 2 ~ the wall time on 2 free cores
         load = os.getloadavg()[0]
         out = {"session": "synthetic" if truth else str(session), "channel": args.channel, "model": r.model,
-               "scale_mode": args.scale,
+               "scale_mode": args.scale, "optimizer": r.settings["optimizer"],
+               "load_average_1min_at_start": load0,
                "n_angles": pb.n_angles, "n_px": pb.n_px, "cpu_count": os.cpu_count(), "wall_s": wall,
                "cpu_s": cpu, "load_average_1min_at_end": load,
                "load_s": t_load, "fit_s": r.time_s, "iterations": r.iterations, "stop_reason": r.stop_reason,
@@ -69,14 +71,15 @@ def main() -> int:
                "uncertainties": r.uncertainties, "loss": r.loss, "reduced_chi2": r.reduced_chi2,
                "start": r.start}
         if truth:
-            ev = loss_at(pb, args.model, truth, spp=r.settings["final_spp"])
+            ev = loss_at(pb, args.model, truth, spp=r.settings["final_spp"],
+                         fixed_scale=r.scale if args.scale == "calibrated" else None)
             out["truth"] = truth
             out["loss_at_truth"] = ev["loss"]
             out["reduced_chi2_at_truth"] = ev["chi2"] / r.dof
             out["sigma_t_rel_error"] = abs(r.parameters["sigma_t"] / truth["sigma_t"] - 1)
             out["albedo_abs_error"] = abs(r.parameters["albedo"] - truth["albedo"])
         print(f"{'quantity':<24}value")
-        for k in ("n_angles", "n_px", "wall_s", "cpu_s", "load_average_1min_at_end", "iterations", "stop_reason", "spp_schedule", "loss",
+        for k in ("n_angles", "n_px", "wall_s", "cpu_s", "load_average_1min_at_start", "load_average_1min_at_end", "iterations", "stop_reason", "spp_schedule", "loss",
                   "loss_at_truth", "reduced_chi2", "reduced_chi2_at_truth", "sigma_t_rel_error", "albedo_abs_error"):
             if k in out:
                 v = out[k]

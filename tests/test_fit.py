@@ -128,3 +128,66 @@ def test_fixed_parameters_stay(problem):
     assert r.scale_mode == "free" and r.scale_calibration is None
     assert r.parameters["phase.g_backward"] == -0.2 and r.parameters["phase.w_forward"] == 0.95
     assert r.start["sigma_t"] == 3.0 and r.iterations == 6 and r.stop_reason == "max_iterations"
+
+
+def _toy_problem(x, meas):
+    return Problem(np.array([0.0]), x, meas, np.ones_like(meas), np.ones_like(meas, bool), None, "t", None)  # type: ignore[arg-type]
+
+
+def test_gauss_newton_step_solves_the_linearised_log_fit():
+    """`_gn_direction` with the exact Jacobian: one step = the linear least-squares step of the
+    log residuals; repeated full steps on I = a exp(-b x) converge to the truth."""
+    from estimate.fit import _gn_direction
+    from estimate.transforms import Transform
+
+    x = np.linspace(0.0, 3.0, 50)
+    tr = [Transform("log", 0.1), Transform("linear", 0.1, -10.0, 10.0)]
+    meas = (2.0 * np.exp(-1.3 * x))[None, :]
+    pb = _toy_problem(x, meas)
+    dl = 1e-3 * float(meas.max())
+    theta = np.array([1.2, 0.8])
+    for step in range(8):
+        prof = (theta[0] * np.exp(-theta[1] * x))[None, :]
+        jac = {"a": prof / theta[0], "b": -x * prof}
+        z = np.array([math.log(theta[0]), theta[1]])
+        r = np.log(meas + dl) - np.log(prof + dl)
+        A = np.stack([(-jac["a"] / (prof + dl)).ravel() * theta[0], (-jac["b"] / (prof + dl)).ravel()], axis=1)
+        g = 2.0 * A.T @ r.ravel() / r.size
+        dz = _gn_direction(jac, ["a", "b"], tr, z, pb, prof, dl, meas, False, g, damping=0.0)
+        if step == 0:
+            assert np.allclose(dz, -np.linalg.lstsq(A, r.ravel(), rcond=None)[0], rtol=1e-8)
+        z = z + dz
+        theta = np.array([math.exp(z[0]), z[1]])
+    assert theta == pytest.approx([2.0, 1.3], rel=1e-6)
+
+
+def test_gauss_newton_with_profiled_scale_matches_the_joint_step():
+    """With the scale profiled out, the step equals the parameters' part of the joint
+    least-squares step over (parameters, log scale) at the optimal scale (a_s^T r = 0)."""
+    from estimate.fit import _gn_direction
+    from estimate.transforms import Transform
+
+    rng = np.random.default_rng(4)
+    x = np.linspace(0.0, 3.0, 40)
+    prof = np.exp(-x)[None, :]
+    meas = prof * (1.0 + 0.05 * rng.normal(size=prof.shape))
+    pb = _toy_problem(x, meas)
+    dl = 1e-3
+    jac = {"a": (x ** 2)[None, :] * prof, "b": -np.sin(2.0 * x)[None, :] * prof}
+    tr = [Transform("linear", 0.1, -10, 10), Transform("linear", 0.1, -10, 10)]
+    A = np.stack([(-jac[n] / (prof + dl)).ravel() for n in ("a", "b")], axis=1)
+    a_s = (-meas / (meas + dl)).ravel()
+    r = (np.log(meas + dl) - np.log(prof + dl)).ravel()
+    r = r - a_s * (a_s @ r) / (a_s @ a_s)                      # at the profiled (optimal) scale
+    joint = -np.linalg.lstsq(np.column_stack([A, a_s]), r, rcond=None)[0]
+    g = 2.0 * A.T @ r / r.size
+    dz = _gn_direction(jac, ["a", "b"], tr, np.zeros(2), pb, prof, dl, meas, True, g, damping=0.0)
+    assert dz == pytest.approx(joint[:2], rel=1e-5)
+
+
+def test_unknown_optimizer_is_refused(problem):
+    from estimate.errors import ModelParameterError
+
+    with pytest.raises(ModelParameterError, match="unknown optimizer"):
+        fit_channel(problem, "exp3", start={"sigma_t": 3.0, "albedo": 0.85},
+                    settings=FitSettings(optimizer="lbfgs", max_iterations=1))
