@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
@@ -73,6 +74,14 @@ def _rig(*args: str) -> None:
         raise RuntimeError(f"{' '.join(args[:1])} failed: {r.stderr.strip().splitlines()[-1:]}")
 
 
+def fit_cache(cdir: Path, model: str) -> Path:
+    """Cached fit of one case: keyed by model, scale mode and optimiser (earlier optimisers'
+    fits stay as they were)."""
+    from estimate.fit import FitSettings
+
+    return cdir / f"fit_{model}_{SCALE}_{FitSettings().optimizer}.json"
+
+
 def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
     from estimate.fit import FitSettings, fit_channel, loss_at
     from estimate.problem import load_problem
@@ -98,7 +107,7 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
     truth = mat.parameters()
     rows = []
     for model in models:
-        f = cdir / (f"fit_{model}.json" if SCALE == "free" else f"fit_{model}_{SCALE}.json")
+        f = fit_cache(cdir, model)
         if f.exists():
             rows.append(json.loads(f.read_text()))
             continue
@@ -106,12 +115,14 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
         t0 = time.monotonic()
         r = fit_channel(pb, model, settings=st)
         wall = time.monotonic() - t0
-        floor = loss_at(pb, mat.model, truth, spp=st.final_spp)["loss"]
+        floor = loss_at(pb, mat.model, truth, spp=st.final_spp,
+                        fixed_scale=r.scale if SCALE == "calibrated" else None)["loss"]
         row = {"case": name, "diameter_um": d, "sigma_t_true": s, "albedo_true": ALBEDO, "model": r.model,
                "sigma_t": r.parameters["sigma_t"], "albedo": r.parameters["albedo"],
                "sigma_t_rel_error": abs(r.parameters["sigma_t"] / s - 1), "albedo_abs_error": abs(r.parameters["albedo"] - ALBEDO),
                "loss": r.loss, "loss_at_truth": floor, "loss_ratio": r.loss / floor, "reduced_chi2": r.reduced_chi2,
-               "scale_mode": SCALE, "iterations": r.iterations, "spp_schedule": r.spp_schedule, "time_s": wall,
+               "scale_mode": SCALE, "optimizer": st.optimizer, "load_average_1min_at_end": os.getloadavg()[0],
+               "iterations": r.iterations, "spp_schedule": r.spp_schedule, "time_s": wall,
                "parameters": r.parameters, "uncertainties": r.uncertainties, "true_model": mat.model}
         f.write_text(json.dumps(row, indent=1, default=float))
         rows.append(row)
@@ -140,7 +151,7 @@ def main() -> int:
                 continue
             if args.table_only:
                 for m in models:
-                    f = CACHE / case_name(d, s) / f"fit_{m}.json"
+                    f = fit_cache(CACHE / case_name(d, s), m)
                     if f.exists():
                         rows.append(json.loads(f.read_text()))
                 continue

@@ -42,7 +42,8 @@
    s * I_model, W = 1 / (var_meas + s^2 var_model), times the reduced chi^2 when > 1; kept
    in `FitResult.fisher_uncertainties`). The Fisher bound alone was 4-25x smaller than the
    real errors: the log loss is not the variance-weighted fit the bound describes, and the
-   residuals exceed the noise.
+   residuals exceed the noise. The standard deviation of the averaged iterates (the stochastic
+   optimiser's own spread, `FitResult.optimizer_spread`) is added in quadrature.
 
 The scale (measured = scale * rendered) is either profiled out per channel
 (`FitSettings.scale = "free"`, the paper's normalisation made cleaner) or taken from the
@@ -145,6 +146,7 @@ class FitResult:
     scale_mode: str = "free"
     scale_calibration: dict[str, Any] | None = None   # ScaleCalibration.to_dict() when calibrated
     fisher_uncertainties: dict[str, float] = field(default_factory=dict)   # before the sandwich
+    optimizer_spread: dict[str, float] = field(default_factory=dict)       # sd of the averaged iterates
 
     @property
     def free(self) -> list[str]:
@@ -603,6 +605,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     red = ev["chi2"] / dof
     unc: dict[str, float] = {n: float("nan") for n in names}
     fisher: dict[str, float] = {}
+    spread: dict[str, float] = {}
     s_unc = float("nan")
     if st.uncertainties:
         jac = _jacobian_columns(fm, problem, final, names, spp=st.spp_max, seed=st.seed * 100_003 + 60_000)
@@ -615,6 +618,14 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
                                                render_variance_factor=2.0 * st.final_spp / max(1, st.lm_spp))
         # never below the ideal linear-chi^2 bound
         unc = {k: max(v, fisher.get(k, 0.0)) for k, v in unc.items()}
+        # The stochastic optimiser's own spread: the standard deviation of the averaged
+        # iterates, added in quadrature. The curvature-based intervals describe the
+        # minimum of the loss; along the sigma_t / phase valley the iterates wander by more
+        # than that (synthetic benchmark: sandwich 0.006 /mm, error 0.057 /mm).
+        for i, (n, t) in enumerate(zip(names, tr)):
+            xs = np.array([t.to_x(float(h[i])) for h in history[-n_avg:]])
+            spread[n] = float(np.std(xs, ddof=1)) if len(xs) > 1 else 0.0
+            unc[n] = math.hypot(unc[n], spread[n])
     return FitResult(
         channel=problem.channel, model=phase, extensions=list(fm.extensions), parameters=final,
         uncertainties=unc, fixed=fixed, scale=ev["scale"], scale_uncertainty=s_unc, loss=ev["loss"],
@@ -622,7 +633,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         time_s=time.monotonic() - t0, stop_reason=stop, spp_schedule=schedule, loss_curve=curve,
         angles_deg=[float(a) for a in problem.angles_deg], fitted=ev["profiles"], lm_losses=lm_losses,
         model_variance=ev["model_variance"], start=dict(init), settings=st.to_dict(), scale_mode=st.scale,
-        scale_calibration=cal.to_dict() if cal is not None else None, fisher_uncertainties=fisher)
+        scale_calibration=cal.to_dict() if cal is not None else None, fisher_uncertainties=fisher,
+        optimizer_spread=spread)
 
 
 def loss_at(problem: Problem, model: str, params: Mapping[str, float], *, extensions: Sequence[str] = (),
