@@ -34,8 +34,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--columns", type=int, default=None, help="profile window width in pixels (256)")
     p.add_argument("--extensions", default="", help="forward-model extensions to include, comma separated")
     p.add_argument("--allow-partial", action="store_true", help="fit the stacks present when some are missing")
-    p.add_argument("--max-iterations", type=int, default=None, help="Adam iterations at most (150)")
-    p.add_argument("--spp-max", type=int, default=None, help="largest samples per pixel of Adam (512); the final polish and evaluation use twice that")
+    p.add_argument("--max-iterations", type=int, default=None, help="optimiser iterations at most (80: 10 Adam, then Gauss-Newton)")
+    p.add_argument("--spp-max", type=int, default=None, help="largest samples per pixel of the optimiser (512); the final evaluation uses twice that")
     p.add_argument("--seed", type=int, default=0, help="random seed (renders, delta draws)")
     p.add_argument("--scale", choices=("calibrated", "free"), default="calibrated",
                    help="measured/rendered intensity scale: from the calibrated beam power and the lens's "
