@@ -585,9 +585,6 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
                 break
             spp = min(st.spp_max, spp * 2)
             adam.lr = adam.lr * st.lr_decay
-            if st.optimizer == "adam+gn" and st.decorrelated and mode == "adam":
-                mode = "gn"
-                gn_jac = None
             schedule.append([it, spp])
             since_change = 0
     n_avg = min(len(history), st.window * (2 if mode == "gn" else 1))
