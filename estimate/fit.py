@@ -79,7 +79,7 @@ from estimate.problem import Problem
 from estimate.start import coarse_start
 from estimate.transforms import Transform, transform_for
 
-__all__ = ["FitResult", "FitSettings", "evaluate", "fisher_uncertainties", "fit_channel", "model_phase"]
+__all__ = ["FitResult", "FitSettings", "evaluate", "fisher_uncertainties", "fit_channel", "model_phase", "secant_steps"]
 
 
 @dataclass
@@ -214,26 +214,39 @@ def _flattened(losses: Sequence[float], window: int) -> bool:
 #: for a preconditioner: the gradient itself always comes from the reverse-mode pass.
 _GN_DZ = {"log": 0.05, "logit": 0.3, "tanh": 0.1}
 _GN_DB = 0.5
+#: Smallest eigenvalue of the Gauss-Newton matrix, relative to its largest (see _gn_direction).
+GN_EIG_FLOOR = 1e-4
 
 
-def _gn_jacobian(fm: ForwardModel, problem: Problem, p: Mapping[str, float], names: Sequence[str],
-                 tr: Sequence[Transform], z: np.ndarray, *, spp: int, seed: int) -> dict[str, np.ndarray]:
-    """d profiles / d x at `p` for the Gauss-Newton matrix (central differences, large steps)."""
+def secant_steps(fm: ForwardModel, params: Mapping[str, float], names: Sequence[str]) -> dict[str, float]:
+    """Finite-difference steps (in each parameter's own units) for Jacobians that must
+    describe the mean trend of Monte Carlo renders rather than one seed's jagged surface:
+    5 % in sigma_t, 0.3 in logit albedo, 0.1 in atanh g, 0.5 in b_i, 3x the default
+    otherwise, and never below the parameter's default step."""
     steps: dict[str, float] = {}
-    for n, t, zz in zip(names, tr, z):
-        default = fm.specs[n].fd_step * max(1.0, abs(p[n]))
+    for n in names:
+        spec = fm.specs[n]
+        x = float(params[n])
+        default = spec.fd_step * max(1.0, abs(x))
+        t = transform_for(n, spec)
         if t.kind in _GN_DZ:
-            steps[n] = max(default, _GN_DZ[t.kind] * t.dx_dz(float(zz)))
+            steps[n] = max(default, _GN_DZ[t.kind] * t.dx_dz(t.to_z(x)))
         elif n.startswith("phase.b"):
             steps[n] = _GN_DB
         else:
             steps[n] = 3.0 * default
-    return fm.jacobian(p, problem.angles_deg, list(names), spp=spp, seed=seed, steps=steps)
+    return steps
+
+
+def _gn_jacobian(fm: ForwardModel, problem: Problem, p: Mapping[str, float], names: Sequence[str],
+                 *, spp: int, seed: int) -> dict[str, np.ndarray]:
+    """d profiles / d x at `p` for the Gauss-Newton matrix (central differences, large steps)."""
+    return fm.jacobian(p, problem.angles_deg, list(names), spp=spp, seed=seed, steps=secant_steps(fm, p, names))
 
 
 def _gn_direction(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequence[Transform], z: np.ndarray,
                   problem: Problem, mean: np.ndarray, dl: float, m: np.ndarray, profiled_scale: bool,
-                  grad_z: np.ndarray, damping: float = 1e-3) -> np.ndarray:
+                  grad_z: np.ndarray, damping: float = 1e-3, eig_floor: float | None = None) -> np.ndarray:
     """Gauss-Newton step in z for the log loss mean(r^2) given its gradient `grad_z`.
 
     The matrix is 2/n A^T A with A = dr/dz = -J / (I + delta) dx/dz at this iteration's delta
@@ -244,6 +257,7 @@ def _gn_direction(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Seque
     direction) so the steps there are somewhat short: a debiased product of two independent
     Jacobians was tried and lost positive definiteness at 256 spp (the fit diverged).
     """
+    eig_floor = GN_EIG_FLOOR if eig_floor is None else eig_floor
     valid = problem.valid
     den = np.clip(mean, 0.0, None) + dl
     cols = [np.where(valid, -jac[n] / den, 0.0).ravel() * t.dx_dz(float(zz)) for n, t, zz in zip(names, tr, z)]
@@ -255,10 +269,17 @@ def _gn_direction(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Seque
     n = max(1, int(valid.sum()))
     H = 2.0 * (A.T @ A) / n
     H = H + damping * np.diag(np.diag(H)) + 1e-12 * np.eye(len(names))
-    try:
-        return -np.linalg.solve(H, grad_z)
-    except np.linalg.LinAlgError:
-        return -np.linalg.lstsq(H, grad_z, rcond=None)[0]
+    # Eigenvalue floor: directions the data barely constrain (two-term HG with the
+    # forward lobe's weight -> 1 leaves g_backward free; albedo -> 1) have eigenvalues near
+    # zero, and H^-1 would turn the gradient's Monte Carlo noise there into full-size steps.
+    # Flooring them at `eig_floor` x the largest turns those components into short
+    # gradient steps; exp3's well-posed matrices (condition ~1e3) are left unchanged.
+    lam, V = np.linalg.eigh(0.5 * (H + H.T))
+    lam_max = float(lam[-1]) if lam.size else 0.0
+    if not np.isfinite(lam_max) or lam_max <= 0.0:
+        return -grad_z
+    lam = np.maximum(lam, eig_floor * lam_max)
+    return -(V @ ((V.T @ grad_z) / lam))
 
 
 def _lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], names: Sequence[str],
@@ -556,7 +577,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         g = np.where(np.isfinite(g), g, 0.0)
         if mode == "gn":
             if gn_jac is None or it - gn_jac_it >= st.gn_jacobian_every:
-                gn_jac = _gn_jacobian(fm, problem, p, names, tr, z, spp=st.gn_jacobian_spp,
+                gn_jac = _gn_jacobian(fm, problem, p, names, spp=st.gn_jacobian_spp,
                                       seed=st.seed * 100_003 + 70_000 + it)
                 gn_jac_it = it
             # Gradients are averaged over iterations (momentum): a single one's Monte Carlo

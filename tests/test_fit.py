@@ -191,3 +191,47 @@ def test_unknown_optimizer_is_refused(problem):
     with pytest.raises(ModelParameterError, match="unknown optimizer"):
         fit_channel(problem, "exp3", start={"sigma_t": 3.0, "albedo": 0.85},
                     settings=FitSettings(optimizer="lbfgs", max_iterations=1))
+
+
+def test_gauss_newton_step_is_short_along_an_unconstrained_direction():
+    """A parameter the data do not constrain (two-term HG's g_backward once the forward
+    lobe's weight is 1: its column is zero) gets a short gradient step from the eigenvalue
+    floor, not a noise-amplified Newton step; the constrained parameter's step is the
+    least-squares one."""
+    from estimate.fit import GN_EIG_FLOOR, _gn_direction
+    from estimate.transforms import Transform
+
+    x = np.linspace(0.0, 3.0, 50)
+    prof = np.exp(-x)[None, :]
+    meas = prof * 1.1
+    pb = _toy_problem(x, meas)
+    dl = 1e-3
+    jac = {"a": prof, "free": np.zeros_like(prof)}
+    tr = [Transform("linear", 0.1, -10, 10), Transform("linear", 0.1, -10, 10)]
+    A = (-jac["a"] / (prof + dl)).ravel()[:, None]
+    r = (np.log(meas + dl) - np.log(prof + dl)).ravel()
+    g = np.array([2.0 * float(A[:, 0] @ r) / r.size, 1e-3])      # noise in the free component
+    dz = _gn_direction(jac, ["a", "free"], tr, np.zeros(2), pb, prof, dl, meas, False, g, damping=0.0)
+    assert dz[0] == pytest.approx(-np.linalg.lstsq(A, r, rcond=None)[0][0], rel=1e-6)
+    lam_max = 2.0 * float(A[:, 0] @ A[:, 0]) / r.size
+    assert dz[1] == pytest.approx(-1e-3 / (GN_EIG_FLOOR * lam_max), rel=1e-6)
+
+
+def test_secant_steps_are_large_in_the_optimiser_variables():
+    from estimate.beam import BeamProfile
+    from estimate.fit import secant_steps
+    from estimate.forward import ForwardModel
+    from estimate.geometry import RigGeometry
+
+    fm = ForwardModel(RigGeometry(thickness_mm=1.0, magnification=0.5, profile_columns=(236, 276)),
+                      BeamProfile.disk(0.3), phase="exp3", extensions=("angle_offset",))
+    p = dict(fm.default_parameters())
+    p.update({"sigma_t": 4.0, "albedo": 0.9, "angle_offset.delta_deg": 0.0})
+    names = ["sigma_t", "albedo", "phase.b1", "angle_offset.delta_deg"]
+    s = secant_steps(fm, p, names)
+    assert s["sigma_t"] == pytest.approx(0.05 * 4.0)
+    assert s["albedo"] == pytest.approx(0.3 * 0.9 * 0.1)
+    assert s["phase.b1"] == 0.5
+    assert s["angle_offset.delta_deg"] == pytest.approx(3.0 * fm.specs["angle_offset.delta_deg"].fd_step)
+    for n in names:
+        assert s[n] >= fm.specs[n].fd_step * max(1.0, abs(p[n]))
