@@ -13,6 +13,8 @@ Reported per case and model: fitting error = final loss / loss at the true param
 (the world's rendering model, an exp8 fit of the Mie table, at the same spp and reference
 delta: the noise floor), |sigma_t error| (relative), |albedo error|, time.
 Targets for exp3: sigma_t within 3 %, albedo within 0.01, loss within 10 % of the floor.
+`--truth-check` also refits each model with sigma_t and albedo held at the truth (phase free):
+a loss no higher than the free fit's says the model cannot pin sigma_t and albedo on that case.
 
     nice .venv/bin/python benchmarks/bench_paper_sim.py [--cases d0.5_s2,...] [--models exp3,tthg]
 """
@@ -131,12 +133,40 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
     return rows
 
 
+def truth_check(d: float, s: float, model: str, seed: int) -> dict:
+    """The model's best loss with sigma_t and albedo held at the truth (phase free), against
+    the free fit's: equal losses mean the model cannot tell sigma_t and albedo apart on these
+    profiles (its misfit is the phase shape, not the material); cached as check_<model>.json."""
+    from estimate.fit import FitSettings, fit_channel
+    from estimate.problem import load_problem
+
+    cdir = CACHE / case_name(d, s)
+    f = cdir / f"check_{model}_{SCALE}.json"
+    if f.exists():
+        return json.loads(f.read_text())
+    free = json.loads(fit_cache(cdir, model).read_text())
+    pb = load_problem(cdir / "session", "g")
+    st = FitSettings(seed=seed, scale=SCALE, uncertainties=False)
+    r = fit_channel(pb, model, settings=st, fixed={"sigma_t": s, "albedo": ALBEDO})
+    row = {"case": case_name(d, s), "model": r.model, "loss_fixed_at_truth": r.loss,
+           "loss_free": free["loss"], "loss_at_truth": free["loss_at_truth"],
+           "fixed_over_free": r.loss / free["loss"], "phase_at_truth": {k: v for k, v in r.parameters.items()
+                                                                        if k.startswith("phase.")},
+           "time_s": r.time_s}
+    f.write_text(json.dumps(row, indent=1, default=float))
+    print(f"{row['case']} {model} with sigma_t, albedo at the truth: loss {r.loss:.4g} vs free fit "
+          f"{free['loss']:.4g} ({row['fixed_over_free']:.3f}x)", flush=True)
+    return row
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--cases", default=None, help="comma list like d0.5_s2 (default: all 8)")
     ap.add_argument("--models", default="exp3,tthg")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--table-only", action="store_true", help="print / write the cached fits only, compute nothing")
+    ap.add_argument("--truth-check", action="store_true",
+                    help="also refit each case's fitted models with sigma_t and albedo held at the truth")
     ap.add_argument("--scale", choices=("calibrated", "free"), default="calibrated",
                     help="intensity scale of the fits: calibrated (default, as rig estimate) or free")
     args = ap.parse_args()
@@ -145,6 +175,7 @@ def main() -> int:
     models = [m for m in args.models.split(",") if m]
     want = set(args.cases.split(",")) if args.cases else None
     rows: list[dict] = []
+    checks: list[dict] = []
     for s in SIGMAS:
         for d in DIAMETERS:
             if want and case_name(d, s) not in want:
@@ -154,8 +185,13 @@ def main() -> int:
                     f = fit_cache(CACHE / case_name(d, s), m)
                     if f.exists():
                         rows.append(json.loads(f.read_text()))
+                    c = CACHE / case_name(d, s) / f"check_{m}_{SCALE}.json"
+                    if c.exists():
+                        checks.append(json.loads(c.read_text()))
                 continue
             rows.extend(run_case(d, s, models, args.seed))
+            if args.truth_check:
+                checks.extend(truth_check(d, s, m, args.seed) for m in models)
     print(f"\n{'case':<12}{'model':<7}{'loss/floor':>11}{'|dsig|/sig':>11}{'|dalb|':>8}{'time s':>8}  targets(exp3)")
     for r in rows:
         ok = ""
@@ -164,8 +200,12 @@ def main() -> int:
                           "L" if r["loss_ratio"] <= 1.10 else "l"])
         print(f"{r['case']:<12}{r['model']:<7}{r['loss_ratio']:>11.3f}{r['sigma_t_rel_error']:>11.3%}"
               f"{r['albedo_abs_error']:>8.4f}{r['time_s']:>8.0f}  {ok}")
+    if checks:
+        print(f"\n{'case':<12}{'model':<7}{'loss(truth sigma_t, albedo)/loss(free)':>40}")
+        for c in checks:
+            print(f"{c['case']:<12}{c['model']:<7}{c['fixed_over_free']:>40.3f}")
     out = ROOT / "benchmarks" / "results" / "bench_paper_sim.json"
-    out.write_text(json.dumps(rows, indent=1, default=float))
+    out.write_text(json.dumps({"fits": rows, "truth_checks": checks}, indent=1, default=float))
     print(f"wrote {out} (targets: S/A/L met, s/a/l missed: sigma_t 3 %, albedo 0.01, loss 10 %)")
     return 0
 
