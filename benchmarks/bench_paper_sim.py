@@ -37,6 +37,8 @@ DIAMETERS = (0.5, 0.3, 0.2, 0.01)
 SIGMAS = (2.0, 6.0)
 ALBEDO = 0.9
 SCALE = "calibrated"  # intensity scale of the fits (--scale); as rig estimate's default
+#: Part of the fit cache's name, changed with the fit's recipe (joint coarse grid since session 3).
+RECIPE = "jointgrid"
 
 WORLD_TEMPLATE = """\
 # Paper section 4 simulation case: poly-disperse Mie, mean diameter {d} um, sigma_t {s} /mm.
@@ -81,7 +83,7 @@ def fit_cache(cdir: Path, model: str) -> Path:
     fits stay as they were)."""
     from estimate.fit import FitSettings
 
-    return cdir / f"fit_{model}_{SCALE}_{FitSettings().optimizer}.json"
+    return cdir / f"fit_{model}_{SCALE}_{FitSettings().optimizer}_{RECIPE}.json"
 
 
 def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:

@@ -2,7 +2,7 @@
 
 `fit_channel(problem, model)`:
 
-1. start: `estimate.start.coarse_start` (grid over sigma_t x albedo, then a few phase shapes,
+1. start: `estimate.start.coarse_start` (joint grid over a few phase shapes x sigma_t x albedo,
    at 32 spp) unless `start` gives sigma_t and albedo;
 2. Adam on unconstrained variables (`estimate.transforms`: log sigma_t, logit albedo,
    exp coefficients clamped to +-200, tanh for HG g, logit for the lobe weight), gradient
@@ -90,7 +90,7 @@ class FitSettings:
     spp_start: int = 128
     spp_max: int = 512
     final_spp: int = 1024
-    start_spp: int = 64
+    start_spp: int = 32               # coarse joint grid (estimate.start)
     window: int = 8
     lr_scale: float = 1.0
     lr_decay: float = 0.85

@@ -1,6 +1,7 @@
-"""A starting point for the fit: coarse search over sigma_t x albedo (x a few phase shapes)
+"""A starting point for the fit: coarse search over a few phase shapes x sigma_t x albedo
 at low samples per pixel, each candidate scored by the log loss at the reference delta with
-its scale profiled out (or the calibrated scale). Costs (n_sigma x n_albedo + n_phase) renders at `spp`.
+its scale profiled out (or the calibrated scale). Costs n_phase x n_sigma x n_albedo (220)
+renders at `spp` (32: ~10 s for 10 angles on 2 cores).
 """
 
 from __future__ import annotations
@@ -47,40 +48,39 @@ def _score(fm: ForwardModel, problem: Problem, params: Mapping[str, float], spp:
     return log_loss(problem.measured, prof, problem.valid, s, delta_rel)[0]
 
 
-def coarse_start(fm: ForwardModel, problem: Problem, base: Mapping[str, float], *, spp: int = 64,
+def coarse_start(fm: ForwardModel, problem: Problem, base: Mapping[str, float], *, spp: int = 32,
                  seed: int = 0, delta_rel: float = 1e-2, fixed: Mapping[str, float] | None = None,
                  scale: float | None = None) -> tuple[dict[str, float], list[tuple[dict[str, float], float]]]:
     """Best grid point (parameters) and every (candidate, loss) tried.
 
-    Pass 1: sigma_t x albedo with the middle phase candidate; pass 2: the phase candidates
-    at the best (sigma_t, albedo). Parameters in `fixed` are never changed. `scale`: the
-    measured scale (calibrated mode), else profiled per candidate.
+    A joint grid: every phase candidate x sigma_t x albedo. A sequential search (sigma_t x
+    albedo with one middle phase, then the phases) was cheaper but trapped: the middle,
+    forward shape compensates a wrong shape with sigma_t, and on a near-isotropic medium at
+    sigma_t 6 /mm (Mie 0.01 um) it started at sigma_t 11.3; the fit stayed in that valley
+    (loss 3.3x the truth's, sigma_t 60 % high). The joint grid's best there is (5.7, 0.85,
+    the flattest shape). Parameters in `fixed` are never changed. `scale`: the measured
+    scale (calibrated mode), else profiled per candidate.
     """
     fixed = dict(fixed or {})
     tried: list[tuple[dict[str, float], float]] = []
-    phases = phase_candidates(fm.phase)
-    mid = phases[min(1, len(phases) - 1)]
+    phases: list[dict[str, float]] = []
+    for ph in phase_candidates(fm.phase):
+        free = {k: v for k, v in ph.items() if k not in fixed}
+        if free not in phases:
+            phases.append(free)
     best: tuple[float, dict[str, float]] | None = None
     sig = [fixed["sigma_t"]] if "sigma_t" in fixed else SIGMA_GRID
     alb = [fixed["albedo"]] if "albedo" in fixed else ALBEDO_GRID
-    for st in sig:
-        for a in alb:
-            p = dict(base)
-            p.update({k: v for k, v in mid.items() if k not in fixed})
-            p.update({"sigma_t": st, "albedo": a})
-            p.update(fixed)
-            loss = _score(fm, problem, p, spp, seed, delta_rel, scale)
-            tried.append((p, loss))
-            if best is None or loss < best[0]:
-                best = (loss, p)
-    assert best is not None
     for ph in phases:
-        if ph is mid:
-            continue
-        p = dict(best[1])
-        p.update({k: v for k, v in ph.items() if k not in fixed})
-        loss = _score(fm, problem, p, spp, seed, delta_rel, scale)
-        tried.append((p, loss))
-        if loss < best[0]:
-            best = (loss, p)
+        for st in sig:
+            for a in alb:
+                p = dict(base)
+                p.update(ph)
+                p.update({"sigma_t": st, "albedo": a})
+                p.update(fixed)
+                loss = _score(fm, problem, p, spp, seed, delta_rel, scale)
+                tried.append((p, loss))
+                if best is None or loss < best[0]:
+                    best = (loss, p)
+    assert best is not None
     return dict(best[1]), tried
