@@ -13,6 +13,10 @@ clean sessions. Two sources of recordings:
   not report (like the bench's render noise or a sensor's fixed-pattern noise), a
   base-model Levenberg-Marquardt fit, then `estimate.diagnose.diagnose_channel`.
 
+Synthetic cases also record their detectability: how far chi^2 could fall at all, from the
+base fit to the true parameters with the true model, at the data's real noise, against the
+BIC gain a confirmation needs (`detectability`; `--detectability` adds it to cached cases).
+
 Every case is cached in benchmarks/results/diagnose_cases/<source>/<case>.json: a re-run
 resumes where it stopped (`--fresh` ignores the cache). `--quick` runs one magnitude per
 effect, two pairs and two clean cases. Prints the confusion table (markdown, also written to
@@ -32,6 +36,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -77,18 +82,13 @@ BASE_SPP = 1024
 SYNTHETIC_VERSION = "v5"
 
 
-def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0) -> dict[str, Any]:
+def synthetic_recording(case: dict[str, Any], excess: float = 0.0) -> tuple[Any, Callable[..., Any], dict[str, float]]:
+    """The case's recording (deterministic: fixed seeds), the model factory, and the true
+    parameters (material and the concealed effects')."""
     from dataclasses import dataclass
 
     from estimate.beam import BeamProfile
-    from estimate.diagnose import (
-        BaseFit,
-        _free_names,
-        _smoothed_variance,
-        diagnose_channel,
-        evaluate,
-        refit,
-    )
+    from estimate.diagnose import _smoothed_variance
     from estimate.forward import ForwardModel
     from estimate.geometry import RigGeometry
 
@@ -130,6 +130,20 @@ def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0) -> dict[s
         channel: str = "g"
 
     rec = Rec(angles, np.asarray(geometry.pixel_x_mm(geometry.profile_window())), meas, var, geometry, beam)
+    return rec, make_model, params
+
+
+def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0) -> dict[str, Any]:
+    from estimate.diagnose import (
+        BaseFit,
+        _free_names,
+        diagnose_channel,
+        evaluate,
+        refit,
+    )
+
+    recording = synthetic_recording(case, excess)
+    rec, make_model, _ = recording
     m0 = make_model([])
     t0 = time.perf_counter()
     start = {"sigma_t": 1.6, "albedo": 0.85, "phase.g": 0.4}
@@ -145,7 +159,31 @@ def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0) -> dict[s
     out = d.as_dict()
     out["base_fit_time_s"] = t_base
     out["truth"] = {k: TRUE[k] for k in TRUE}
+    out["detectability"] = detectability(case, excess, out["material_before"], recording=recording)
     return out
+
+
+def detectability(case: dict[str, Any], excess: float, base_params: dict[str, float],
+                  spp: int = 1024, repeats: int = 4, recording: tuple | None = None) -> dict[str, float]:
+    """How much the concealed effects could lower chi^2 at all on this recording: chi^2 of
+    the base fit (base model) minus chi^2 of the true parameters (true model), both at the
+    data's real noise (variance channel x (1 + excess)), scale refitted, renders averaged.
+    Confirmation needs a BIC gain above k ln n + BIC_STRONG, so a concealed effect whose
+    gain here is below that threshold cannot be named by any refit-based test."""
+    import math
+
+    from estimate.diagnose import BIC_STRONG, FREE_PARAMETERS, evaluate
+
+    rec, make_model, params = recording or synthetic_recording(case, excess)
+    noise = rec.variance * (1.0 + excess)
+    base = evaluate(make_model([]), base_params, rec, 0, spp=spp, repeats=repeats, noise_variance=noise)
+    exts = sorted(case["effects"])
+    true = evaluate(make_model(exts), params, rec, 0, spp=spp, repeats=repeats, noise_variance=noise)
+    n = int(np.sum(np.isfinite(base.residuals.r)))
+    k = sum(len(FREE_PARAMETERS[e]) for e in exts)
+    return {"chi2_base_fit": base.residuals.chi2_adjusted, "chi2_truth": true.residuals.chi2_adjusted,
+            "gain": base.residuals.chi2_adjusted - true.residuals.chi2_adjusted,
+            "threshold": (k * math.log(max(n, 2)) + BIC_STRONG) if k else float("nan"), "pixels": n}
 
 
 # ---------------------------------------------------------------------------- bench
@@ -219,8 +257,16 @@ def score(case: dict[str, Any], res: dict[str, Any]) -> dict[str, Any]:
             "significant": res["significant"], "significant_by": res.get("significant_by"), "ok": ok,
             "reduced_chi2_before": res["reduced_chi2_before"], "reduced_chi2_after": res["reduced_chi2_after"],
             "reduced_chi2_adjusted_before": adj_b, "reduced_chi2_adjusted_after": adj_a, "noise_floor": floor,
-            "material_error": err,
+            "material_error": err, "detectability": res.get("detectability"),
             "time_s": res.get("diagnose_wall_s", res.get("time_s"))}
+
+
+def _gain(d: dict[str, Any] | None) -> str:
+    """'gain (threshold)' of the detectability check, '-' when not computed."""
+    if not d:
+        return "-"
+    thr = d.get("threshold")
+    return f"{d['gain']:.0f}" + (f" ({thr:.0f})" if thr is not None and np.isfinite(thr) else "")
 
 
 def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tuple[str, dict[str, Any]]:
@@ -247,7 +293,7 @@ def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tup
     lines = [f"Diagnosis proof suite ({source} recordings, {ran}/{total} cases run)", "",
              ("| case | concealed | significant (by) | screened first | named (confirmed) | ok | noise floor f | "
               "red. chi2 HDR before -> after | red. chi2 at floor before -> after | sigma_t err before -> after | "
-              "time [s] |"), "|---|---|---|---|---|---|---|---|---|---|---|"]
+              "possible chi2 gain (needed) | time [s] |"), "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         e = r["material_error"]
         sig = f"yes ({r.get('significant_by')})" if r["significant"] else "no"
@@ -258,7 +304,7 @@ def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tup
                      f"{r.get('reduced_chi2_adjusted_before', float('nan')):.2f} -> "
                      f"{r.get('reduced_chi2_adjusted_after', float('nan')):.2f} | "
                      f"{100 * e['before']['sigma_t_rel']:.1f}% -> {100 * e['after']['sigma_t_rel']:.1f}% | "
-                     f"{(r['time_s'] or 0):.0f} |")
+                     f"{_gain(r.get('detectability'))} | {(r['time_s'] or 0):.0f} |")
     names = sorted({r["concealed"][0] for r in singles})
     cols = names + ["none"]
     lines += ["", "Confusion (single-effect cases: rows concealed, columns named first)", "",
@@ -284,6 +330,8 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="one magnitude per effect, two pairs, two clean cases")
     ap.add_argument("--only", default=None, help="comma-separated case ids")
     ap.add_argument("--fresh", action="store_true", help="ignore cached case results")
+    ap.add_argument("--detectability", action="store_true",
+                    help="synthetic: add the detectability check to cached cases that lack it")
     ap.add_argument("--spp", type=int, default=None,
                     help="diagnosis spp (default: synthetic 512, bench 256 as rig diagnose)")
     ap.add_argument("--angles", type=int, default=8, help="bench: light angles captured")
@@ -312,6 +360,9 @@ def main() -> int:
         f = cache / f"{case['id']}.json"
         if f.is_file() and not args.fresh:
             res = json.loads(f.read_text())
+            if args.source == "synthetic" and args.detectability and "detectability" not in res:
+                res["detectability"] = detectability(case, args.excess, res["material_before"])
+                f.write_text(json.dumps(res, default=float))
         else:
             if args.time_budget is not None and time.perf_counter() - t0 > args.time_budget:
                 print(f"{case['id']}: skipped (time budget)", flush=True)
