@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import subprocess
 import sys
@@ -170,8 +171,6 @@ def detectability(case: dict[str, Any], excess: float, base_params: dict[str, fl
     data's real noise (variance channel x (1 + excess)), scale refitted, renders averaged.
     Confirmation needs a BIC gain above k ln n + BIC_STRONG, so a concealed effect whose
     gain here is below that threshold cannot be named by any refit-based test."""
-    import math
-
     from estimate.diagnose import BIC_STRONG, FREE_PARAMETERS, evaluate
 
     rec, make_model, params = recording or synthetic_recording(case, excess)

@@ -137,23 +137,11 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
     return rows
 
 
-def asymmetry(model: str, params: dict) -> float:
-    """Mean scattering cosine g of a forward-model phase (exp<M>, tthg, hg)."""
-    from estimate.phase_exponential import ExponentialPhase
-
-    if model.startswith("exp"):
-        deg = int(model[3:])
-        return ExponentialPhase([params[f"phase.b{i}"] for i in range(1, deg + 1)]).g
-    if model == "tthg":
-        w = params["phase.w_forward"]
-        return w * params["phase.g_forward"] + (1.0 - w) * params["phase.g_backward"]
-    return params["phase.g"]
-
-
 def derived_errors(row: dict) -> dict:
     """Relative errors of what a thick slab's diffuse profiles determine: the absorption
     coefficient sigma_a = sigma_t (1 - albedo) and the reduced scattering coefficient
     sigma_s' = sigma_t albedo (1 - g) (similarity relation), against the world's truth."""
+    from estimate.results import phase_of
     from sim_devices.world import load_world
 
     d, s = row["diameter_um"], row["sigma_t_true"]
@@ -162,10 +150,11 @@ def derived_errors(row: dict) -> dict:
     p = row["parameters"]
     sa = p["sigma_t"] * (1.0 - p["albedo"])
     sa_t = truth["sigma_t"] * (1.0 - truth["albedo"])
-    ss = p["sigma_t"] * p["albedo"] * (1.0 - asymmetry(row["model"], p))
-    ss_t = truth["sigma_t"] * truth["albedo"] * (1.0 - asymmetry(mat.model, truth))
+    g_fit, g_true = phase_of(row["model"], p).g, phase_of(mat.model, truth).g
+    ss = p["sigma_t"] * p["albedo"] * (1.0 - g_fit)
+    ss_t = truth["sigma_t"] * truth["albedo"] * (1.0 - g_true)
     return {"sigma_a_rel_error": abs(sa / sa_t - 1.0), "reduced_scattering_rel_error": abs(ss / ss_t - 1.0),
-            "g_fit": asymmetry(row["model"], p), "g_true": asymmetry(mat.model, truth)}
+            "g_fit": g_fit, "g_true": g_true}
 
 
 def truth_check(d: float, s: float, model: str, seed: int) -> dict:

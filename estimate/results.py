@@ -145,17 +145,23 @@ def list_runs(session_dir: str | os.PathLike[str]) -> list[Path]:
     return sorted(d for d in root.iterdir() if (d / "results.yaml").is_file())
 
 
-def _phase_curve(model: str, params: Mapping[str, float], mu: np.ndarray) -> np.ndarray:
+def phase_of(model: str, params: Mapping[str, float]) -> Any:
+    """The phase-function object (with `eval(mu)` [1/sr] and `g`) of a forward-model phase
+    name ("exp<M>", "tthg", "hg") and its "phase.*" parameters."""
     if model.startswith("exp"):
         from estimate.phase_exponential import ExponentialPhase
 
         deg = int(model[3:])
-        return ExponentialPhase([params[f"phase.b{i}"] for i in range(1, deg + 1)]).eval(mu)
-    from estimate.phase_hg import TwoTermHG, hg_eval
+        return ExponentialPhase([params[f"phase.b{i}"] for i in range(1, deg + 1)])
+    from estimate.phase_hg import HenyeyGreenstein, TwoTermHG
 
     if model == "tthg":
-        return TwoTermHG(params["phase.g_forward"], params["phase.g_backward"], params["phase.w_forward"]).eval(mu)
-    return hg_eval(mu, params["phase.g"])
+        return TwoTermHG(params["phase.g_forward"], params["phase.g_backward"], params["phase.w_forward"])
+    return HenyeyGreenstein(params["phase.g"])
+
+
+def _phase_curve(model: str, params: Mapping[str, float], mu: np.ndarray) -> np.ndarray:
+    return np.asarray(phase_of(model, params).eval(mu))
 
 
 def plot_channel(run_dir: Path, r: Any, pb: Any) -> list[Path]:
