@@ -71,6 +71,7 @@ from estimate.loss import (
     ScaleCalibration,
     calibrated_scale,
     chi2,
+    decorrelated_loss,
     log_loss,
     profile_scale,
     reference_delta,
@@ -147,6 +148,12 @@ class FitResult:
     scale_calibration: dict[str, Any] | None = None   # ScaleCalibration.to_dict() when calibrated
     fisher_uncertainties: dict[str, float] = field(default_factory=dict)   # before the sandwich
     optimizer_spread: dict[str, float] = field(default_factory=dict)       # sd of the averaged iterates
+    #: the loss without its Monte Carlo variance term (estimate.loss.decorrelated_loss), final spp
+    loss_unbiased: float = float("nan")
+    #: covariance of the free parameters {a: {b: cov}}, its diagonal = uncertainties^2
+    covariance: dict[str, dict[str, float]] = field(default_factory=dict)
+    #: per Gauss-Newton iteration: [iteration, predicted decrease of the loss, its noise part]
+    gn_trace: list[list[float]] = field(default_factory=list)
 
     @property
     def free(self) -> list[str]:
@@ -157,9 +164,17 @@ class FitResult:
         return {"model": self.model, "sigma_t": self.parameters["sigma_t"], "albedo": self.parameters["albedo"],
                 "phase": {k: v for k, v in self.parameters.items() if k.startswith("phase.")},
                 "parameters": dict(self.parameters), "uncertainties": dict(self.uncertainties),
-                "scale": self.scale, "loss": self.loss, "chi2": self.chi2, "dof": self.dof,
+                "scale": self.scale, "loss": self.loss, "loss_unbiased": self.loss_unbiased, "chi2": self.chi2, "dof": self.dof,
                 "reduced_chi2": self.reduced_chi2, "iterations": self.iterations, "time_s": self.time_s,
-                "stop_reason": self.stop_reason, "extensions": list(self.extensions)}
+                "stop_reason": self.stop_reason, "extensions": list(self.extensions),
+                "derived": self.derived()}
+
+    def derived(self) -> dict[str, dict[str, float | None]]:
+        """sigma_s, sigma_a, g, sigma_s' and the transport albedo with 1-sigma uncertainties
+        (`estimate.derived.derived_quantities`)."""
+        from estimate.derived import derived_quantities
+
+        return derived_quantities(self.model, self.parameters, self.covariance)
 
 
 def model_phase(model: str, degree: int = 3) -> str:
@@ -205,6 +220,25 @@ def _flattened(losses: Sequence[float], window: int) -> bool:
     return slope > -2.0 * se
 
 
+def _predicted_decrease(h_inv: np.ndarray, g_avg: np.ndarray, recent: Sequence[np.ndarray],
+                        momentum: float) -> tuple[float, float]:
+    """The loss decrease the Gauss-Newton model predicts for a full step, 0.5 g^T H^-1 g with
+    g the averaged gradient, and the part of it that the gradient's Monte Carlo noise alone
+    would produce, 0.5 tr(H^-1 C_avg).
+
+    C_avg is the covariance of the averaged gradient: the per-iteration covariance C from
+    successive differences of the recent gradients (C = mean(d d^T) / 2, which ignores slow
+    trends), times (1 - m) / (1 + m) for an exponential average with momentum m.
+    """
+    pred = 0.5 * float(g_avg @ h_inv @ g_avg)
+    if len(recent) < 3:
+        return pred, float("nan")
+    d = np.diff(np.asarray(recent), axis=0)
+    cov = 0.5 * (d.T @ d) / len(d)
+    noise = 0.5 * float(np.trace(h_inv @ cov)) * (1.0 - momentum) / (1.0 + momentum)
+    return pred, noise
+
+
 #: Finite-difference steps, in the optimiser's variables z, for the Gauss-Newton matrix.
 #: Large on purpose: with common random numbers the renders are not smooth functions of
 #: the parameters (a free flight that crosses the slab boundary flips, and the rest of the
@@ -247,25 +281,43 @@ def _gn_jacobian(fm: ForwardModel, problem: Problem, p: Mapping[str, float], nam
 def _gn_direction(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequence[Transform], z: np.ndarray,
                   problem: Problem, mean: np.ndarray, dl: float, m: np.ndarray, profiled_scale: bool,
                   grad_z: np.ndarray, damping: float = 1e-3, eig_floor: float | None = None) -> np.ndarray:
-    """Gauss-Newton step in z for the log loss mean(r^2) given its gradient `grad_z`.
+    """Gauss-Newton step in z for the log loss mean(r^2) given its gradient `grad_z`
+    (-H^-1 grad_z with H^-1 from `_gn_inverse`)."""
+    return -(_gn_inverse(jac, names, tr, z, problem, mean, dl, m, profiled_scale, damping, eig_floor) @ grad_z)
+
+
+def _gn_inverse(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequence[Transform], z: np.ndarray,
+                problem: Problem, mean: np.ndarray, dl: float, m: np.ndarray, profiled_scale: bool,
+                damping: float = 1e-3, eig_floor: float | None = None) -> np.ndarray:
+    """Inverse of the Gauss-Newton matrix of the log loss mean(r^2) in the variables z.
 
     The matrix is 2/n A^T A with A = dr/dz = -J / (I + delta) dx/dz at this iteration's delta
     and profiles; with a profiled scale the scale's column is projected out (the scale is
     re-optimised at every iteration, so the other parameters move in its orthogonal
     complement). The gradient is the reverse-mode one (unbiased); only the matrix comes from
-    finite differences, and its Monte Carlo noise inflates A^T A (most along the weakest
-    direction) so the steps there are somewhat short: a debiased product of two independent
-    Jacobians was tried and lost positive definiteness at 256 spp (the fit diverged).
+    finite differences. The Monte Carlo noise of a finite-difference Jacobian adds its own
+    Gram matrix to A^T A: at the one-channel benchmark's end point one 256-spp Jacobian gave
+    eigenvalues 4-10x those of two independent Jacobians' cross product (A1^T A2 + A2^T A1)
+    / n, whose expectation is the noise-free matrix, so the steps are that much shorter than
+    Newton steps. The cross product was tried as the matrix (session 4, with a trust region
+    capping the predicted decrease at the loss): its small eigenvalues are noise, and the
+    fit diverged both times (sigma_t 2 -> 11 and 18). The inflated matrix is kept: it makes
+    the steps short but safe.
     """
     eig_floor = GN_EIG_FLOOR if eig_floor is None else eig_floor
     valid = problem.valid
     den = np.clip(mean, 0.0, None) + dl
-    cols = [np.where(valid, -jac[n] / den, 0.0).ravel() * t.dx_dz(float(zz)) for n, t, zz in zip(names, tr, z)]
-    A = np.stack(cols, axis=1)
-    A = np.where(np.isfinite(A), A, 0.0)
-    if profiled_scale:
-        a_s = np.where(valid, -m / (np.clip(m, -0.5 * dl, None) + dl), 0.0).ravel()
-        A = A - np.outer(a_s, a_s @ A) / max(float(a_s @ a_s), 1e-300)
+    a_s = np.where(valid, -m / (np.clip(m, -0.5 * dl, None) + dl), 0.0).ravel()
+
+    def design(j: Mapping[str, np.ndarray]) -> np.ndarray:
+        cols = [np.where(valid, -j[n] / den, 0.0).ravel() * t.dx_dz(float(zz)) for n, t, zz in zip(names, tr, z)]
+        a = np.stack(cols, axis=1)
+        a = np.where(np.isfinite(a), a, 0.0)
+        if profiled_scale:
+            a = a - np.outer(a_s, a_s @ a) / max(float(a_s @ a_s), 1e-300)
+        return a
+
+    A = design(jac)
     n = max(1, int(valid.sum()))
     H = 2.0 * (A.T @ A) / n
     H = H + damping * np.diag(np.diag(H)) + 1e-12 * np.eye(len(names))
@@ -277,9 +329,9 @@ def _gn_direction(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Seque
     lam, V = np.linalg.eigh(0.5 * (H + H.T))
     lam_max = float(lam[-1]) if lam.size else 0.0
     if not np.isfinite(lam_max) or lam_max <= 0.0:
-        return -grad_z
+        return np.eye(len(names))
     lam = np.maximum(lam, eig_floor * lam_max)
-    return -(V @ ((V.T @ grad_z) / lam))
+    return (V / lam) @ V.T
 
 
 def _lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], names: Sequence[str],
@@ -360,7 +412,8 @@ def _lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], nam
 def evaluate(fm: ForwardModel, problem: Problem, params: Mapping[str, float], *, spp: int, seed: int,
              delta_rel: float, fixed_scale: float | None = None) -> dict[str, Any]:
     """Profiles (mean of two seeds), their MC variance, scale (profiled unless `fixed_scale`),
-    loss and chi^2."""
+    loss (of the mean profile), the loss without its Monte Carlo variance term
+    (`loss_unbiased`, `estimate.loss.decorrelated_loss` of the two seeds) and chi^2."""
     p1 = fm.render_profiles(params, problem.angles_deg, spp=spp, seed=seed)
     p2 = fm.render_profiles(params, problem.angles_deg, spp=spp, seed=seed + 7_777)
     prof = 0.5 * (p1 + p2)
@@ -370,8 +423,10 @@ def evaluate(fm: ForwardModel, problem: Problem, params: Mapping[str, float], *,
     mvar = np.stack([np.convolve(r, k, mode="same") for r in mvar])
     s = fixed_scale if fixed_scale is not None else profile_scale(problem.measured, prof, problem.valid, delta_rel)
     loss = log_loss(problem.measured, prof, problem.valid, s, delta_rel)[0]
+    unbiased = decorrelated_loss(problem.measured, p1, p2, problem.valid, s, delta_rel)
     c2 = chi2(problem.measured, problem.variance, prof, problem.valid, s, mvar)
-    return {"profiles": prof, "model_variance": mvar, "scale": s, "loss": loss, "chi2": c2}
+    return {"profiles": prof, "model_variance": mvar, "scale": s, "loss": loss, "loss_unbiased": unbiased,
+            "chi2": c2}
 
 
 def _jacobian_columns(fm: ForwardModel, problem: Problem, params: Mapping[str, float], names: Sequence[str],
@@ -403,10 +458,12 @@ def fisher_uncertainties(fm: ForwardModel, problem: Problem, params: Mapping[str
 
 def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names: Sequence[str], scale: float,
                            profiles: np.ndarray, model_variance: np.ndarray, jac: Mapping[str, np.ndarray],
-                           *, delta_rel: float, fit_scale: bool, render_variance_factor: float = 2.0
+                           *, delta_rel: float, fit_scale: bool, render_variance_factor: float = 2.0,
+                           covariance_out: dict[str, dict[str, float]] | None = None
                            ) -> tuple[dict[str, float], float, float]:
     """1-sigma uncertainties of the log-loss estimator (sandwich), its scale's, and the
-    log-space reduced chi^2.
+    log-space reduced chi^2. With `covariance_out`, the full covariance of `names` (the
+    uniformly inflated sandwich, before the diagonal choice below) is written into it.
 
     The fit minimises sum r^2 with r = log(m/s + delta) - log(I + delta), so its covariance
     is H^-1 (A^T S A) H^-1 with A = dr/d(theta, log s), H = A^T A (Gauss-Newton curvature
@@ -447,6 +504,8 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
     except np.linalg.LinAlgError:
         return {k: float("nan") for k in names}, float("nan"), red
     cov = Hi @ meat @ Hi * max(1.0, red)
+    if covariance_out is not None:
+        covariance_out.update({a: {b: float(cov[i, j]) for j, b in enumerate(names)} for i, a in enumerate(names)})
     if red > 1.0:
         robust = Hi @ (A.T @ (A * (r.ravel() ** 2)[:, None])) @ Hi
         modelled = Hi @ meat @ Hi
@@ -456,6 +515,25 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     s_unc = float(sd[-1]) * scale if fit_scale else float("nan")
     return {k: float(sd[i]) for i, k in enumerate(names)}, s_unc, red
+
+
+def _covariance(names: Sequence[str], unc: Mapping[str, float], sandwich: Mapping[str, Mapping[str, float]],
+                iterate_cov: np.ndarray) -> dict[str, dict[str, float]]:
+    """Full covariance whose diagonal is the reported uncertainties squared and whose
+    correlations are those of the sandwich covariance plus the averaged iterates' own
+    covariance (the two sources of error the uncertainties combine)."""
+    k = len(names)
+    c = np.array([[float(sandwich.get(a, {}).get(b, 0.0)) for b in names] for a in names]) if sandwich \
+        else np.zeros((k, k))
+    c = np.where(np.isfinite(c), c, 0.0) + iterate_cov
+    d = np.sqrt(np.clip(np.diag(c), 0.0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = np.where(np.outer(d, d) > 0, c / np.outer(d, d), 0.0)
+    np.fill_diagonal(corr, 1.0)
+    corr = np.clip(corr, -1.0, 1.0)
+    sd = np.array([float(unc[n]) for n in names])
+    full = corr * np.outer(sd, sd)
+    return {a: {b: float(full[i, j]) for j, b in enumerate(names)} for i, a in enumerate(names)}
 
 
 def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[str] = (),
@@ -533,6 +611,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     gn_jac: dict[str, np.ndarray] | None = None
     gn_jac_it = 0
     g_avg: np.ndarray | None = None
+    gn_grads: list[np.ndarray] = []
+    gn_trace: list[list[float]] = []
     for it in range(1, st.max_iterations + 1):
         p = params_of(z)
         delta_rel = math.exp(rng.uniform(lo, hi))
@@ -584,7 +664,10 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             # noise is 2-4x its mean per component at 512 spp (albedo worst), and
             # H^-1 amplifies it along the weakly determined valley direction.
             g_avg = g if g_avg is None else st.gn_momentum * g_avg + (1.0 - st.gn_momentum) * g
-            dz = st.gn_step * _gn_direction(gn_jac, names, tr, z, problem, mean, dl, m, fixed_scale is None, g_avg)
+            h_inv = _gn_inverse(gn_jac, names, tr, z, problem, mean, dl, m, fixed_scale is None)
+            gn_grads.append(g)
+            gn_trace.append([it, *_predicted_decrease(h_inv, g_avg, gn_grads[-2 * st.window:], st.gn_momentum)])
+            dz = -st.gn_step * (h_inv @ g_avg)
             cap = 5.0 * adam.lr / st.lr_scale
             z = z + np.clip(dz, -cap, cap)
         else:
@@ -622,6 +705,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     dof = max(1, n_valid - len(names) - (1 if fixed_scale is None else 0))
     red = ev["chi2"] / dof
     unc: dict[str, float] = {n: float("nan") for n in names}
+    covariance: dict[str, dict[str, float]] = {}
     fisher: dict[str, float] = {}
     spread: dict[str, float] = {}
     s_unc = float("nan")
@@ -630,29 +714,35 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         fisher, _ = fisher_uncertainties(fm, problem, final, names, ev["scale"], ev["model_variance"],
                                          ev["profiles"], spp=st.spp_max, seed=0, inflate=red,
                                          fit_scale=fixed_scale is None, jac=jac)
+        sandwich_cov: dict[str, dict[str, float]] = {}
         unc, s_unc, _ = sandwich_uncertainties(problem, final, names, ev["scale"], ev["profiles"],
                                                ev["model_variance"], jac, delta_rel=d_ref,
                                                fit_scale=fixed_scale is None,
-                                               render_variance_factor=2.0 * st.final_spp / max(1, st.lm_spp))
+                                               render_variance_factor=2.0 * st.final_spp / max(1, st.lm_spp),
+                                               covariance_out=sandwich_cov)
         # never below the ideal linear-chi^2 bound
         unc = {k: max(v, fisher.get(k, 0.0)) for k, v in unc.items()}
         # The stochastic optimiser's own spread: the standard deviation of the averaged
         # iterates, added in quadrature. The curvature-based intervals describe the
         # minimum of the loss; along the sigma_t / phase valley the iterates wander by more
         # than that (synthetic benchmark: sandwich 0.006 /mm, error 0.057 /mm).
-        for i, (n, t) in enumerate(zip(names, tr)):
-            xs = np.array([t.to_x(float(h[i])) for h in history[-n_avg:]])
-            spread[n] = float(np.std(xs, ddof=1)) if len(xs) > 1 else 0.0
+        xs = np.array([[t.to_x(float(h[i])) for i, t in enumerate(tr)] for h in history[-n_avg:]])
+        it_cov = np.cov(xs, rowvar=False, ddof=1).reshape(len(names), len(names)) if len(xs) > 1 \
+            else np.zeros((len(names), len(names)))
+        for i, n in enumerate(names):
+            spread[n] = float(math.sqrt(max(it_cov[i, i], 0.0)))
             unc[n] = math.hypot(unc[n], spread[n])
+        covariance = _covariance(names, unc, sandwich_cov, it_cov)
     return FitResult(
         channel=problem.channel, model=phase, extensions=list(fm.extensions), parameters=final,
         uncertainties=unc, fixed=fixed, scale=ev["scale"], scale_uncertainty=s_unc, loss=ev["loss"],
+        loss_unbiased=ev["loss_unbiased"],
         delta_rel=d_ref, chi2=ev["chi2"], dof=dof, reduced_chi2=red, iterations=it,
         time_s=time.monotonic() - t0, stop_reason=stop, spp_schedule=schedule, loss_curve=curve,
         angles_deg=[float(a) for a in problem.angles_deg], fitted=ev["profiles"], lm_losses=lm_losses,
         model_variance=ev["model_variance"], start=dict(init), settings=st.to_dict(), scale_mode=st.scale,
         scale_calibration=cal.to_dict() if cal is not None else None, fisher_uncertainties=fisher,
-        optimizer_spread=spread)
+        optimizer_spread=spread, gn_trace=gn_trace, covariance=covariance)
 
 
 def loss_at(problem: Problem, model: str, params: Mapping[str, float], *, extensions: Sequence[str] = (),

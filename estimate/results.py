@@ -88,8 +88,12 @@ def write_run(run_dir: Path, session_dir: str | os.PathLike[str], fits: Sequence
             "parameters": {k: float(v) for k, v in r.parameters.items()},
             "uncertainties": {k: _num(v) for k, v in r.uncertainties.items()},
             "fixed": {k: float(v) for k, v in r.fixed.items()},
+            # sigma_a, sigma_s' (what diffuse profiles determine best), g, ... with 1-sigma
+            "derived": {k: {"value": _num(v["value"]), "uncertainty": _num(v["uncertainty"]), "unit": v["unit"]}
+                        for k, v in r.derived().items()},
+            "covariance": {a: {b: _num(v) for b, v in row.items()} for a, row in r.covariance.items()},
             "scale": float(r.scale), "scale_uncertainty": _num(r.scale_uncertainty),
-            "loss": float(r.loss), "delta_rel": float(r.delta_rel),
+            "loss": float(r.loss), "loss_unbiased": _num(r.loss_unbiased), "delta_rel": float(r.delta_rel),
             "chi2": float(r.chi2), "dof": int(r.dof), "reduced_chi2": float(r.reduced_chi2),
             "iterations": int(r.iterations), "time_s": float(r.time_s), "stop_reason": r.stop_reason,
             "spp_schedule": [list(map(int, x)) for x in r.spp_schedule],

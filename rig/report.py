@@ -112,6 +112,8 @@ def write_report(session_dir: str | os.PathLike[str], out: str | os.PathLike[str
         for f, ch in (doc.get("channels") or {}).items():
             for k, v in ch["parameters"].items():
                 rows.append([f, k, v, (ch.get("uncertainties") or {}).get(k, "fixed")])
+            for k, d in (ch.get("derived") or {}).items():
+                rows.append([f, f"{k} [{d.get('unit') or '-'}] (derived)", d.get("value"), d.get("uncertainty")])
             rows.append([f, "scale", ch["scale"], ch.get("scale_uncertainty")])
             rows.append([f, "loss / reduced chi2", ch["loss"], ch["reduced_chi2"]])
             rows.append([f, "iterations / time [s]", ch["iterations"], ch["time_s"]])

@@ -31,8 +31,16 @@ def test_json_shape_and_runs_never_overwritten(session, capsys):
     assert set(ch) >= {"model", "sigma_t", "albedo", "phase", "uncertainties", "reduced_chi2"}
     assert set(ch["phase"]) == {"phase.b1", "phase.b2", "phase.b3"}
     assert set(ch["uncertainties"]) == {"sigma_t", "albedo", "phase.b1", "phase.b2", "phase.b3"}
+    # sigma_a and sigma_s' (what thick slabs determine) with propagated uncertainties
+    d = ch["derived"]
+    assert d["sigma_a"]["value"] == pytest.approx(ch["sigma_t"] * (1 - ch["albedo"]))
+    assert d["sigma_a"]["unit"] == "1/mm" and d["sigma_s_reduced"]["uncertainty"] > 0
     results = Path(run["path"]) / "results.yaml"
     doc = yaml.safe_load(results.read_text())
+    assert doc["channels"]["g"]["derived"]["sigma_s_reduced"]["value"] == pytest.approx(d["sigma_s_reduced"]["value"])
+    cov = doc["channels"]["g"]["covariance"]
+    assert cov["sigma_t"]["sigma_t"] == pytest.approx(ch["uncertainties"]["sigma_t"] ** 2)
+    assert cov["sigma_t"]["albedo"] == pytest.approx(cov["albedo"]["sigma_t"])
     assert doc["format"] == "rig-estimate/1" and doc["channels"]["g"]["iterations"] == 4
     # Default: the calibrated scale (beam power x pixel area x the lens's collection solid angle).
     assert doc["settings"]["scale"] == "calibrated" and doc["settings"]["fit"]["scale"] == "calibrated"

@@ -259,3 +259,4 @@ def test_coarse_start_searches_phase_and_material_jointly():
     assert best == pytest.approx(truth)
     best, tried = coarse_start(Toy(), pb, {"phase.g": 0.5}, scale=1.0, fixed={"phase.g": 0.5})   # type: ignore[arg-type]
     assert best["phase.g"] == 0.5 and len(tried) == len(SIGMA_GRID) * len(ALBEDO_GRID)
+

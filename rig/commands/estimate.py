@@ -108,6 +108,13 @@ def run(args: argparse.Namespace) -> int:
                       f"albedo {p['albedo']:.4f} +- {u.get('albedo', float('nan')):.2g}, "
                       + ", ".join(f"{k[6:]} {v:.4g}" for k, v in p.items() if k.startswith("phase."))
                       + f"; reduced chi2 {f.reduced_chi2:.3g} ({f.iterations} it, {f.time_s:.0f} s, {f.stop_reason})")
+                dv = f.derived()
+
+                def pm(k: str) -> str:
+                    v, e = dv[k]["value"], dv[k]["uncertainty"]
+                    return f"{v:.4g} +- {e:.2g}" if e is not None else f"{v:.4g}"
+
+                print(f"     sigma_a {pm('sigma_a')} /mm, sigma_s' {pm('sigma_s_reduced')} /mm, g {pm('g')}")
         if args.diagnose:
             from estimate import diagnose  # type: ignore[attr-defined]
 
