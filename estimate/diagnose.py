@@ -168,6 +168,8 @@ class ChannelDiagnosis:
     material_names: list[str]
     before_uncertainties: dict[str, float] = field(default_factory=dict)
     angles_deg: list[float] = field(default_factory=list)
+    #: covariance of the final refit's free parameters {a: {b: cov}} (empty when none confirmed)
+    covariance_after: dict[str, dict[str, float]] = field(default_factory=dict)
 
     @property
     def significant(self) -> bool:
@@ -519,6 +521,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
     current = before
     current_exts = list(base.extensions)
     current_unc = dict(base.uncertainties)
+    current_cov: dict[str, dict[str, float]] = {}
     first_scores: list[CandidateScore] = []
     confirmations: list[dict[str, Any]] = []
     confirmed: list[str] = []
@@ -636,6 +639,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                      noise_scale=floor)
         current = evaluate(m, full.parameters, problem, len(free) + 1, spp=spp, seed=seed, repeats=repeats)
         current_unc = full.uncertainties
+        current_cov = {a: {b: v for (a2, b), v in full.covariance.items() if a2 == a} for a in full.uncertainties}
         say(f"  with {', '.join(confirmed)}: reduced chi2 {current.residuals.reduced_chi2:.3f} (HDR), "
             f"{current.residuals.reduced_chi2_adjusted:.3f} at the noise floor")
     material = [k for k in before.parameters if k in ("sigma_t", "albedo") or k.startswith("phase.")]
@@ -643,7 +647,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
     verdict = _verdict(before, loc, first_scores, confirmed, after)
     return ChannelDiagnosis(problem.channel, before, loc, first_scores, confirmations, confirmed, after,
                             current_unc if confirmed else {}, verdict, time.perf_counter() - t0, material,
-                            dict(base.uncertainties), [float(a) for a in problem.angles_deg])
+                            dict(base.uncertainties), [float(a) for a in problem.angles_deg],
+                            current_cov if confirmed else {})
 
 
 def _screen(problem: Any, current: Evaluation, exts: Sequence[str], make_model: ModelFactory,
@@ -849,7 +854,8 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
                 iterations=0, time_s=d.time_s, stop_reason="diagnosis refit (Levenberg-Marquardt)",
                 spp_schedule=[[0, spp]], loss_curve=[float(ev.residuals.chi2)],
                 angles_deg=[float(a) for a in problems[ch].angles_deg], fitted=ev.model,
-                model_variance=ev.model_variance, start=dict(d.before.parameters), settings={}))
+                model_variance=ev.model_variance, start=dict(d.before.parameters), settings={},
+                covariance=dict(d.covariance_after)))
         rd = new_run_dir(session, f"{phases[chosen[0]]}+diagnosis")
         write_run(rd, session, fits, problems, {"columns": settings.get("columns"), "diagnosis": diag_dir.name,
                                                 "refit_of": Path(run_dir).name}, plots=plots)

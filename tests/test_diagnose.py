@@ -238,3 +238,7 @@ def test_cli_end_to_end_writes_diagnosis_and_json(tmp_path, capsys):
     assert [c["name"] for c in ch["candidates"]] in ([], ["stray_light"])
     written = yaml.safe_load((s / "diagnoses" / doc["run_id"] / "diagnosis.yaml").read_text())
     assert written["format"] == "rig-diagnosis/1" and written["channels"]["g"]["significant"] == ch["significant"]
+    if doc["refit_run"]:   # a confirmed effect: the refit run carries its covariance into the derived values
+        refit = yaml.safe_load((Path(doc["refit_run"]) / "results.yaml").read_text())["channels"]["g"]
+        assert refit["derived"]["sigma_a"]["uncertainty"] is not None
+        assert set(refit["covariance"]) == set(refit["uncertainties"])
