@@ -160,6 +160,21 @@ class BeamProfile:
             return (0.0, 0.0)
         return float((e.sum(axis=0) * u).sum() / s), float((e.sum(axis=1) * v).sum() / s)
 
+    def rms_width_mm(self) -> float:
+        """1-sigma width of the map [mm]: the root of the mean of its two second central
+        moments (a Gaussian beam of standard deviation w gives w)."""
+        e = np.clip(self.irradiance, 0.0, None)
+        s = float(e.sum())
+        if s <= 0:
+            return 0.0
+        nv, nu = e.shape
+        u = self.u0_mm + np.arange(nu) * self.pitch_mm
+        v = self.v0_mm + np.arange(nv) * self.pitch_mm
+        cu, cv = self.centroid_mm()
+        var_u = float((e.sum(axis=0) * (u - cu) ** 2).sum() / s)
+        var_v = float((e.sum(axis=1) * (v - cv) ** 2).sum() / s)
+        return float(np.sqrt(0.5 * (var_u + var_v)))
+
     def lookup(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Bilinear irradiance at (u, v) mm, zero outside (numpy; same rule as the plugin)."""
         e = np.pad(self.irradiance, 1)

@@ -242,3 +242,16 @@ def test_cli_end_to_end_writes_diagnosis_and_json(tmp_path, capsys):
         refit = yaml.safe_load((Path(doc["refit_run"]) / "results.yaml").read_text())["channels"]["g"]
         assert refit["derived"]["sigma_a"]["uncertainty"] is not None
         assert set(refit["covariance"]) == set(refit["uncertainties"])
+
+
+def test_beam_rms_width_and_the_halo_width_bound():
+    """A Gaussian of 1/e^2 radius R has 1-sigma R/2, a disk of radius R has R/2 per axis; a
+    refit may not shrink a halo below the calibrated beam's width (it would be part of the map)."""
+    from estimate.diagnose import _bounds
+
+    assert BeamProfile.gaussian(0.4).rms_width_mm() == pytest.approx(0.2, rel=1e-3)
+    assert BeamProfile.disk(0.3).rms_width_mm() == pytest.approx(0.15, rel=0.02)
+    beam = BeamProfile.gaussian(0.5)
+    fm = ForwardModel(RigGeometry(thickness_mm=1.0), beam, phase="hg", extensions=("beam_halo",))
+    lo, hi = _bounds(fm, "beam_halo.sigma_mm")
+    assert lo == pytest.approx(0.25, rel=1e-3) and hi == 50.0
