@@ -72,7 +72,8 @@ def main() -> int:
                "load_s": t_load, "fit_s": r.time_s, "iterations": r.iterations, "stop_reason": r.stop_reason,
                "spp_schedule": r.spp_schedule, "lm_losses": r.lm_losses, "parameters": r.parameters,
                "uncertainties": r.uncertainties, "loss": r.loss, "reduced_chi2": r.reduced_chi2,
-               "start": r.start, "loss_curve": r.loss_curve, "gn_trace": r.gn_trace}
+               "start": r.start, "loss_curve": r.loss_curve, "gn_trace": r.gn_trace,
+               "drift": r.drift, "still_drifting": r.drifting}
         if truth:
             fs = r.scale if args.scale == "calibrated" else None
             ev = loss_at(pb, args.model, truth, spp=r.settings["final_spp"], fixed_scale=fs)
@@ -97,6 +98,8 @@ def main() -> int:
                 print(f"{k:<24}{v:.4g}" if isinstance(v, float) else f"{k:<24}{v}")
         print("parameters", {k: round(v, 4) for k, v in r.parameters.items()})
         print("uncertainties", {k: round(v, 4) for k, v in r.uncertainties.items()})
+        print("drift over the last windows", {k: round(v, 4) for k, v in r.drift.items()},
+              "still drifting:", r.drifting or "none")
         out["derived"] = r.derived()
         print("derived", {k: (round(v["value"], 4), v["uncertainty"] and round(v["uncertainty"], 4))
                           for k, v in out["derived"].items()})

@@ -260,3 +260,20 @@ def test_coarse_start_searches_phase_and_material_jointly():
     best, tried = coarse_start(Toy(), pb, {"phase.g": 0.5}, scale=1.0, fixed={"phase.g": 0.5})   # type: ignore[arg-type]
     assert best["phase.g"] == 0.5 and len(tried) == len(SIGMA_GRID) * len(ALBEDO_GRID)
 
+
+
+def test_drift_flags_iterates_still_moving_and_not_stationary_ones():
+    from estimate.fit import _drift
+    from estimate.transforms import Transform
+
+    rng = np.random.default_rng(5)
+    tr = [Transform("log", 0.1), Transform("linear", 0.1, -10, 10)]
+    n = 40
+    z_sigma = np.log(2.4) - 0.004 * np.arange(n) + 0.004 * rng.normal(size=n)   # still falling
+    z_b = 1.0 + 0.05 * rng.normal(size=n)                                          # settled
+    hist = [np.array([a, b]) for a, b in zip(z_sigma, z_b)]
+    drift, moving = _drift(hist, ["sigma_t", "b"], tr, 8)
+    assert moving == ["sigma_t"]
+    assert drift["sigma_t"] == pytest.approx(np.exp(z_sigma[-8:]).mean() - np.exp(z_sigma[-24:-16]).mean())
+    assert drift["sigma_t"] < 0 and abs(drift["b"]) < 0.1
+    assert _drift(hist[:20], ["sigma_t", "b"], tr, 8) == ({}, [])

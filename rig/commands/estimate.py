@@ -115,6 +115,10 @@ def run(args: argparse.Namespace) -> int:
                     return f"{v:.4g} +- {e:.2g}" if e is not None else f"{v:.4g}"
 
                 print(f"     sigma_a {pm('sigma_a')} /mm, sigma_s' {pm('sigma_s_reduced')} /mm, g {pm('g')}")
+                if f.drifting:
+                    print(f"     warning: {', '.join(f.drifting)} still drifting when the fit stopped "
+                          "(uncertainties include the last drift); more samples per pixel "
+                          "(--spp-max) or iterations (--max-iterations) move it further")
         if args.diagnose:
             from estimate import diagnose  # type: ignore[attr-defined]
 
