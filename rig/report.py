@@ -117,6 +117,9 @@ def write_report(session_dir: str | os.PathLike[str], out: str | os.PathLike[str
             rows.append([f, "scale", ch["scale"], ch.get("scale_uncertainty")])
             rows.append([f, "loss / reduced chi2", ch["loss"], ch["reduced_chi2"]])
             rows.append([f, "iterations / time [s]", ch["iterations"], ch["time_s"]])
+            if ch.get("still_drifting"):
+                rows.append([f, "still drifting when the fit stopped", ", ".join(ch["still_drifting"]),
+                             "uncertainties include the last drift"])
         parts.append(_table(rows, ["channel", "parameter", "value", "1-sigma"]))
         for png in sorted(rd.glob("*.png")):
             parts.append(_img(png, png.name))
