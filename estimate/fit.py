@@ -170,7 +170,8 @@ class FitResult:
         return {"model": self.model, "sigma_t": self.parameters["sigma_t"], "albedo": self.parameters["albedo"],
                 "phase": {k: v for k, v in self.parameters.items() if k.startswith("phase.")},
                 "parameters": dict(self.parameters), "uncertainties": dict(self.uncertainties),
-                "scale": self.scale, "loss": self.loss, "loss_unbiased": self.loss_unbiased, "chi2": self.chi2, "dof": self.dof,
+                "scale": self.scale, "loss": self.loss, "loss_unbiased": self.loss_unbiased,
+                "chi2": self.chi2, "dof": self.dof,
                 "reduced_chi2": self.reduced_chi2, "iterations": self.iterations, "time_s": self.time_s,
                 "stop_reason": self.stop_reason, "extensions": list(self.extensions),
                 "derived": self.derived(), "drifting": list(self.drifting)}
@@ -303,7 +304,7 @@ def _gn_inverse(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequenc
     complement). The gradient is the reverse-mode one (unbiased); only the matrix comes from
     finite differences. The Monte Carlo noise of a finite-difference Jacobian adds its own
     Gram matrix to A^T A: at the one-channel benchmark's end point one 256-spp Jacobian gave
-    eigenvalues 4-10x those of two independent Jacobians' cross product (A1^T A2 + A2^T A1)
+    eigenvalues 2-13x those of two independent Jacobians' cross product (A1^T A2 + A2^T A1)
     / n, whose expectation is the noise-free matrix, so the steps are that much shorter than
     Newton steps. The cross product was tried as the matrix (session 4, with a trust region
     capping the predicted decrease at the loss): its small eigenvalues are noise, and the
@@ -313,17 +314,12 @@ def _gn_inverse(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequenc
     eig_floor = GN_EIG_FLOOR if eig_floor is None else eig_floor
     valid = problem.valid
     den = np.clip(mean, 0.0, None) + dl
-    a_s = np.where(valid, -m / (np.clip(m, -0.5 * dl, None) + dl), 0.0).ravel()
-
-    def design(j: Mapping[str, np.ndarray]) -> np.ndarray:
-        cols = [np.where(valid, -j[n] / den, 0.0).ravel() * t.dx_dz(float(zz)) for n, t, zz in zip(names, tr, z)]
-        a = np.stack(cols, axis=1)
-        a = np.where(np.isfinite(a), a, 0.0)
-        if profiled_scale:
-            a = a - np.outer(a_s, a_s @ a) / max(float(a_s @ a_s), 1e-300)
-        return a
-
-    A = design(jac)
+    cols = [np.where(valid, -jac[n] / den, 0.0).ravel() * t.dx_dz(float(zz)) for n, t, zz in zip(names, tr, z)]
+    A = np.stack(cols, axis=1)
+    A = np.where(np.isfinite(A), A, 0.0)
+    if profiled_scale:
+        a_s = np.where(valid, -m / (np.clip(m, -0.5 * dl, None) + dl), 0.0).ravel()
+        A = A - np.outer(a_s, a_s @ A) / max(float(a_s @ a_s), 1e-300)
     n = max(1, int(valid.sum()))
     H = 2.0 * (A.T @ A) / n
     H = H + damping * np.diag(np.diag(H)) + 1e-12 * np.eye(len(names))

@@ -109,12 +109,9 @@ def run(args: argparse.Namespace) -> int:
                       + ", ".join(f"{k[6:]} {v:.4g}" for k, v in p.items() if k.startswith("phase."))
                       + f"; reduced chi2 {f.reduced_chi2:.3g} ({f.iterations} it, {f.time_s:.0f} s, {f.stop_reason})")
                 dv = f.derived()
-
-                def pm(k: str) -> str:
-                    v, e = dv[k]["value"], dv[k]["uncertainty"]
-                    return f"{v:.4g} +- {e:.2g}" if e is not None else f"{v:.4g}"
-
-                print(f"     sigma_a {pm('sigma_a')} /mm, sigma_s' {pm('sigma_s_reduced')} /mm, g {pm('g')}")
+                pm = {k: f"{d['value']:.4g} +- {d['uncertainty']:.2g}" if d["uncertainty"] is not None
+                      else f"{d['value']:.4g}" for k, d in dv.items()}
+                print(f"     sigma_a {pm['sigma_a']} /mm, sigma_s' {pm['sigma_s_reduced']} /mm, g {pm['g']}")
                 if f.drifting:
                     print(f"     warning: {', '.join(f.drifting)} still drifting when the fit stopped "
                           "(uncertainties include the last drift); more samples per pixel "
