@@ -141,20 +141,19 @@ def derived_errors(row: dict) -> dict:
     """Relative errors of what a thick slab's diffuse profiles determine: the absorption
     coefficient sigma_a = sigma_t (1 - albedo) and the reduced scattering coefficient
     sigma_s' = sigma_t albedo (1 - g) (similarity relation), against the world's truth."""
-    from estimate.results import phase_of
+    from estimate.derived import derived_quantities
     from sim_devices.world import load_world
 
     d, s = row["diameter_um"], row["sigma_t_true"]
     mat = load_world(world_file(d, s)).materials["g"]
-    truth = mat.parameters()
-    p = row["parameters"]
-    sa = p["sigma_t"] * (1.0 - p["albedo"])
-    sa_t = truth["sigma_t"] * (1.0 - truth["albedo"])
-    g_fit, g_true = phase_of(row["model"], p).g, phase_of(mat.model, truth).g
-    ss = p["sigma_t"] * p["albedo"] * (1.0 - g_fit)
-    ss_t = truth["sigma_t"] * truth["albedo"] * (1.0 - g_true)
-    return {"sigma_a_rel_error": abs(sa / sa_t - 1.0), "reduced_scattering_rel_error": abs(ss / ss_t - 1.0),
-            "g_fit": g_fit, "g_true": g_true}
+    fit = derived_quantities(row["model"], row["parameters"])
+    tru = derived_quantities(mat.model, mat.parameters())
+
+    def rel(k: str) -> float:
+        return abs(float(fit[k]["value"]) / float(tru[k]["value"]) - 1.0)  # type: ignore[arg-type]
+
+    return {"sigma_a_rel_error": rel("sigma_a"), "reduced_scattering_rel_error": rel("sigma_s_reduced"),
+            "g_fit": fit["g"]["value"], "g_true": tru["g"]["value"]}
 
 
 UNBIASED_SPP = 4096
