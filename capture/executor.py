@@ -214,8 +214,10 @@ class Executor:
         key = step.key
         if key not in self._light or key not in self._dark:
             raise RuntimeError(f"plan error: SaveStack for {key.id} before its Bracket and Dark steps")
-        if self._angle is None or abs(self._angle - step.angle_deg) > 1e-9:
-            raise RuntimeError(f"plan error: stack {key.id} saved at {self._angle} deg, planned at {step.angle_deg} deg")
+        stage_angle = step.angle_deg if step.stage_angle_deg is None else step.stage_angle_deg
+        if self._angle is None or abs(self._angle - stage_angle) > 1e-9:
+            raise RuntimeError(f"plan error: stack {key.id} saved at stage angle {self._angle} deg, "
+                               f"planned at {stage_angle} deg")
         light = self._light.pop(key)
         darks = self._dark.pop(key)
         status = self._status.pop(key)
@@ -243,6 +245,7 @@ class Executor:
             "noise_model": self.noise.to_dict(),
             "merge": m.to_dict(),
             "pixels_unmeasured": int((~hdr.mask).sum()),
+            "stage_angle_deg": float(stage_angle),
         }
         return self.session.write_stack(key, frames=light + darks, hdr=hdr, info=info)
 

@@ -63,7 +63,14 @@ class AngleSpec:
 
 @dataclass(frozen=True)
 class CapturePlan:
-    """A checked plan: angles (degrees) in acquisition order, filters, bracket policy."""
+    """A checked plan: angles (degrees) in acquisition order, filters, bracket policy.
+
+    ``angles_deg`` are world angles phi (the beam's direction in the slab's frame, what the
+    estimator models). The stage is commanded to ``phi + stage_offset_deg``: the beam
+    calibration finds the stage angle at which the beam points straight into the lens
+    (``rotation_zero_deg``, world phi = 180), so ``stage_offset_deg = rotation_zero_deg - 180``.
+    A plan made without a calibration has offset 0 (stage angle = world angle).
+    """
 
     angles_deg: tuple[float, ...]
     filters: tuple[str, ...]
@@ -72,6 +79,11 @@ class CapturePlan:
     front_range_deg: tuple[float, float] = DEFAULT_FRONT_RANGE_DEG
     back_range_deg: tuple[float, float] = DEFAULT_BACK_RANGE_DEG
     cone_half_angle_deg: float = DEFAULT_CONE_HALF_ANGLE_DEG
+    stage_offset_deg: float = 0.0
+
+    def stage_angle(self, index: int) -> float:
+        """Stage angle (degrees) that puts the beam at world angle ``angles_deg[index]``."""
+        return float(self.angles_deg[index]) + float(self.stage_offset_deg)
 
     def keys(self) -> list[StackKey]:
         """Every stack of the plan in acquisition order."""
@@ -89,6 +101,7 @@ class CapturePlan:
             "front_range_deg": [float(x) for x in self.front_range_deg],
             "back_range_deg": [float(x) for x in self.back_range_deg],
             "cone_half_angle_deg": float(self.cone_half_angle_deg),
+            "stage_offset_deg": float(self.stage_offset_deg),
             "bracket": self.bracket.to_dict(),
         }
 
@@ -102,6 +115,8 @@ class CapturePlan:
             front_range_deg=tuple(d.get("front_range_deg", DEFAULT_FRONT_RANGE_DEG)),  # type: ignore[arg-type]
             back_range_deg=tuple(d.get("back_range_deg", DEFAULT_BACK_RANGE_DEG)),  # type: ignore[arg-type]
             cone_half_angle_deg=float(d.get("cone_half_angle_deg", DEFAULT_CONE_HALF_ANGLE_DEG)),
+            # sessions written before the offset was recorded commanded the world angle
+            stage_offset_deg=float(d.get("stage_offset_deg", 0.0)),
         )
 
 
@@ -134,6 +149,7 @@ def make_plan(
     stage_range: AngleRange,
     bracket: BracketPolicy | None = None,
     exposure_range_s: tuple[float, float] | None = None,
+    stage_offset_deg: float = 0.0,
 ) -> CapturePlan:
     """Check a request and make the plan; nothing touches hardware.
 
@@ -144,6 +160,8 @@ def make_plan(
         bracket: exposure policy (default :class:`BracketPolicy`); its open exposure
             limits are filled in from ``exposure_range_s``.
         exposure_range_s: the camera's exposure range (``Camera.exposure_range_s``).
+        stage_offset_deg: stage angle minus world angle (degrees): the beam calibration's
+            ``rotation_zero_deg - 180``; 0 without a calibration.
 
     Raises:
         PlanError: the count or a range cannot be planned, a filter is unknown or
@@ -177,11 +195,16 @@ def make_plan(
     unknown = [f for f in filters if f not in available_filters]
     if unknown:
         raise PlanError(f"unknown filter {unknown[0]!r}; the filter changer has: {', '.join(available_filters)}")
-    outside = [a for a in angles if a not in stage_range]
+    if not math.isfinite(stage_offset_deg):
+        raise PlanError(f"stage offset {stage_offset_deg!r} deg must be finite")
+    outside = [a for a in angles if a + stage_offset_deg not in stage_range]
     if outside:
+        a = outside[0]
+        at = f" (stage angle {a + stage_offset_deg:g} deg after the calibrated zero)" if stage_offset_deg else ""
         raise PlanError(
-            f"angle {outside[0]:g} deg is outside the stage's allowed range "
-            f"[{stage_range.lo:g}, {stage_range.hi:g}] deg"
+            f"angle {a:g} deg{at} is outside the stage's allowed range "
+            f"[{stage_range.lo:g}, {stage_range.hi:g}] deg; narrow --front-range / --back-range "
+            "or widen stage.allowed_range_deg in rig.yaml"
         )
     return CapturePlan(
         angles_deg=tuple(angles),
@@ -191,6 +214,7 @@ def make_plan(
         front_range_deg=(float(front[0]), float(front[1])),
         back_range_deg=(float(back[0]), float(back[1])),
         cone_half_angle_deg=float(cone),
+        stage_offset_deg=float(stage_offset_deg),
     )
 
 
@@ -213,7 +237,7 @@ class Home:
 
 @dataclass(frozen=True)
 class Move:
-    """Move the stage to ``angle_deg`` (degrees)."""
+    """Move the stage to ``angle_deg`` (degrees, the stage's own angle)."""
 
     angle_deg: float
 
@@ -243,10 +267,14 @@ class Dark:
 
 @dataclass(frozen=True)
 class SaveStack:
-    """Merge stack ``key`` and write it (raw frames, HDR image, manifest)."""
+    """Merge stack ``key`` and write it (raw frames, HDR image, manifest).
+
+    ``angle_deg`` is the world angle of the stack, ``stage_angle_deg`` the stage angle it
+    was taken at (None: the same)."""
 
     key: StackKey
     angle_deg: float
+    stage_angle_deg: float | None = None
 
 
 Step = Home | Move | SelectFilter | Bracket | Dark | SaveStack
@@ -264,9 +292,10 @@ def plan_steps(plan: CapturePlan, *, done: Container[StackKey] = frozenset(), ho
         todo = [k for k in keys if k.angle_index == i and k not in done]
         if not todo:
             continue
-        yield Move(angle)
+        stage_angle = plan.stage_angle(i)
+        yield Move(stage_angle)
         for key in todo:
             yield SelectFilter(key.filter)
             yield Bracket(key, plan.bracket)
             yield Dark(key, plan.bracket.n_darks)
-            yield SaveStack(key, angle)
+            yield SaveStack(key, angle, stage_angle)

@@ -263,7 +263,8 @@ def test_calibration_sets_the_band_and_is_attached(tmp_path: Path, capsys: pytes
     centre = list(yaml.safe_load(_WORLD[0].read_text())["optics"]["axis_px"]) if _WORLD else [256.0, 256.0]
     cal = tmp_path / "cal"
     cal.mkdir()
-    (cal / "calibration.yaml").write_text(yaml.safe_dump({"beam": {"center_px": centre}}))
+    # the stage angle at which the beam points into the lens: the stage is 0.37 deg off
+    (cal / "calibration.yaml").write_text(yaml.safe_dump({"beam": {"center_px": centre}, "rotation_zero_deg": 179.63}))
     out = tmp_path / "s"
     assert main(["capture", "--angles", "2", "--filters", "r", "--out", str(out), "--config",
                  str(_config(tmp_path)), "--sim", "--calibration", str(cal), "--thickness-mm", "2.5", "--json", *SMALL]) == 0
@@ -275,11 +276,20 @@ def test_calibration_sets_the_band_and_is_attached(tmp_path: Path, capsys: pytes
     assert g["beam_center_px"] == centre and g["thickness_mm"] == 2.5
     assert s.load_calibration()["beam"]["center_px"] == centre
     assert not s.verify()
+    # world angles in the plan, the stage commanded to world angle + (rotation zero - 180)
+    assert s.plan.stage_offset_deg == pytest.approx(-0.37)
+    for rec in s.stacks():
+        assert rec.info["stage_angle_deg"] == pytest.approx(rec.angle_deg - 0.37)
     roi = g["camera_roi"]
     assert roi["y"] <= round(centre[1]) < roi["y"] + roi["height"]
     (cal / "calibration.yaml").write_text("beam: {}\n")
     assert main(["capture", "--angles", "1", "--out", str(tmp_path / "t"), "--calibration", str(cal)]) == 2
     assert "beam.center_px" in capsys.readouterr().err
+    for zero in ("null", "95.0", "nan"):
+        (cal / "calibration.yaml").write_text(f"beam: {{center_px: [256, 256]}}\nrotation_zero_deg: {zero}\n")
+        assert main(["capture", "--angles", "1", "--out", str(tmp_path / "t"), "--calibration", str(cal)]) == 2
+        err = capsys.readouterr().err
+        assert "rotation_zero_deg" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
 
 
 @pytest.mark.skipif(os.name != "posix", reason="flock")

@@ -120,7 +120,30 @@ def test_steps_home_first_filters_inner_serpentine_and_skip_done():
     assert len(moves) == 2
     done = {StackKey(0, "r"), StackKey(0, "g"), StackKey(1, "g")}
     rest = list(plan_steps(p, done=done, home=False))
-    assert rest == [Move(p.angles_deg[1]), SelectFilter("r"), Bracket(StackKey(1, "r"), p.bracket), Dark(StackKey(1, "r"), 1), SaveStack(StackKey(1, "r"), p.angles_deg[1])]
+    a = p.angles_deg[1]
+    assert rest == [Move(a), SelectFilter("r"), Bracket(StackKey(1, "r"), p.bracket), Dark(StackKey(1, "r"), 1),
+                    SaveStack(StackKey(1, "r"), a, a)]
+
+
+def test_calibrated_stage_offset_moves_the_stage_not_the_world_angle():
+    # the calibration found the beam into the lens at stage 179.63: stage = world - 0.37
+    p = make_plan(AngleSpec(2, ("g",)), available_filters=FILTERS, stage_range=STAGE, bracket=FAST,
+                  stage_offset_deg=-0.37)
+    moves = [s.angle_deg for s in plan_steps(p) if isinstance(s, Move)]
+    saves = [s for s in plan_steps(p) if isinstance(s, SaveStack)]
+    assert moves == pytest.approx([a - 0.37 for a in p.angles_deg])
+    assert [s.angle_deg for s in saves] == list(p.angles_deg)
+    assert [s.stage_angle_deg for s in saves] == pytest.approx(moves)
+    from capture.plan import CapturePlan
+
+    assert CapturePlan.from_dict(p.to_dict()) == p
+    legacy = p.to_dict()
+    del legacy["stage_offset_deg"]  # a session written before the offset was recorded
+    assert CapturePlan.from_dict(legacy).stage_offset_deg == 0.0
+    # the range is the stage's: 15 deg world is 14.63 deg on the stage
+    with pytest.raises(PlanError, match="stage angle 14.63"):
+        make_plan(AngleSpec(4, ("g",)), available_filters=FILTERS, stage_range=AngleRange(15.0, 185.0),
+                  stage_offset_deg=-0.37)
 
 
 # --------------------------------------------------------------------------- executor
@@ -152,6 +175,21 @@ def test_full_capture_measures_the_truth_and_cleans_up(tmp_path):
     # every light frame was taken at its stack's angle and filter
     for t, dark, angle, filt in cam.exposures:
         assert angle in plan.angles_deg and filt in plan.filters
+
+
+def test_executor_takes_each_stack_at_its_calibrated_stage_angle(tmp_path):
+    bench, stage, cam, wheel = make_rig(seed=2)
+    plan = make_plan(AngleSpec(2, ("g",)), available_filters=FILTERS, stage_range=STAGE, bracket=FAST,
+                     stage_offset_deg=0.25)
+    with _session(tmp_path, plan, cam) as s:
+        assert run_capture(s, stage, cam, wheel, progress=False).complete
+    moves = [e[1] for e in bench.log if e[0] == "move"]
+    assert moves == pytest.approx([a + 0.25 for a in plan.angles_deg])
+    r = Session.open(tmp_path / "s")
+    assert r.plan.stage_offset_deg == 0.25
+    for rec in r.stacks():
+        assert rec.angle_deg in plan.angles_deg
+        assert rec.info["stage_angle_deg"] == pytest.approx(rec.angle_deg + 0.25)
 
 
 def _files(d, ids):

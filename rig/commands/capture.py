@@ -112,6 +112,7 @@ class _Request:
     resume: Any  # capture.session.Session opened read-only, or None
     calibration: Path | None
     beam_center_px: tuple[float, float] | None
+    stage_offset_deg: float  # stage angle - world angle: the calibration's rotation_zero_deg - 180
     thickness_mm: float
     band_rows: int | None  # None: full frame
     sim: bool
@@ -129,8 +130,13 @@ def _positive(name: str, value: float | None) -> None:
         raise _usage(f"{name} must be a positive number, got {value:g}")
 
 
-def _read_calibration(path: str) -> tuple[Path, tuple[float, float]]:
-    """The calibration source (directory or calibration.yaml) and its beam centre ``beam.center_px`` [x, y], pixels."""
+#: A calibrated rotation zero further than this from 180 deg is not a beam into the lens.
+MAX_STAGE_OFFSET_DEG = 20.0
+
+
+def _read_calibration(path: str) -> tuple[Path, tuple[float, float], float]:
+    """The calibration source (directory or calibration.yaml), its beam centre ``beam.center_px``
+    [x, y] in pixels, and the stage offset ``rotation_zero_deg - 180`` (degrees)."""
     import yaml
 
     from capture.session import CALIBRATION_MAIN
@@ -147,7 +153,12 @@ def _read_calibration(path: str) -> tuple[Path, tuple[float, float]]:
     if (not isinstance(centre, (list, tuple)) or len(centre) != 2
             or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in centre)):
         raise _usage(f"--calibration {main}: beam.center_px must be [x, y] in pixels, got {centre!r}")
-    return src, (float(centre[0]), float(centre[1]))
+    zero = data.get("rotation_zero_deg")
+    if isinstance(zero, bool) or not isinstance(zero, (int, float)) or not math.isfinite(zero) \
+            or abs(zero - 180.0) > MAX_STAGE_OFFSET_DEG:
+        raise _usage(f"--calibration {main}: rotation_zero_deg must be the stage angle of the beam into the lens "
+                     f"(within {MAX_STAGE_OFFSET_DEG:g} deg of 180), got {zero!r}; rerun rig calibrate-beam")
+    return src, (float(centre[0]), float(centre[1])), float(zero) - 180.0
 
 
 def _default_out() -> Path:
@@ -206,14 +217,16 @@ def _check(args: argparse.Namespace) -> _Request:
             raise _usage(f"--resume continues the session's own plan; drop --{given[0].replace('_', '-')}")
         session = Session.open(args.resume)  # corrupt or missing manifest: SessionError, exit 2
         stage_range = AngleRange(*cfg.stage.allowed_range_deg)
-        outside = [a for a in session.plan.angles_deg if a not in stage_range]
+        sp = session.plan
+        outside = [a for i, a in enumerate(sp.angles_deg) if sp.stage_angle(i) not in stage_range]
         if outside:
-            raise _usage(f"angle {outside[0]:g} deg of {args.resume} is outside the stage's allowed range "
+            raise _usage(f"angle {outside[0]:g} deg of {args.resume} (stage angle "
+                         f"{outside[0] + sp.stage_offset_deg:g} deg) is outside the stage's allowed range "
                          f"[{stage_range.lo:g}, {stage_range.hi:g}] deg of {cfg.path}")
         unknown = [f for f in session.plan.filters if f not in cfg.filter.positions]
         if unknown:
             raise _usage(f"filter {unknown[0]!r} of {args.resume} is not configured in {cfg.path}")
-        return _Request(cfg, None, None, session.path, session, None, None, 0.0, None, sim, world)
+        return _Request(cfg, None, None, session.path, session, None, None, sp.stage_offset_deg, 0.0, None, sim, world)
 
     defaults = AngleSpec()
     spec = AngleSpec(
@@ -231,12 +244,15 @@ def _check(args: argparse.Namespace) -> _Request:
     # the plan against the configured stage range and filters: errors before anything opens
     make_plan(spec, available_filters=list(cfg.filter.positions), stage_range=AngleRange(*cfg.stage.allowed_range_deg),
               bracket=bracket, exposure_range_s=None)
-    calibration, centre = _read_calibration(args.calibration) if args.calibration else (None, None)
+    calibration, centre, offset = _read_calibration(args.calibration) if args.calibration else (None, None, 0.0)
+    # the stage angles of the plan, against the configured range: an error before anything opens
+    make_plan(spec, available_filters=list(cfg.filter.positions), stage_range=AngleRange(*cfg.stage.allowed_range_deg),
+              bracket=bracket, exposure_range_s=None, stage_offset_deg=offset)
     out = Path(args.out) if args.out else _default_out()
     _check_out_dir(out)
     thickness = args.thickness_mm if args.thickness_mm is not None else DEFAULT_THICKNESS_MM
     band = None if args.full_frame else (args.band_rows or DEFAULT_BAND_ROWS)
-    return _Request(cfg, spec, bracket, out, None, calibration, centre, thickness, band, sim, world)
+    return _Request(cfg, spec, bracket, out, None, calibration, centre, offset, thickness, band, sim, world)
 
 
 # --------------------------------------------------------------------------- with the rig
@@ -398,7 +414,8 @@ def _run_checked(args: argparse.Namespace, req: _Request) -> int:
             roi = _band_roi(row, req.band_rows, sensor)
             frame_row = (row - roi.y) // roi.bin_y
             plan = make_plan(req.spec, available_filters=changer.names(), stage_range=stage.allowed_range,
-                             bracket=replace(req.bracket, profile_row=frame_row), exposure_range_s=cam.exposure_range_s)
+                             bracket=replace(req.bracket, profile_row=frame_row), exposure_range_s=cam.exposure_range_s,
+                             stage_offset_deg=req.stage_offset_deg)
             _check_with_devices(rig, plan.angles_deg)
             mag = req.cfg.camera.magnification
             geometry = {
@@ -441,6 +458,12 @@ def _run_checked(args: argparse.Namespace, req: _Request) -> int:
             what = "resuming" if req.resume is not None else "capturing"
             print(f"{what} {session.path}: {len(plan.angles_deg)} angles x {len(plan.filters)} filters, "
                   f"{done_before}/{total} stacks done{f'; scene: {scene}' if scene else ''}", file=err)
+            if plan.stage_offset_deg:
+                print(f"stage angles = world angles {plan.stage_offset_deg:+.4f} deg (the calibrated rotation zero)",
+                      file=err)
+            elif req.calibration is None and req.resume is None:
+                print("note: no --calibration: the stage angles are taken as world angles (the rotation zero is "
+                      "unknown; rig estimate needs a calibration anyway)", file=err)
         _cool(cam, req.cfg.camera.cooler_setpoint_c, args.cool_timeout, say)
         progress: Any = False
         if not args.no_progress:
