@@ -134,3 +134,20 @@ def test_beam_moments_of_a_gaussian():
     assert math.isclose(wx, 4.0, rel_tol=0.005) and math.isclose(wy, 6.0, rel_tol=0.005)
     with pytest.raises(CalibrationError, match="no beam"):
         beam_moments(np.zeros((4, 4)), 1e-3)
+
+
+def test_capture_after_calibration_lights_the_slab_at_the_planned_world_angles(sim, capsys):
+    """The calibration's rotation zero reaches the stage: world angle = stage angle + the hidden zero error."""
+    cal = sim / "cal"
+    assert _run(sim, "--out", str(cal), "--filters", "g") == 0
+    out = sim / "s"
+    assert main(["capture", "--sim", str(sim / "world.yaml"), "--config", str(sim / "rig.yaml"), "--calibration",
+                 str(cal), "--filters", "g", "--angles", "2", "--out", str(out), "--band-rows", "8",
+                 "--max-exposures", "3", "--darks", "1", "--no-progress"]) == 0
+    assert "calibrated rotation zero" in capsys.readouterr().err
+    from capture.session import Session
+
+    s = Session.open(out)
+    for rec in s.stacks():
+        physical = rec.info["stage_angle_deg"] + ZERO_ERROR  # what the simulated bench lit the slab at
+        assert abs(physical - rec.angle_deg) < 0.01  # calibration uncertainty + one stage step (0.0025 deg)
