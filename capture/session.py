@@ -351,7 +351,9 @@ class Session:
                 session is locked by another process, or space is short.
         """
         s = cls.open(path)
-        if plan is not None and plan.to_dict() != s._m["plan"]:
+        # compared as plans, not dicts: a manifest written before a plan field existed
+        # (e.g. stage_offset_deg) reads back with that field's default
+        if plan is not None and plan != CapturePlan.from_dict(s._m["plan"]):
             raise SessionError(f"{s.path} was planned with other angles, filters or bracket; resume it without changing the plan")
         s._writable = True
         s._lock()

@@ -56,6 +56,9 @@ class Problem:
         stack_ids: the stack id of each row.
         session_path: the session directory.
         missing: stack ids of the channel that were missing or corrupt (allow_partial only).
+        angle_correction_deg: added to the recorded angles of a session captured before
+            capture applied the calibrated rotation zero (its plan has no stage_offset_deg):
+            180 - rotation_zero_deg; 0 otherwise.
     """
 
     angles_deg: np.ndarray
@@ -70,6 +73,7 @@ class Problem:
     stack_ids: list[str] = field(default_factory=list)
     session_path: str = ""
     missing: list[str] = field(default_factory=list)
+    angle_correction_deg: float = 0.0
 
     def __post_init__(self) -> None:
         if self.valid is None:
@@ -89,7 +93,7 @@ class Problem:
         return Problem(self.angles_deg[idx], self.x_mm, self.measured[idx], self.variance[idx],
                        self.geometry, self.beam, self.channel, self.wavelength_nm,
                        self.valid[idx], [self.stack_ids[i] for i in idx], self.session_path,
-                       list(self.missing))
+                       list(self.missing), self.angle_correction_deg)
 
 
 def session_channels(session_dir: str | os.PathLike[str]) -> list[str]:
@@ -203,6 +207,14 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
     if len(usable) < 2:
         raise DataError(f"channel {channel!r}: only {len(usable)} usable stack(s); need at least 2")
 
+    # Sessions captured before capture commanded world angle + (rotation zero - 180) (plan
+    # without stage_offset_deg) recorded the stage angle: the beam met the slab at
+    # angle + 180 - rotation_zero_deg.
+    correction = 0.0
+    zero = cal.get("rotation_zero_deg")
+    if "stage_offset_deg" not in (s.manifest.get("plan") or {}) and isinstance(zero, (int, float)) \
+            and math.isfinite(zero) and abs(zero - 180.0) < 20.0:
+        correction = 180.0 - float(zero)
     geo = dict(s.geometry() or {})
     beam_cal = cal.get("beam") or {}
     sensor = s.sensor()
@@ -251,7 +263,7 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
         if not 0 <= j < rad.shape[0]:
             raise DataError(f"stack {r.id}: profile row {row} lies outside its ROI rows "
                             f"{roi['y']}..{roi['y'] + rad.shape[0] * roi['bin_y'] - 1}")
-        angles.append(float(r.angle_deg))
+        angles.append(float(r.angle_deg) + correction)
         meas_rows.append(rad[j])
         var_rows.append(var[j])
         mask_rows.append(mask[j])
@@ -322,4 +334,5 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
         angles_deg=np.asarray(angles)[order], x_mm=x_mm, measured=measured[order],
         variance=variance[order], geometry=geometry, beam=beam, channel=channel, wavelength_nm=wl,
         valid=valid[order], stack_ids=[ids[i] for i in order], session_path=str(s.path), missing=missing,
+        angle_correction_deg=correction,
     )

@@ -101,6 +101,8 @@ def write_run(run_dir: Path, session_dir: str | os.PathLike[str], fits: Sequence
             "spp_schedule": [list(map(int, x)) for x in r.spp_schedule],
             "start": {k: float(v) for k, v in r.start.items()},
             "angles_deg": [float(a) for a in r.angles_deg],
+            # world angle - recorded angle (sessions captured before the rotation zero was applied)
+            "angle_correction_deg": float(getattr(pb, "angle_correction_deg", 0.0)),
             "stacks": list(pb.stack_ids), "missing_stacks": list(pb.missing),
             "wavelength_nm": pb.wavelength_nm,
         }

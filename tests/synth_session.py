@@ -34,7 +34,7 @@ CALIBRATION_ND = 1.0e-3
 
 
 def write_calibration(caldir: Path, filters: Sequence[str], beam_sigma_mm: float = 0.25,
-                      power: float = BEAM_POWER) -> Path:
+                      power: float = BEAM_POWER, rotation_zero_deg: float = 180.0) -> Path:
     """A calibration directory with a Gaussian beam map per filter (e-/s per pixel)."""
     caldir.mkdir(parents=True, exist_ok=True)
     n = 24
@@ -51,7 +51,7 @@ def write_calibration(caldir: Path, filters: Sequence[str], beam_sigma_mm: float
                   meta={"origin_px": [x0, y0]})
         entries[f] = {"map": f"beam_{f}.exr", "power_e_per_s": float(power), "relative_power": 1.0,
                       "centroid_mm": [0.0, 0.0], "width_mm": [beam_sigma_mm, beam_sigma_mm]}
-    cal = {"format": "rig-calibration/1", "rotation_zero_deg": 180.0, "rotation_zero_uncertainty_deg": 0.01,
+    cal = {"format": "rig-calibration/1", "rotation_zero_deg": rotation_zero_deg, "rotation_zero_uncertainty_deg": 0.01,
            "pixel_pitch_mm": PITCH_MM, "beam": {"center_px": list(CENTER_PX), "filters": entries}}
     (caldir / "calibration.yaml").write_text(yaml.safe_dump(cal), encoding="utf-8")
     return caldir

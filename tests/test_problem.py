@@ -33,6 +33,38 @@ def test_profile_window_geometry_and_data(session):
     assert abs(pb.beam.power() - 1e6 / PITCH_MM ** 2 * PITCH_MM ** 2) / 1e6 < 1e-6
 
 
+def test_session_from_before_the_stage_offset_gets_its_angles_corrected(tmp_path):
+    """A plan without stage_offset_deg commanded the stage to the recorded angle: the beam met
+    the slab at angle + 180 - rotation_zero_deg; a plan with it recorded world angles."""
+    import yaml
+    from synth_session import write_calibration
+
+    from capture.session import Session
+
+    s = make_session(tmp_path / "s", {"g": TRUTH["g"]}, angles=[30, 150], spp=16, width=32, scale=2e5)
+    assert list(load_problem(s, "g").angles_deg) == [30.0, 150.0]
+    # the same session with a calibration whose zero is 0.4 deg short of 180, and a legacy plan
+    cal = write_calibration(tmp_path / "cal2", ["g"], rotation_zero_deg=179.6)
+    sess = Session.open(s)
+    man = sess.manifest
+    sess.close()
+    assert load_problem(s, "g").angle_correction_deg == 0.0
+    import shutil
+
+    shutil.copy(cal / "calibration.yaml", s / "calibration" / "calibration.yaml")
+    from capture.atomic import sha256_file
+
+    man["calibration"]["files"]["calibration.yaml"]["sha256"] = sha256_file(s / "calibration" / "calibration.yaml")
+    man["calibration"]["files"]["calibration.yaml"]["bytes"] = (s / "calibration" / "calibration.yaml").stat().st_size
+    (s / "session.yaml").write_text(yaml.safe_dump(man, sort_keys=False))
+    assert list(load_problem(s, "g").angles_deg) == [30.0, 150.0]  # the plan records its (zero) offset
+    del man["plan"]["stage_offset_deg"]
+    (s / "session.yaml").write_text(yaml.safe_dump(man, sort_keys=False))
+    pb = load_problem(s, "g")
+    assert pb.angle_correction_deg == pytest.approx(0.4)
+    assert pb.angles_deg == pytest.approx([30.4, 150.4])
+
+
 def test_missing_stack_refused_unless_partial(session):
     with pytest.raises(DataError, match=r"a01_r \(not captured\).*--allow-partial"):
         load_problem(session, "r")

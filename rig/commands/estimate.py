@@ -70,6 +70,10 @@ def run(args: argparse.Namespace) -> int:
     exts = [e.strip() for e in args.extensions.split(",") if e.strip()]
     # Load every problem first: bad input fails before any fitting.
     problems = {c: load_problem(session, c, args.columns, allow_partial=args.allow_partial) for c in channels}
+    corr = next((pb.angle_correction_deg for pb in problems.values() if pb.angle_correction_deg), 0.0)
+    if corr:
+        print(f"note: {session} was captured before capture applied the calibrated rotation zero; its angles are "
+              f"taken as the recorded ones {corr:+.4f} deg (180 - rotation_zero_deg)", file=sys.stderr)
     scales = ({c: calibrated_scale(session, c, problems[c].beam.power()) for c in channels}
               if args.scale == "calibrated" else {})
     models = ["exp", "tthg"] if args.model == "both" else [args.model]
