@@ -36,6 +36,11 @@ DEFAULT_BACK_RANGE_DEG = (105.0, 165.0)
 DEFAULT_CONE_HALF_ANGLE_DEG = 10.0
 
 
+#: A calibrated rotation zero further than this from 180 deg (degrees) is not a beam pointed
+#: into the lens: such a stage offset is refused (capture) or ignored (estimate).
+MAX_STAGE_OFFSET_DEG = 20.0
+
+
 @dataclass(frozen=True)
 class StackKey:
     """Identifies one stack: the index of its angle in the plan and the filter name."""

@@ -210,10 +210,12 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
     # Sessions captured before capture commanded world angle + (rotation zero - 180) (plan
     # without stage_offset_deg) recorded the stage angle: the beam met the slab at
     # angle + 180 - rotation_zero_deg.
+    from capture.plan import MAX_STAGE_OFFSET_DEG
+
     correction = 0.0
     zero = cal.get("rotation_zero_deg")
     if "stage_offset_deg" not in (s.manifest.get("plan") or {}) and isinstance(zero, (int, float)) \
-            and math.isfinite(zero) and abs(zero - 180.0) < 20.0:
+            and math.isfinite(zero) and abs(zero - 180.0) <= MAX_STAGE_OFFSET_DEG:
         correction = 180.0 - float(zero)
     geo = dict(s.geometry() or {})
     beam_cal = cal.get("beam") or {}

@@ -130,15 +130,12 @@ def _positive(name: str, value: float | None) -> None:
         raise _usage(f"{name} must be a positive number, got {value:g}")
 
 
-#: A calibrated rotation zero further than this from 180 deg is not a beam into the lens.
-MAX_STAGE_OFFSET_DEG = 20.0
-
-
 def _read_calibration(path: str) -> tuple[Path, tuple[float, float], float]:
     """The calibration source (directory or calibration.yaml), its beam centre ``beam.center_px``
     [x, y] in pixels, and the stage offset ``rotation_zero_deg - 180`` (degrees)."""
     import yaml
 
+    from capture.plan import MAX_STAGE_OFFSET_DEG
     from capture.session import CALIBRATION_MAIN
 
     src = Path(path)
@@ -241,11 +238,8 @@ def _check(args: argparse.Namespace) -> _Request:
               "max_exposure_s": args.max_exposure, "max_exposures": args.max_exposures,
               "target_snr": args.target_snr, "n_darks": args.darks}
     bracket = replace(BracketPolicy(), **{k: v for k, v in chosen.items() if v is not None})
-    # the plan against the configured stage range and filters: errors before anything opens
-    make_plan(spec, available_filters=list(cfg.filter.positions), stage_range=AngleRange(*cfg.stage.allowed_range_deg),
-              bracket=bracket, exposure_range_s=None)
     calibration, centre, offset = _read_calibration(args.calibration) if args.calibration else (None, None, 0.0)
-    # the stage angles of the plan, against the configured range: an error before anything opens
+    # the plan (its stage angles) against the configured range and filters: errors before anything opens
     make_plan(spec, available_filters=list(cfg.filter.positions), stage_range=AngleRange(*cfg.stage.allowed_range_deg),
               bracket=bracket, exposure_range_s=None, stage_offset_deg=offset)
     out = Path(args.out) if args.out else _default_out()
