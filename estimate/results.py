@@ -102,7 +102,7 @@ def write_run(run_dir: Path, session_dir: str | os.PathLike[str], fits: Sequence
             "start": {k: float(v) for k, v in r.start.items()},
             "angles_deg": [float(a) for a in r.angles_deg],
             # world angle - recorded angle (sessions captured before the rotation zero was applied)
-            "angle_correction_deg": float(getattr(pb, "angle_correction_deg", 0.0)),
+            "angle_correction_deg": float(pb.angle_correction_deg),
             "stacks": list(pb.stack_ids), "missing_stacks": list(pb.missing),
             "wavelength_nm": pb.wavelength_nm,
         }
