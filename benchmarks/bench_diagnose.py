@@ -93,8 +93,8 @@ def limit_cases() -> list[dict[str, Any]]:
 TRUE = {"sigma_t": 2.0, "albedo": 0.9, "phase.g": 0.5}
 #: spp of the synthetic base fit.
 BASE_SPP = 1024
-#: Cache version of the synthetic cases (bumped when the recipe changes).
-SYNTHETIC_VERSION = "v5"
+#: Cache version of the synthetic cases (bumped when the recipe or the diagnosis changes).
+SYNTHETIC_VERSION = "v6"
 
 
 def synthetic_recording(case: dict[str, Any], excess: float = 0.0) -> tuple[Any, Callable[..., Any], dict[str, float]]:

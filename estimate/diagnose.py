@@ -50,6 +50,7 @@ from estimate.residuals import (
     ALPHA,
     FitResiduals,
     fit_significance,
+    local_noise_variance,
     localise,
     normalised_residuals,
 )
@@ -692,13 +693,16 @@ def _screen(problem: Any, current: Evaluation, exts: Sequence[str], make_model: 
         b = m.render_profiles(current.parameters, angles, spp=cspp, seed=seed)
         cols.update(candidate_columns(m, current.parameters, angles, b, [n], spp=cspp, seed=seed))
     excess = current.residuals.chi2_adjusted - current.residuals.dof
+    # The noise each pixel really has, in units of the floor: heavy tails and a level that
+    # varies along the profile would otherwise pass for a candidate's signature.
+    nvar = local_noise_variance(current.residuals.r_adjusted)
     r = np.nan_to_num(current.residuals.r_adjusted, nan=0.0)
-    scores = screen(r, sigma, base_cols, current.scale, cols, excess)
+    scores = screen(r, sigma, base_cols, current.scale, cols, excess, noise_var=nvar)
     # How much of the residual lies along the fitted parameters themselves: a large share
     # means the fit stopped short of its optimum (not a left-out effect).
     scale_col = [np.ravel(current.model / sigma)[:, None]]
     own = score_test(np.ravel(r), scale_col[0], np.stack([np.ravel(c / sigma) for c in base_cols[:-1]], axis=1),
-                     excess, "fitted parameters") if len(base_cols) > 1 else None
+                     excess, "fitted parameters", np.ravel(nvar)) if len(base_cols) > 1 else None
     if own is not None:
         current.residuals.extra["own_directions"] = own
     return scores
