@@ -26,9 +26,9 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import replace
 import threading
 from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np

@@ -81,6 +81,8 @@ __all__ = [
     "localise",
     "noise_floor",
     "normalised_residuals",
+    "project_out",
+    "smooth_structure",
     "smooth_test",
 ]
 
@@ -146,7 +148,8 @@ class FitResiduals:
                 "noise_scale_median": float(np.median(f)) if f.size else 1.0,
                 "noise_scale_max": float(np.max(f)) if f.size else 1.0,
                 "smooth": [dict(t) for t in self.smooth], "p_value_smooth": self.p_value_smooth,
-                "significant": self.significant}
+                "significant": self.significant,
+                **({"smooth_as_fitted": self.extra["smooth_as_fitted"]} if "smooth_as_fitted" in self.extra else {})}
 
 
 def normalised_residuals(measured: np.ndarray, variance: np.ndarray, model: np.ndarray, scale: float = 1.0,
@@ -291,14 +294,46 @@ def fit_significance(r: np.ndarray, n_params: int, *, alpha: float = ALPHA, min_
         f = np.broadcast_to(np.asarray(noise_scale, dtype=np.float64), (r2.shape[0],)).copy()
     ra = r2 / f[:, None]
     chi2a = float(np.sum(ra[finite] ** 2))
-    widths = [b for b in bins_px if 2 * b <= r2.shape[1]] or [1]
+    tests, p_smooth, sig = smooth_structure(ra, alpha=alpha, min_excess=min_excess, bins_px=bins_px)
+    return FitResiduals(r=rr, chi2=chi2, dof=dof, reduced_chi2=red, p_value=p, significant=sig,
+                        noise_scale=f, chi2_adjusted=chi2a, reduced_chi2_adjusted=chi2a / dof, smooth=tests,
+                        p_value_smooth=p_smooth)
+
+
+def smooth_structure(r_adjusted: np.ndarray, *, alpha: float = ALPHA, min_excess: float = MIN_SMOOTH_EXCESS,
+                     bins_px: tuple[int, ...] = SMOOTH_BINS_PX) -> tuple[list[dict[str, float]], float, bool]:
+    """The smooth-structure test at every bin width (widths above half a row are skipped).
+
+    Returns (tests per width as `smooth_test` gives them, the smallest p over widths
+    Bonferroni-corrected, significant: some width has p < alpha / widths and T / mu above
+    1 + min_excess).
+    """
+    ra = np.atleast_2d(np.asarray(r_adjusted, dtype=np.float64))
+    widths = [b for b in bins_px if 2 * b <= ra.shape[1]] or [1]
     tests = [smooth_test(ra, b) for b in widths]
     corr = math.log10(len(tests))
     best = min(t["log10_p"] for t in tests) + corr
     sig = any(t["log10_p"] + corr < math.log10(alpha) and t["reduced"] > 1.0 + min_excess for t in tests)
-    return FitResiduals(r=rr, chi2=chi2, dof=dof, reduced_chi2=red, p_value=p, significant=bool(sig),
-                        noise_scale=f, chi2_adjusted=chi2a, reduced_chi2_adjusted=chi2a / dof, smooth=tests,
-                        p_value_smooth=float(min(1.0, 10 ** best)))
+    return tests, float(min(1.0, 10 ** best)), bool(sig)
+
+
+def project_out(r: np.ndarray, columns: np.ndarray) -> np.ndarray:
+    """r less its least-squares projection on `columns` (pixels, k), over finite pixels.
+
+    Both in the same whitened metric; r of any shape (raveled like the columns' rows),
+    NaN pixels stay NaN and take no part.
+    """
+    rr = np.asarray(r, dtype=np.float64)
+    x = np.asarray(columns, dtype=np.float64).reshape(rr.size, -1)
+    flat = rr.ravel().copy()
+    ok = np.isfinite(flat) & np.all(np.isfinite(x), axis=1)
+    xs = x[ok]
+    norms = np.linalg.norm(xs, axis=0)
+    xs = xs[:, norms > 0] / norms[norms > 0]
+    if xs.shape[1]:
+        coef, *_ = np.linalg.lstsq(xs, flat[ok], rcond=1e-10)
+        flat[ok] = flat[ok] - xs @ coef
+    return flat.reshape(rr.shape)
 
 
 def _excess(r: np.ndarray) -> dict[str, float]:

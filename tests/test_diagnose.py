@@ -34,6 +34,8 @@ from estimate.residuals import (
     local_noise_variance,
     localise,
     noise_floor,
+    project_out,
+    smooth_structure,
 )
 from estimate.screening import score_test
 from rig.cli import main
@@ -224,6 +226,20 @@ def test_local_noise_variance_follows_the_level_and_ignores_a_smooth_mismatch():
     v = local_noise_variance(rng.normal(size=(60, w)) * level + smooth).mean(axis=0)
     ratio = (v / level ** 2).reshape(8, -1).mean(axis=1)  # 8 stretches of 50 px
     assert np.all(np.abs(ratio - 1.0) < 0.1), ratio
+
+
+def test_structure_along_the_fitted_parameters_is_not_left_out_physics():
+    """A fit a little off its optimum leaves a residual along its own derivative columns:
+    significant as fitted, gone once projected out; structure outside them stays."""
+    rng = np.random.default_rng(12)
+    x = np.linspace(-1, 1, 128)
+    col = np.broadcast_to(np.exp(-(x / 0.3) ** 2), (6, 128))  # d(profile)/d(parameter)
+    other = np.broadcast_to(0.5 + 0.5 * x, (6, 128))  # e.g. a stray-light ramp
+    noise = rng.normal(size=(6, 128))
+    off = noise + 3.0 * col
+    assert smooth_structure(off)[2]
+    assert not smooth_structure(project_out(off, col.reshape(-1, 1)))[2]
+    assert smooth_structure(project_out(off + 3.0 * other, col.reshape(-1, 1)))[2]
 
 
 def test_significance_counts_fitted_parameters_and_localise_finds_the_tails():
