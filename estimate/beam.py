@@ -45,7 +45,7 @@ import numpy as np
 
 from estimate.errors import ModelParameterError
 
-__all__ = ["PLUGIN_NAME", "BeamProfile", "beam_frame", "register_plugins"]
+__all__ = ["PLUGIN_NAME", "BeamProfile", "beam_frame", "map_from_pixel_image", "register_plugins"]
 
 PLUGIN_NAME = "collimated_beam"
 #: How far beyond the lit face a shadow ray ends when it may cross the boundary (mm).
@@ -189,6 +189,46 @@ class BeamProfile:
         b = fv - j
         return ((1 - a) * (1 - b) * e[j, i] + a * (1 - b) * e[j, i + 1]
                 + (1 - a) * b * e[j + 1, i] + a * b * e[j + 1, i + 1])
+
+
+#: Per axis, a camera pixel value of the bilinear map with samples B at the pixel centres is
+#: sum_j B_j K(i - j): the bilinear (triangle) kernel integrated over the pixel's width.
+_PIXEL_OF_BILINEAR = (1.0 / 8.0, 3.0 / 4.0, 1.0 / 8.0)
+
+
+def map_from_pixel_image(image: np.ndarray) -> np.ndarray:
+    """Map samples whose bilinear irradiance, imaged by the same pixels, gives `image` back.
+
+    A calibration frame holds the beam integrated over each pixel (a 1-pixel box), and the
+    map is read back with bilinear interpolation (a 1-pixel triangle). Used as is, both
+    would widen the beam: its variance by pitch^2 / 12 + pitch^2 / 6 = pitch^2 / 4 per axis,
+    0.9 % in the width of the simulated rig's 0.25 mm beam at 0.067 mm pixels (on a clean
+    simulated-bench session at the true parameters, the diagnosis's score test of sensor
+    compression, which reshapes the peak, fell from 9-10 to 1-3 with this correction).
+    Solving K B = image along both axes (K = 1/8, 3/4, 1/8,
+    zero beyond the frame; diagonally dominant, so at most 2x noise at the Nyquist frequency)
+    removes it. The beam's power (the sum) is kept; the few negative samples the inversion
+    leaves at a sharp edge or in the dark noise are clipped to zero, and the power restored.
+    """
+    from scipy.linalg import solve_banded
+
+    e = np.asarray(image, dtype=np.float64)
+    total = float(e.sum())
+    a, b, c = _PIXEL_OF_BILINEAR
+    for axis in (0, 1):
+        n = e.shape[axis]
+        if n < 3:
+            continue
+        ab = np.zeros((3, n))
+        ab[0, 1:] = c
+        ab[1, :] = b
+        ab[2, :-1] = a
+        e = np.moveaxis(solve_banded((1, 1), ab, np.moveaxis(e, axis, 0)), 0, axis)
+    e = np.clip(e, 0.0, None)
+    s = float(e.sum())
+    if s > 0 and total > 0:
+        e *= total / s
+    return e
 
 
 def _make_plugin_class(mi: Any, dr: Any) -> type:

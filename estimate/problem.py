@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from estimate.beam import BeamProfile
+from estimate.beam import BeamProfile, map_from_pixel_image
 from estimate.errors import DataError
 from estimate.geometry import RigGeometry
 
@@ -143,8 +143,9 @@ def _load_beam(session: Any, cal: dict[str, Any], channel: str, pitch_mm: float,
     x0, y0 = _beam_origin(img, entry, path)
     if not np.all(np.isfinite(rad)):
         raise DataError(f"beam map {path} holds NaN or infinite radiance")
-    # Dark-subtracted noise can dip below zero off the beam; the irradiance cannot.
-    rad = np.clip(rad, 0.0, None)
+    # Dark-subtracted noise can dip below zero off the beam; the irradiance cannot. The frame
+    # is pixel-integrated and the map is read bilinearly: undo both (estimate.beam).
+    rad = map_from_pixel_image(np.clip(rad, 0.0, None))
     cx, cy = center_px
     # Pixel centre (i, j) is at x = (i + 0.5 - cx) p, y = -(j + 0.5 - cy) p (estimate.geometry).
     axis = (cx - 0.5 - x0, cy - 0.5 - y0)
