@@ -976,8 +976,8 @@ def summary_text(doc: Mapping[str, Any]) -> str:
             regions.append(f"{a} {_red(loc[a])} / {b} {_red(loc[b])}")
         tests = (d.get("before") or {}).get("smooth") or []
         if tests:
-            print("  smooth structure (binned residual / noise floor): " + "; ".join(
-                f"{t['bin_px']} px bins {t['reduced']:.2f} on {t['dof']} dof (log10 p {t['log10_p']:.1f})"
+            print("  smooth structure (binned / per-pixel power of the residual beyond the fit; 1 = none): "
+                  + "; ".join(f"{t['bin_px']} px bins {t['reduced']:.2f} (log10 p {t['log10_p']:.1f})"
                 for t in tests), file=out)
         print("  where (reduced chi2 at the noise floor, by region): " + "; ".join(regions)
               + f"; left-right asymmetry {loc['asymmetry']['difference_sigma']:+.1f} sigma", file=out)
