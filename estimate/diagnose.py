@@ -724,9 +724,9 @@ def _screen(problem: Any, current: Evaluation, exts: Sequence[str], make_model: 
     scores = screen(r, sigma, base_cols, current.scale, cols, excess, noise_var=nvar)
     # How much of the residual lies along the fitted parameters themselves: a large share
     # means the fit stopped short of its optimum (not a left-out effect).
-    scale_col = [np.ravel(current.model / sigma)[:, None]]
-    own = score_test(np.ravel(r), scale_col[0], np.stack([np.ravel(c / sigma) for c in base_cols[:-1]], axis=1),
-                     excess, "fitted parameters", np.ravel(nvar)) if len(base_cols) > 1 else None
+    # (xcols: the fitted parameters' whitened columns, then the scale's, as base_cols.)
+    own = score_test(np.ravel(r), xcols[:, -1:], xcols[:, :-1], excess, "fitted parameters",
+                     np.ravel(nvar)) if len(base_cols) > 1 else None
     if own is not None:
         current.residuals.extra["own_directions"] = own
     return scores
