@@ -23,6 +23,8 @@ import yaml
 from estimate.beam import BeamProfile
 from estimate.diagnose import (
     BaseFit,
+    RefitResult,
+    _magnitude_lr_z,
     _smoothed_variance,
     diagnose_channel,
     screen_candidates,
@@ -240,6 +242,45 @@ def test_structure_along_the_fitted_parameters_is_not_left_out_physics():
     assert smooth_structure(off)[2]
     assert not smooth_structure(project_out(off, col.reshape(-1, 1)))[2]
     assert smooth_structure(project_out(off + 3.0 * other, col.reshape(-1, 1)))[2]
+
+
+def _lls_chi2(y: np.ndarray, cols: np.ndarray) -> tuple[float, np.ndarray]:
+    coef, *_ = np.linalg.lstsq(cols, y, rcond=None)
+    return float(np.sum((y - cols @ coef) ** 2)), coef
+
+
+def test_likelihood_ratio_magnitude_holds_its_level_and_survives_a_misfit():
+    """Linear-Gaussian stand-in for a refit: a material column, an effect column (offset).
+    Without the effect the LR magnitude is |N(0,1)|-distributed; an effect at its neutral
+    value scores 0; and a real effect under a misfit 400x the noise (which inflates the
+    quasi-likelihood variance) still scores far from absent."""
+    rng = np.random.default_rng(5)
+    n = 400
+    x = np.linspace(-1, 1, n)
+    material = np.exp(-(x / 0.3) ** 2)
+    effect = np.ones(n)
+    both = np.stack([material, effect], axis=1)
+    z = []
+    for _ in range(2000):
+        y = 3.0 * material + rng.normal(size=n)
+        c_ctrl, _ = _lls_chi2(y, material[:, None])
+        c_fit, coef = _lls_chi2(y, both)
+        c_neutral = float(np.sum((y - both @ np.array([coef[0], 0.0])) ** 2))
+        fit = RefitResult({"stray_light.offset": coef[1]}, 1.0, {}, c_fit, 1)
+        z.append(_magnitude_lr_z(fit, c_ctrl, c_neutral, n, 2, "stray_light"))
+    # One magnitude parameter in the fit: P(|N(0,1)| > 1) = 0.317 (binomial sd 0.010).
+    frac = float(np.mean(np.array(z) > 1.0))
+    assert 0.275 < frac < 0.36, frac
+    fit0 = RefitResult({"stray_light.offset": 0.0}, 1.0, {}, 420.0, 1)
+    assert _magnitude_lr_z(fit0, 500.0, 420.0, n, 2, "stray_light") == 0.0
+    # Misfit: an unmodelled wiggle 20x the noise; the offset is 86 % of the chi^2 drop.
+    y = 3.0 * material + 60.0 * effect + 20.0 * np.sin(9 * x) * material + rng.normal(size=n)
+    c_ctrl, _ = _lls_chi2(y, material[:, None])
+    c_fit, coef = _lls_chi2(y, both)
+    assert c_fit / n > 20  # a poor fit
+    c_neutral = float(np.sum((y - both @ np.array([coef[0], 0.0])) ** 2))
+    fit = RefitResult({"stray_light.offset": coef[1]}, 1.0, {}, c_fit, 1)
+    assert _magnitude_lr_z(fit, c_ctrl, c_neutral, n, 2, "stray_light") > 5.0
 
 
 def test_significance_counts_fitted_parameters_and_localise_finds_the_tails():
