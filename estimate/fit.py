@@ -615,7 +615,20 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
                                fixed=fixed, scale=fixed_scale)
     init = fm.validate(init)
     names = [n for n in fm.parameter_names if n not in fixed]
-    tr: list[Transform] = [transform_for(n, fm.specs[n]) for n in names]
+    peak = None
+    radiance_valued = [n for n in names if fm.specs[n].unit.startswith("radiance")]
+    if radiance_valued:
+        # Radiance-valued extension parameters (stray-light offset and slope, full-well
+        # radiance) live in the render's units, whose scale depends on pixel size and beam:
+        # their steps are taken relative to the render's peak, and a level parameter left at
+        # its placeholder (the full well: 1.0) starts at the peak (the brightest pixel fills
+        # the well), where the compression acts on the spot and not on the whole profile.
+        peak = float(np.nanmax(fm.render_profiles(init, problem.angles_deg, spp=32, seed=st.seed + 77_777)))
+        for n in radiance_valued:
+            spec = fm.specs[n]
+            if spec.neutral != 0.0 and n not in (start or {}) and init[n] == spec.neutral and peak > 0:
+                init[n] = peak
+    tr: list[Transform] = [transform_for(n, fm.specs[n], peak) for n in names]
     z = np.array([t.to_z(init[n]) for n, t in zip(names, tr)])
     adam = _Adam(np.array([t.lr for t in tr]) * st.lr_scale)
     rng = np.random.default_rng(st.seed)

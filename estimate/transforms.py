@@ -4,6 +4,10 @@ sigma_t = exp(z) (log); albedo = sigmoid(z) (logit); HG lobes g = 0.99 tanh(z);
 lobe weight w = sigmoid(z); exponential coefficients b_i and extension parameters are used
 as they are, clamped into their allowed range (`BOUND_B` for b_i: a lobe exp(b mu) with
 |b| > 200 is narrower than ~0.1 rad, beyond what a 1 mm slab's profiles resolve).
+Extension parameters in the render's radiance units (a stray-light offset, a full-well
+radiance) are measured in z in units of `RADIANCE_UNIT` x the render's peak: a render's
+radiance scale depends on the pixel size and the beam (1e7 at the rig's 8.5 um pixels),
+and an absolute step or an absolute eigenvalue floor would leave them where they start.
 Each transform also gives the step size Adam uses for it (in z units).
 """
 
@@ -14,9 +18,11 @@ from dataclasses import dataclass
 
 from estimate.extensions.base import ParameterSpec
 
-__all__ = ["BOUND_B", "Transform", "transform_for"]
+__all__ = ["BOUND_B", "RADIANCE_UNIT", "Transform", "transform_for"]
 
 BOUND_B = 200.0
+#: z unit of radiance-valued parameters, as a fraction of the render's peak radiance.
+RADIANCE_UNIT = 0.01
 _EPS = 1e-6
 
 
@@ -30,6 +36,7 @@ class Transform:
     lr: float          # Adam step size in z
     lower: float = -math.inf
     upper: float = math.inf
+    unit: float = 1.0  # "linear": x = unit * z
 
     def to_z(self, x: float) -> float:
         if self.kind == "log":
@@ -39,7 +46,7 @@ class Transform:
             return math.log(p / (1 - p))
         if self.kind == "tanh":
             return math.atanh(min(max(x / 0.99, -1 + _EPS), 1 - _EPS))
-        return min(max(x, self.lower), self.upper)
+        return min(max(x, self.lower), self.upper) / self.unit
 
     def to_x(self, z: float) -> float:
         if self.kind == "log":
@@ -48,7 +55,7 @@ class Transform:
             return min(max(_sigmoid(z), _EPS), 1 - _EPS)
         if self.kind == "tanh":
             return 0.99 * math.tanh(z)
-        return min(max(z, self.lower), self.upper)
+        return min(max(z * self.unit, self.lower), self.upper)
 
     def dx_dz(self, z: float) -> float:
         if self.kind == "log":
@@ -58,16 +65,20 @@ class Transform:
             return s * (1 - s)
         if self.kind == "tanh":
             return 0.99 * (1 - math.tanh(z) ** 2)
-        return 1.0
+        return self.unit
 
     def clamp_z(self, z: float) -> float:
         if self.kind == "linear":
-            return min(max(z, self.lower), self.upper)
+            return min(max(z * self.unit, self.lower), self.upper) / self.unit
         return min(max(z, -30.0), 30.0)
 
 
-def transform_for(name: str, spec: ParameterSpec) -> Transform:
-    """The transform and Adam step of a ForwardModel parameter."""
+def transform_for(name: str, spec: ParameterSpec, peak_radiance: float | None = None) -> Transform:
+    """The transform and Adam step of a ForwardModel parameter.
+
+    `peak_radiance`: the render's peak (its own units), for parameters in radiance units
+    (`spec.unit` "radiance", "radiance/mm"); None keeps them in absolute units.
+    """
     if name == "sigma_t":
         return Transform("log", 0.08)
     if name == "albedo":
@@ -79,4 +90,7 @@ def transform_for(name: str, spec: ParameterSpec) -> Transform:
     if name.startswith("phase.b"):
         return Transform("linear", 0.15, -BOUND_B, BOUND_B)
     lo = spec.lower + (1e-9 if spec.open_lower else 0.0)
+    if peak_radiance and peak_radiance > 0 and spec.unit.startswith("radiance"):
+        # Steps of 0.3 % of the peak per Adam iteration; Gauss-Newton sees O(1) columns.
+        return Transform("linear", 0.3, lo, spec.upper, RADIANCE_UNIT * float(peak_radiance))
     return Transform("linear", 3.0 * spec.fd_step, lo, spec.upper)

@@ -120,6 +120,42 @@ def test_recovers_sigma_t_and_albedo(problem):
     assert est[0].loss < 1.5 * loss_at(problem, "exp3", TRUTH, spp=512, fixed_scale=2e5)["loss"]
 
 
+def test_radiance_valued_extension_parameters_are_fitted(problem):
+    """A stray-light offset of 2 % of the peak added to the recording is recovered:
+    its z unit follows the render's peak (1e7-scale radiances), so neither Adam's step nor
+    the Gauss-Newton eigenvalue floor leaves it at its start."""
+    from dataclasses import replace
+
+    from estimate.forward import ForwardModel
+
+    fm = ForwardModel(problem.geometry, problem.beam, phase="exp3", extensions=("stray_light",))
+    peak = float(fm.render_profiles(TRUTH, problem.angles_deg, spp=256, seed=1).max())
+    offset = 0.02 * peak
+    pb = replace(problem, measured=problem.measured + 2e5 * offset)
+    r = fit_channel(pb, "exp3", extensions=("stray_light",), fixed=PHASE,
+                    start={"sigma_t": 2.6, "albedo": 0.8},
+                    settings=FitSettings(seed=1, scale="calibrated", uncertainties=False, **FAST))
+    assert r.parameters["stray_light.offset"] == pytest.approx(offset, rel=0.3)
+    assert r.parameters["sigma_t"] == pytest.approx(3.0, rel=0.1)
+
+
+@pytest.mark.parametrize("peak", [1.0, 1.1e7])
+def test_radiance_valued_transforms_follow_the_render_scale(peak):
+    """In z, a radiance-valued parameter is measured in fractions of the peak, so the
+    optimiser's steps and its Gauss-Newton columns (J dx/dz) do not depend on the render's
+    units; bounds hold in x."""
+    from estimate.extensions.stray_light import StrayLight
+    from estimate.transforms import RADIANCE_UNIT, transform_for
+
+    spec = {p.name: p for p in StrayLight.parameters}["offset"]
+    t = transform_for("stray_light.offset", spec, peak)
+    assert t.dx_dz(0.0) == pytest.approx(RADIANCE_UNIT * peak)
+    assert t.to_x(t.to_z(0.03 * peak)) == pytest.approx(0.03 * peak)
+    assert t.to_x(-5.0) == 0.0 and t.clamp_z(-5.0) == 0.0  # offset >= 0
+    assert t.lr * t.dx_dz(0.0) / peak == pytest.approx(0.3 * RADIANCE_UNIT)
+    assert transform_for("albedo", spec, peak).kind == "logit"  # named parameters keep theirs
+
+
 def test_fixed_parameters_stay(problem):
     r = fit_channel(problem, "tthg", start={"sigma_t": 3.0, "albedo": 0.85},
                     fixed={"phase.g_backward": -0.2, "phase.w_forward": 0.95},
