@@ -14,13 +14,14 @@
 3. Confirm: the leading candidates are refitted with their extension switched on, on the
    training angles (every `HOLDOUT_EVERY`-th light angle is held out); a candidate is
    confirmed when the BIC improves by more than `BIC_STRONG`, its magnitude is more than
-   `MAGNITUDE_SIGMA` from absent (Wald or misfit-corrected likelihood ratio) and the held-out chi^2 does not rise by more than its own
-   standard deviation (all chi^2 at the base fit's noise floor), each compared in pairs
-   with a control refit of the current model without the extension (same seed, spp,
-   angles and iterations: re-optimising the material parameters alone earns no credit,
-   and the fixed-seed render's own Monte-Carlo noise, which every refit partly fits,
-   cancels in the difference), and the candidate's fit, rendered independently, must not be
-   worse than the current fit by more than that chi^2's standard deviation.
+   `MAGNITUDE_SIGMA` from absent (Wald or misfit-corrected likelihood ratio) and the
+   held-out chi^2 does not rise by more than its own standard deviation (all chi^2 at the
+   base fit's noise floor), each compared in pairs with a control refit of the current
+   model without the extension (same seed, spp, angles and iterations: re-optimising the
+   material parameters alone earns no credit, and the fixed-seed render's own Monte-Carlo
+   noise, which every refit partly fits, cancels in the difference), and the candidate's
+   fit, rendered independently, must not be worse than the current fit by more than that
+   chi^2's standard deviation.
    After one confirmed effect the fit is tested again; a remaining significant mismatch is
    screened at the new fit for a second effect (pairs).
 4. Model and refit: the final model holds the confirmed effects, refitted on all angles,

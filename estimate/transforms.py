@@ -6,7 +6,7 @@ as they are, clamped into their allowed range (`BOUND_B` for b_i: a lobe exp(b m
 |b| > 200 is narrower than ~0.1 rad, beyond what a 1 mm slab's profiles resolve).
 Extension parameters in the render's radiance units (a stray-light offset, a full-well
 radiance) are measured in z in units of `RADIANCE_UNIT` x the render's peak: a render's
-radiance scale depends on the pixel size and the beam (1e7 at the rig's 8.5 um pixels),
+radiance scale follows the beam's size and the pixel grid (peak ~1e7 on the simulated rig),
 and an absolute step or an absolute eigenvalue floor would leave them where they start.
 Each transform also gives the step size Adam uses for it (in z units).
 """
