@@ -25,10 +25,13 @@ from estimate.diagnose import (
     BaseFit,
     RefitResult,
     _magnitude_lr_z,
+    _run_fit_settings,
     _smoothed_variance,
     diagnose_channel,
+    refine_channel,
     screen_candidates,
 )
+from estimate.fit import FitSettings
 from estimate.forward import ForwardModel
 from estimate.geometry import RigGeometry
 from estimate.residuals import (
@@ -65,6 +68,11 @@ class Recording:
     geometry: RigGeometry
     beam: BeamProfile
     channel: str = "g"
+
+
+@dataclass
+class FittableRecording(Recording):
+    valid: np.ndarray | None = None
 
 
 def record(effect: dict[str, float], seed: int = 3, excess: float = 0.0) -> Recording:
@@ -281,6 +289,43 @@ def test_likelihood_ratio_magnitude_holds_its_level_and_survives_a_misfit():
     c_neutral = float(np.sum((y - both @ np.array([coef[0], 0.0])) ** 2))
     fit = RefitResult({"stray_light.offset": coef[1]}, 1.0, {}, c_fit, 1)
     assert _magnitude_lr_z(fit, c_ctrl, c_neutral, n, 2, "stray_light") > 5.0
+
+
+def test_final_fit_by_the_estimator_replaces_the_refit_of_a_confirmed_effect():
+    """With a stray-light offset concealed, the confirmed model is fitted again by the
+    estimator (log loss, Adam + Gauss-Newton) from the Levenberg-Marquardt refit; its
+    result becomes `after` (evaluated in the same metric), the refit is kept alongside."""
+    rec = record({"stray_light.offset": 0.01})
+    pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
+    d = diagnose_channel(pb, BaseFit(dict(TRUE), 1e4, "hg"), make_model, candidates=["stray_light"], spp=128,
+                         repeats=3, iterations=8)
+    assert d.confirmed == ["stray_light"]
+    lm = d.after
+    st = FitSettings(seed=2, scale="free", max_iterations=14, spp_start=64, spp_max=128, final_spp=256, window=3)
+    fr = refine_channel(pb, d, make_model, st, spp=128, repeats=3)
+    assert fr is not None and d.final_fit["kept"] and d.final_fit["iterations"] == fr.iterations
+    assert fr.extensions == ["stray_light"] and fr.start["sigma_t"] == lm.parameters["sigma_t"]
+    assert d.lm_after is lm and d.after.parameters == make_model(["stray_light"]).validate(fr.parameters)
+    assert fr.parameters["stray_light.offset"] == pytest.approx(0.01, rel=0.5)
+    assert abs(fr.parameters["sigma_t"] / TRUE["sigma_t"] - 1) < 0.15
+    assert d.after.residuals.reduced_chi2_adjusted <= d.before.residuals.reduced_chi2_adjusted
+    doc = d.as_dict()
+    assert doc["material_after"]["sigma_t"] == fr.parameters["sigma_t"]
+    assert doc["refit_lm"]["material"]["sigma_t"] == lm.parameters["sigma_t"]
+    assert doc["material_uncertainty_after"]["sigma_t"] == fr.uncertainties["sigma_t"]
+    assert doc["confirmed_effects"]["stray_light"]["stray_light.offset"]["value"] == d.after.parameters[
+        "stray_light.offset"]
+
+
+def test_final_fit_settings_come_from_the_fit_run():
+    recorded = {"fit": {**FitSettings(seed=7, scale="calibrated", max_iterations=3).to_dict(), "future_key": 1}}
+    st = _run_fit_settings(recorded, FitSettings)
+    assert (st.seed, st.scale, st.max_iterations) == (7, "calibrated", 3)
+    assert isinstance(st.delta_range, tuple)
+    # a run without them (an older run, a diagnosis refit): defaults, the run's scale and seed
+    st = _run_fit_settings({"scale": "calibrated", "seed": 4}, FitSettings)
+    assert (st.seed, st.scale, st.max_iterations) == (4, "calibrated", FitSettings().max_iterations)
+    assert _run_fit_settings({}, FitSettings).scale == "free"
 
 
 def test_significance_counts_fitted_parameters_and_localise_finds_the_tails():

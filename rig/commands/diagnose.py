@@ -1,6 +1,6 @@
 """``rig diagnose SESSION/``: where a fit and the recording disagree, and which physics is missing.
 
-    rig diagnose SESSION/ [--fit RUN] [--effects a,b,...] [--channels rgb] [--spp 256] [--json]
+    rig diagnose SESSION/ [--fit RUN] [--effects a,b,...] [--channels rgb] [--spp 256] [--quick] [--json]
 
 Diagnoses the latest estimate run (or `--fit RUN`: a run id under SESSION/estimates/ or its
 path): tests the whole fit against the noise (the HDR variance scaled by an empirical
@@ -8,7 +8,8 @@ noise floor per angle, which absorbs white pixel noise the HDR variance misses: 
 noise, PRNU, the simulated bench's frozen render noise; significant = smooth structure in
 the residuals or a candidate's score test), locates the mismatch, screens the eight
 catalogue extensions with score tests, confirms the leading ones by refitting (held-out
-light angles, BIC), and refits with the confirmed effects. Writes
+light angles, BIC), and fits the final model with the confirmed effects by the estimator
+itself, with the fit run's settings (`--quick`: the Levenberg-Marquardt refit). Writes
 SESSION/diagnoses/<run_id>/diagnosis.yaml with residual plots, and the refit as a new
 estimate run. See estimate/diagnose.py.
 """
@@ -31,6 +32,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--channels", default=None, help="channels to diagnose, e.g. rgb or r,g (default: all of the fit)")
     p.add_argument("--spp", type=int, default=256, help="samples per pixel of the diagnosis renders (256)")
     p.add_argument("--seed", type=int, default=1000, help="base render seed (1000)")
+    p.add_argument("--quick", action="store_true",
+                   help="skip the estimator's final fit of the confirmed effects (~2 min per channel); "
+                        "the Levenberg-Marquardt refit is then the final model")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     p.add_argument("--json", action="store_true", help="print the diagnosis as JSON")
     p.set_defaults(func=run)
@@ -61,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--spp must be >= 16")
     log = None if args.json else (lambda s: print(s, file=sys.stderr))
     doc = run_diagnosis(session, args.fit, effects=effects, channels=_list(args.channels, True), spp=args.spp,
-                        seed=args.seed, plots=not args.no_plots, log=log)
+                        seed=args.seed, plots=not args.no_plots, log=log, refine=not args.quick)
     if args.json:
         print(json.dumps(doc, indent=1, default=float))
     else:
