@@ -51,7 +51,7 @@ from scipy import ndimage, stats
 
 from estimate.errors import EstimateError, ModelParameterError
 from estimate.extensions import EXTENSIONS
-from estimate.fit import secant_steps
+from estimate.fit import FitResult, FitSettings, fit_channel, secant_steps
 from estimate.residuals import (
     ALPHA,
     FitResiduals,
@@ -736,9 +736,9 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                             current_cov if confirmed else {})
 
 
-def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, settings: Any, *,
+def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, settings: FitSettings, *,
                    spp: int = 256, seed: int = 1000, repeats: int = 6,
-                   log: Callable[[str], None] | None = None) -> Any | None:
+                   log: Callable[[str], None] | None = None) -> FitResult | None:
     """The final model fitted by the estimator itself, in place of the Levenberg-Marquardt refit.
 
     The confirmations refit by Levenberg-Marquardt on chi^2 at one fixed seed: fast, and the
@@ -754,11 +754,10 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
     The estimator's fit replaces `d.after` (the LM refit's evaluation moves to `d.lm_after`)
     unless its reduced chi^2 at the noise floor is above the base fit's, i.e. unless it fits
     worse than the model without the effect; then the LM refit is kept and `d.final_fit`
-    says why. Returns the estimator's `FitResult` when kept, else None. Costs one fit
-    (~2 min per channel at the default settings on 2 cores).
+    says why. Returns the estimator's `FitResult` when kept, else None. Costs one fit at the
+    default settings on 2 cores: 146 s on the bench's stray-light session, 504 s with the
+    refractive boundary, whose renders are the slowest.
     """
-    from estimate.fit import fit_channel
-
     if not d.confirmed or d.after is None:
         return None
     say = log or (lambda s: None)
@@ -790,7 +789,7 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
     d.lm_after = lm
     d.after = ev
     d.uncertainties_after = dict(fr.uncertainties)
-    d.covariance_after = {a_: dict(row) for a_, row in fr.covariance.items()}
+    d.covariance_after = {k: dict(row) for k, row in fr.covariance.items()}
     d.verdict = _verdict(d.before, d.localisation, d.candidates, d.confirmed, ev)
     say(f"  final fit: reduced chi2 {a.reduced_chi2:.3f} (HDR), {a.reduced_chi2_adjusted:.3f} at the noise floor "
         f"(refit {lm.residuals.reduced_chi2_adjusted:.3f}); "
@@ -954,7 +953,7 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
 
     import yaml
 
-    from estimate.fit import FitResult, FitSettings, model_phase
+    from estimate.fit import model_phase
     from estimate.forward import ForwardModel
     from estimate.problem import load_problem
     from estimate.results import new_run_dir, read_run, write_run
@@ -976,7 +975,7 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
                                         "effects": list(effects) if effects else list(CANDIDATES),
                                         "final_fit": "estimator" if refine else "levenberg-marquardt"},
                            "channels": {}}
-    fit_settings = _run_fit_settings(settings, FitSettings)
+    fit_settings = _run_fit_settings(settings)
     finals: dict[str, Any] = {}
     diags: dict[str, ChannelDiagnosis] = {}
     problems: dict[str, Any] = {}
@@ -1041,13 +1040,13 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
     return out
 
 
-def _run_fit_settings(run_settings: Mapping[str, Any], cls: Any) -> Any:
+def _run_fit_settings(run_settings: Mapping[str, Any]) -> FitSettings:
     """The `FitSettings` an estimate run was made with (its results.yaml `settings.fit`), for
     the final fit; runs without them (older runs, diagnosis refits) get the defaults with
     the run's scale mode and seed."""
     import dataclasses
 
-    names = {f.name for f in dataclasses.fields(cls)}
+    names = {f.name for f in dataclasses.fields(FitSettings)}
     recorded = run_settings.get("fit") if isinstance(run_settings.get("fit"), Mapping) else {}
     kw = {k: v for k, v in recorded.items() if k in names}
     if "delta_range" in kw:
@@ -1056,7 +1055,7 @@ def _run_fit_settings(run_settings: Mapping[str, Any], cls: Any) -> Any:
         kw["scale"] = str(run_settings.get("scale") or "free")
         if run_settings.get("seed") is not None:
             kw["seed"] = int(run_settings["seed"])
-    return cls(**kw)
+    return FitSettings(**kw)
 
 
 def plot_diagnosis(out_dir: Any, d: ChannelDiagnosis, problem: Any) -> list[Any]:

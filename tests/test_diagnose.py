@@ -319,13 +319,13 @@ def test_final_fit_by_the_estimator_replaces_the_refit_of_a_confirmed_effect():
 
 def test_final_fit_settings_come_from_the_fit_run():
     recorded = {"fit": {**FitSettings(seed=7, scale="calibrated", max_iterations=3).to_dict(), "future_key": 1}}
-    st = _run_fit_settings(recorded, FitSettings)
+    st = _run_fit_settings(recorded)
     assert (st.seed, st.scale, st.max_iterations) == (7, "calibrated", 3)
     assert isinstance(st.delta_range, tuple)
     # a run without them (an older run, a diagnosis refit): defaults, the run's scale and seed
-    st = _run_fit_settings({"scale": "calibrated", "seed": 4}, FitSettings)
+    st = _run_fit_settings({"scale": "calibrated", "seed": 4})
     assert (st.seed, st.scale, st.max_iterations) == (4, "calibrated", FitSettings().max_iterations)
-    assert _run_fit_settings({}, FitSettings).scale == "free"
+    assert _run_fit_settings({}).scale == "free"
 
 
 def test_significance_counts_fitted_parameters_and_localise_finds_the_tails():
