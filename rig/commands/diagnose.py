@@ -33,7 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--spp", type=int, default=256, help="samples per pixel of the diagnosis renders (256)")
     p.add_argument("--seed", type=int, default=1000, help="base render seed (1000)")
     p.add_argument("--quick", action="store_true",
-                   help="skip the estimator's final fit of the confirmed effects (~2 min per channel); "
+                   help="skip the estimator's final fit of the confirmed effects (2.5-8.5 min per channel on 2 cores); "
                         "the Levenberg-Marquardt refit is then the final model")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     p.add_argument("--json", action="store_true", help="print the diagnosis as JSON")
