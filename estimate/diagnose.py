@@ -768,8 +768,7 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
     say(f"  final fit with {', '.join(d.confirmed)} by the estimator (log loss, Adam + Gauss-Newton), "
         "started at the refit ...")
     fr = fit_channel(problem, m.phase, extensions=exts, start=lm.parameters, settings=settings, forward=m)
-    free = [k for k in fr.parameters if k not in fr.fixed]
-    ev = evaluate(m, fr.parameters, problem, len(free) + 1, spp=spp, seed=seed, repeats=repeats)
+    ev = evaluate(m, fr.parameters, problem, len(fr.free) + 1, spp=spp, seed=seed, repeats=repeats)
     b, a = d.before.residuals, ev.residuals
     kept = a.reduced_chi2_adjusted <= b.reduced_chi2_adjusted
     info: dict[str, Any] = {
@@ -779,13 +778,12 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
         "material": {k: fr.parameters[k] for k in d.material_names},
     }
     d.time_s += info["time_s"]
+    d.final_fit = info
     if not kept:
         info["reason"] = (f"the estimator's fit ends at reduced chi2 {a.reduced_chi2_adjusted:.3g} at the noise floor, "
                           f"above the base fit's {b.reduced_chi2_adjusted:.3g}: the Levenberg-Marquardt refit is kept")
-        d.final_fit = info
         say(f"  {info['reason']}")
         return None
-    d.final_fit = info
     d.lm_after = lm
     d.after = ev
     d.uncertainties_after = dict(fr.uncertainties)
