@@ -49,7 +49,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage, stats
 
-from estimate.errors import EstimateError, ModelParameterError
+from estimate.errors import DataError, EstimateError, ModelParameterError
 from estimate.extensions import EXTENSIONS
 from estimate.fit import FitResult, FitSettings, fit_channel, secant_steps
 from estimate.residuals import (
@@ -891,7 +891,6 @@ def _resolve_fit(session_dir: Any, fit_run: Any) -> Any:
     """The estimate run to diagnose (latest when None); DataError with a one-line hint."""
     from pathlib import Path
 
-    from estimate.errors import DataError
     from estimate.results import list_runs
 
     session = Path(session_dir)
@@ -964,6 +963,9 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
     doc = read_run(run_dir)
     _check_same_session(session, doc, run_dir)
     settings = doc.get("settings") or {}
+    if not isinstance(settings, Mapping):
+        raise DataError(f"{run_dir / 'results.yaml'}: settings is not a mapping; restore the file or run the "
+                        "estimate again")
     base_exts = list(settings.get("extensions") or [])
     chans = doc.get("channels") or {}
     chosen = list(channels) if channels else list(chans)
@@ -973,7 +975,7 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
                                         "effects": list(effects) if effects else list(CANDIDATES),
                                         "final_fit": "estimator" if refine else "levenberg-marquardt"},
                            "channels": {}}
-    fit_settings = _run_fit_settings(settings)
+    fit_settings = _run_fit_settings(settings, str(run_dir / "results.yaml"))
     finals: dict[str, Any] = {}
     diags: dict[str, ChannelDiagnosis] = {}
     problems: dict[str, Any] = {}
@@ -1038,21 +1040,23 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
     return out
 
 
-def _run_fit_settings(run_settings: Mapping[str, Any]) -> FitSettings:
+def _run_fit_settings(run_settings: Mapping[str, Any], where: str = "results.yaml") -> FitSettings:
     """The `FitSettings` an estimate run was made with (its results.yaml `settings.fit`), for
     the final fit; runs without them (older runs, diagnosis refits) get the defaults with
-    the run's scale mode and seed."""
-    import dataclasses
-
-    names = {f.name for f in dataclasses.fields(FitSettings)}
-    recorded = run_settings.get("fit") if isinstance(run_settings.get("fit"), Mapping) else {}
-    kw = {k: v for k, v in recorded.items() if k in names}
-    if "delta_range" in kw:
-        kw["delta_range"] = tuple(kw["delta_range"])
-    if not recorded:
-        kw["scale"] = str(run_settings.get("scale") or "free")
-        if run_settings.get("seed") is not None:
-            kw["seed"] = int(run_settings["seed"])
+    the run's scale mode and seed. A hand-edited value of the wrong type raises
+    `ModelParameterError` naming the key and `where`."""
+    recorded = run_settings.get("fit")
+    if recorded is not None and not isinstance(recorded, Mapping):
+        raise ModelParameterError(f"{where}: settings.fit is {type(recorded).__name__}, not a mapping of fit "
+                                  "settings; restore it or delete it to use the defaults")
+    if recorded:
+        return FitSettings.from_dict(recorded, f"{where} settings.fit")
+    kw: dict[str, Any] = {"scale": str(run_settings.get("scale") or "free")}
+    seed = run_settings.get("seed")
+    if seed is not None:
+        if not (isinstance(seed, int) and not isinstance(seed, bool)):
+            raise ModelParameterError(f"{where}: settings.seed = {seed!r} is not a whole number; correct it")
+        kw["seed"] = seed
     return FitSettings(**kw)
 
 

@@ -59,7 +59,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -114,6 +114,51 @@ class FitSettings:
         d = asdict(self)
         d["delta_range"] = list(self.delta_range)
         return d
+
+    @classmethod
+    def from_dict(cls, recorded: Mapping[str, Any], where: str = "settings") -> FitSettings:
+        """Settings as `to_dict` wrote them (e.g. a results.yaml `settings.fit`, which a
+        person may have edited). Unknown keys (from a newer version) are ignored; a value of
+        the wrong type or out of range raises `ModelParameterError` naming the key and
+        `where` (one line for the user)."""
+        out: dict[str, Any] = {}
+        defaults = cls()
+        for f in fields(cls):
+            if f.name not in recorded:
+                continue
+            v = recorded[f.name]
+            default = getattr(defaults, f.name)
+
+            def bad(expected: str, _n: str = f.name, _v: Any = v) -> ModelParameterError:
+                return ModelParameterError(f"{where}: fit setting {_n} = {_v!r} is not {expected}; "
+                                           "correct it or delete the key to use the default")
+
+            def number(x: Any) -> bool:
+                return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+            if f.name == "time_limit_s":
+                if v is not None and not (number(v) and v > 0):
+                    raise bad("a positive number of seconds or null")
+            elif f.name == "delta_range":
+                if not (isinstance(v, list | tuple) and len(v) == 2 and all(number(x) and x > 0 for x in v)
+                        and v[0] <= v[1]):
+                    raise bad("a pair [low, high] of positive numbers")
+                v = (float(v[0]), float(v[1]))
+            elif isinstance(default, bool):
+                if not isinstance(v, bool):
+                    raise bad("true or false")
+            elif isinstance(default, int):
+                if not (isinstance(v, int) and not isinstance(v, bool)) or (v < 0 if f.name in
+                                                                             ("seed", "lm_iterations") else v < 1):
+                    raise bad("a whole number" + ("" if f.name in ("seed", "lm_iterations") else " >= 1"))
+            elif isinstance(default, float):
+                if not (number(v) and v > 0):
+                    raise bad("a positive number")
+                v = float(v)
+            elif isinstance(default, str) and not isinstance(v, str):
+                raise bad("a word")
+            out[f.name] = v
+        return cls(**out)
 
 
 @dataclass

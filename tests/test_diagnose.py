@@ -31,6 +31,7 @@ from estimate.diagnose import (
     refine_channel,
     screen_candidates,
 )
+from estimate.errors import ModelParameterError
 from estimate.fit import FitSettings
 from estimate.forward import ForwardModel
 from estimate.geometry import RigGeometry
@@ -328,6 +329,28 @@ def test_final_fit_settings_come_from_the_fit_run():
     assert _run_fit_settings({}).scale == "free"
 
 
+@pytest.mark.parametrize("key, value", [("max_iterations", "80"), ("max_iterations", 0), ("gn_step", "big"),
+                                        ("gn_step", float("nan")), ("decorrelated", "yes"), ("seed", 1.5),
+                                        ("delta_range", [0.1]), ("delta_range", [1e-2, -1.0]),
+                                        ("time_limit_s", -5), ("optimizer", 3), ("spp_max", True)])
+def test_hand_edited_fit_settings_are_refused_in_one_line_naming_the_key(key, value):
+    recorded = {"fit": {**FitSettings().to_dict(), key: value}}
+    with pytest.raises(ModelParameterError) as e:
+        _run_fit_settings(recorded, "run/results.yaml")
+    msg = str(e.value)
+    assert "\n" not in msg and "run/results.yaml settings.fit" in msg and key in msg
+    with pytest.raises(ModelParameterError, match="not a mapping"):
+        _run_fit_settings({"fit": [1, 2]}, "run/results.yaml")
+    with pytest.raises(ModelParameterError, match="settings.seed"):
+        _run_fit_settings({"seed": "zero"}, "run/results.yaml")
+
+
+def test_recorded_fit_settings_round_trip():
+    st = FitSettings(seed=3, time_limit_s=60.0, lm_iterations=2, delta_range=(1e-3, 1e-1), decorrelated=False)
+    assert FitSettings.from_dict(st.to_dict()) == st
+    assert FitSettings.from_dict({"gn_step": 1, "time_limit_s": None}).gn_step == 1.0
+
+
 def test_significance_counts_fitted_parameters_and_localise_finds_the_tails():
     rng = np.random.default_rng(1)
     r = rng.normal(size=(6, 40))
@@ -365,6 +388,22 @@ def test_cli_refuses_a_fit_from_another_session(tmp_path, capsys):
     assert main(["diagnose", str(a), "--fit", str(run)]) == 2
     err = capsys.readouterr().err.strip()
     assert "another session" in err and "\n" not in err
+
+
+def test_cli_refuses_a_hand_edited_fit_setting_in_one_line(tmp_path, capsys):
+    s = _session(tmp_path, "a")
+    run = s / "estimates" / "20260101T000000_exp3"
+    run.mkdir(parents=True)
+    fit = {**FitSettings().to_dict(), "max_iterations": "eighty"}
+    (run / "results.yaml").write_text(yaml.safe_dump({
+        "format": "rig-estimate/1", "run_id": run.name, "session": {"path": str(s.resolve())},
+        "settings": {"model": "exp3", "fit": fit}, "channels": {}}))
+    before = (run / "results.yaml").read_bytes()
+    assert main(["diagnose", str(s)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "max_iterations" in err and "results.yaml" in err and "\n" not in err and "Traceback" not in err
+    assert (run / "results.yaml").read_bytes() == before
+    assert sorted(p.name for p in (s / "estimates").iterdir()) == [run.name]
 
 
 def test_cli_unknown_effect_and_unknown_run(tmp_path, capsys):
