@@ -148,9 +148,9 @@ class FitSettings:
                 if not isinstance(v, bool):
                     raise bad("true or false")
             elif isinstance(default, int):
-                if not (isinstance(v, int) and not isinstance(v, bool)) or (v < 0 if f.name in
-                                                                             ("seed", "lm_iterations") else v < 1):
-                    raise bad("a whole number" + ("" if f.name in ("seed", "lm_iterations") else " >= 1"))
+                least = 0 if f.name in ("seed", "lm_iterations", "adam_iterations") else 1
+                if not (isinstance(v, int) and not isinstance(v, bool)) or v < least:
+                    raise bad(f"a whole number >= {least}")
             elif isinstance(default, float):
                 if not (number(v) and v > 0):
                     raise bad("a positive number")
