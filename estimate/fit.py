@@ -83,6 +83,10 @@ from estimate.transforms import Transform, transform_for
 __all__ = ["FitResult", "FitSettings", "evaluate", "fisher_uncertainties", "fit_channel", "model_phase", "secant_steps"]
 
 
+def _finite_number(x: Any) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
 @dataclass
 class FitSettings:
     """Optimiser settings (defaults: the paper's exp3 fit within ~2 min on 2 cores)."""
@@ -133,14 +137,11 @@ class FitSettings:
                 return ModelParameterError(f"{where}: fit setting {_n} = {_v!r} is not {expected}; "
                                            "correct it or delete the key to use the default")
 
-            def number(x: Any) -> bool:
-                return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
-
             if f.name == "time_limit_s":
-                if v is not None and not (number(v) and v > 0):
+                if v is not None and not (_finite_number(v) and v > 0):
                     raise bad("a positive number of seconds or null")
             elif f.name == "delta_range":
-                if not (isinstance(v, list | tuple) and len(v) == 2 and all(number(x) and x > 0 for x in v)
+                if not (isinstance(v, list | tuple) and len(v) == 2 and all(_finite_number(x) and x > 0 for x in v)
                         and v[0] <= v[1]):
                     raise bad("a pair [low, high] of positive numbers")
                 v = (float(v[0]), float(v[1]))
@@ -152,7 +153,7 @@ class FitSettings:
                 if not (isinstance(v, int) and not isinstance(v, bool)) or v < least:
                     raise bad(f"a whole number >= {least}")
             elif isinstance(default, float):
-                if not (number(v) and v > 0):
+                if not (_finite_number(v) and v > 0):
                     raise bad("a positive number")
                 v = float(v)
             elif isinstance(default, str) and not isinstance(v, str):
