@@ -450,3 +450,43 @@ def test_beam_rms_width_and_the_halo_width_bound():
     fm = ForwardModel(RigGeometry(thickness_mm=1.0), beam, phase="hg", extensions=("beam_halo",))
     lo, hi = _bounds(fm, "beam_halo.sigma_mm")
     assert lo == pytest.approx(0.25, rel=1e-3) and hi == 50.0
+
+
+@pytest.mark.parametrize("concealed, earlier, expect_dropped", [
+    # The blur passed round 1 by borrowing the stray light's signature and sits at absent in
+    # the joint refit: dropped.
+    ({"stray_light.offset": 0.003}, {"lens_blur.core_sigma_px": 0.04, "lens_blur.tail_fraction": 0.0}, True),
+    # A real blur, joined later by stray light: putting the blur back to absent costs far more
+    # than adding it had to gain, so it stays.
+    ({"stray_light.offset": 0.003, "lens_blur.core_sigma_px": 2.5, "lens_blur.tail_fraction": 0.05},
+     {"lens_blur.core_sigma_px": 2.5, "lens_blur.tail_fraction": 0.05}, False),
+])
+def test_backward_check_drops_an_earlier_effect_that_the_later_one_explains(concealed, earlier, expect_dropped):
+    from estimate.diagnose import _free_names, _prune, refit
+
+    rec = record(concealed, seed=17)
+    exts = ["lens_blur", "stray_light"]
+    m = make_model(exts)
+    params = m.validate({**TRUE, "stray_light.offset": 0.003, **earlier})
+    floor = np.ones(len(ANGLES))
+    mv = np.full(rec.measured.shape, 1e-12)
+    spp, seed = 128, 40
+    # The joint refit as the forward rounds leave it, at the seed and spp _prune pairs with.
+    full = refit(m, rec, params, _free_names(m, exts), spp=2 * spp, seed=seed + 303, iterations=0,
+                 model_variance=mv, noise_scale=floor)
+    out = _prune(rec, make_model, ["lens_blur", "stray_light"], exts, full, spp=spp, seed=seed, model_variance=mv,
+                 floor=floor, n_obs=rec.measured.size)
+    assert [e["effect"] for e in out] == ["lens_blur"]  # the last effect was tested against the others already
+    e = out[0]
+    assert e["with"] == ["stray_light"]
+    assert e["dropped"] is expect_dropped, e
+    if expect_dropped:
+        assert abs(e["chi2_rise"]) < e["needed"]
+    else:
+        assert e["chi2_rise"] > 10 * e["needed"]
+    # The same check at the estimator's final fit, in the base fit's noise metric.
+    from estimate.diagnose import _prune_final, evaluate
+
+    before = evaluate(make_model([]), TRUE, rec, 3, spp=spp, seed=seed, repeats=3)
+    fin = _prune_final(rec, m, params, ["lens_blur", "stray_light"], before, spp=spp, seed=seed, repeats=3)
+    assert [(e["effect"], e["stage"], e["dropped"]) for e in fin] == [("lens_blur", "final fit", expect_dropped)], fin
