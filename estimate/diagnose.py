@@ -185,8 +185,9 @@ class ChannelDiagnosis:
     lm_after: Evaluation | None = None
     #: what `refine_channel` did (kept, why, time, iterations, the estimator's own figures)
     final_fit: dict[str, Any] = field(default_factory=dict)
-    #: the backward check of effects confirmed before the last (`_prune`): effect, chi^2 rise
-    #: when it is put back to absent in the joint refit, the rise needed, dropped or not
+    #: the backward checks (`_prune` on the joint LM refit, `_prune_final` on the estimator's
+    #: final fit): effect, stage, chi^2 rise when it is put back to absent, the rise needed,
+    #: dropped or not
     pruned: list[dict[str, Any]] = field(default_factory=list)
 
     @property
@@ -772,6 +773,11 @@ def _yardstick(problem: Any, before: Evaluation) -> np.ndarray:
     return np.maximum(floor[:, None] ** 2 * (data_var + base_mc) - base_mc, data_var)
 
 
+def _bic_bar(effect: str, n_obs: int) -> float:
+    """The chi^2 drop that adding `effect` must reach to be confirmed: k ln n + BIC_STRONG."""
+    return len(FREE_PARAMETERS[effect]) * math.log(max(2, n_obs)) + BIC_STRONG
+
+
 def _prune_final(problem: Any, model: Any, params: Mapping[str, float], confirmed: Sequence[str],
                  before: Evaluation, *, spp: int, seed: int, repeats: int) -> list[dict[str, Any]]:
     """The backward check (`_prune`) at the estimator's final fit: each confirmed effect put
@@ -791,7 +797,7 @@ def _prune_final(problem: Any, model: Any, params: Mapping[str, float], confirme
     for e in confirmed:
         if e == top:
             continue
-        needed = len(FREE_PARAMETERS[e]) * math.log(n_obs) + BIC_STRONG
+        needed = _bic_bar(e, n_obs)
         out.append({"effect": e, "stage": "final fit", "chi2_rise": rises[e], "needed": needed,
                     "dropped": bool(rises[e] < needed), "with": [c for c in confirmed if c != e]})
     return out
@@ -804,9 +810,8 @@ def _prune(problem: Any, make_model: ModelFactory, confirmed: Sequence[str], ext
 
     Effects are added one per round, each judged against the model of the rounds before it.
     An effect confirmed early can borrow the signature of one that is added later (on the
-    simulated bench's refractive-boundary session, a lens blur took part of the boundary's
-    signature in round 1; with the boundary added in round 2 its core width went to 0.04 px).
-    So each earlier effect is put back to absent in the joint refit (`full`, all angles) and
+    simulated bench's refractive-boundary session a lens blur was confirmed in round 1, before
+    the boundary; in the estimator's final fit of both, its core went to 0.04 px). So each earlier effect is put back to absent in the joint refit (`full`, all angles) and
     the chi^2 rise at the same seed is compared with what adding it had to gain, k ln n +
     `BIC_STRONG`. The rise with the other parameters held is at least the rise with them
     re-optimised (the profile), so an effect whose conditional rise falls short would not pass
@@ -822,7 +827,7 @@ def _prune(problem: Any, make_model: ModelFactory, confirmed: Sequence[str], ext
                         spp=FINAL_SPP_FACTOR * spp, seed=seed + 303, iterations=0,
                         model_variance=model_variance, noise_scale=floor)
         rise = float(neutral.chi2 - full.chi2)
-        needed = len(FREE_PARAMETERS[e]) * math.log(n_obs) + BIC_STRONG
+        needed = _bic_bar(e, n_obs)
         later = list(confirmed[confirmed.index(e) + 1:])
         out.append({"effect": e, "stage": "refit", "chi2_rise": rise, "needed": needed,
                     "dropped": bool(rise < needed), "with": later})
@@ -882,9 +887,10 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
     d.uncertainties_after = dict(fr.uncertainties)
     d.covariance_after = {k: dict(row) for k, row in fr.covariance.items()}
     if len(d.confirmed) >= 2:
-        # The estimator's fit can leave an effect that the LM refit needed at absent (the
-        # bench's refractive-boundary session: the blur confirmed in round 1 ends at 0.04 px).
-        # It stays in the fitted model at its fitted value but is no longer named.
+        # The estimator's fit can take an effect that the LM refit needed close to absent
+        # (the bench's refractive-boundary session: the blur confirmed in round 1 ends with a
+        # 0.04 px core, though its 0.27 % wide tail still counts). One that no longer carries
+        # its BIC bar stays in the fitted model at its fitted value but is no longer named.
         checks = _prune_final(problem, m, fr.parameters, d.confirmed, d.before, spp=spp, seed=seed, repeats=repeats)
         for e in checks:
             say(f"  {e['effect']} in the final fit: setting it to absent raises chi2 by {e['chi2_rise']:.1f} "
