@@ -603,6 +603,18 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
     confirmations: list[dict[str, Any]] = []
     confirmed: list[str] = []
     last_full: tuple[RefitResult, np.ndarray] | None = None
+
+    def settle(exts: list[str], start: Mapping[str, float], mv: np.ndarray) -> tuple[RefitResult, Evaluation]:
+        """The model with `exts` refitted on all angles (FINAL_SPP_FACTOR x spp) and evaluated."""
+        m = make_model(exts)
+        free = _free_names(m, exts)
+        p0 = {k: v for k, v in start.items() if k in m.parameter_names}
+        full = refit(m, problem, p0, free, spp=FINAL_SPP_FACTOR * spp, seed=seed + 303, iterations=iterations,
+                     model_variance=mv, noise_scale=floor)
+        ev = evaluate(m, full.parameters, problem, len(free) + 1, spp=spp, seed=seed, repeats=repeats)
+        say(f"  with {', '.join(confirmed)}: reduced chi2 {ev.residuals.reduced_chi2:.3f} (HDR), "
+            f"{ev.residuals.reduced_chi2_adjusted:.3f} at the noise floor")
+        return full, ev
     brightest = float(np.max(before.model))
     # The smooth-structure test cannot see a mismatch that changes sign within a few pixels
     # (a blur moves light across the edge of the spot); the score tests of the catalogue
@@ -719,18 +731,10 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                 e["confirmed"] = False
         confirmed.append(best[1])
         current_exts = current_exts + [best[1]]
-        m = make_model(current_exts)
-        free = _free_names(m, current_exts)
         # The final model's parameters carry the Monte-Carlo error of the fixed-seed
         # refit: render it with FINAL_SPP_FACTOR x the samples.
         full_mv = current.model_variance * repeats / FINAL_SPP_FACTOR
-        full = refit(m, problem, best[2].parameters, free, spp=FINAL_SPP_FACTOR * spp, seed=seed + 303,
-                     iterations=iterations, model_variance=full_mv, noise_scale=floor)
-        current = evaluate(m, full.parameters, problem, len(free) + 1, spp=spp, seed=seed, repeats=repeats)
-        current_unc = full.uncertainties
-        current_cov = {a: {b: v for (a2, b), v in full.covariance.items() if a2 == a} for a in full.uncertainties}
-        say(f"  with {', '.join(confirmed)}: reduced chi2 {current.residuals.reduced_chi2:.3f} (HDR), "
-            f"{current.residuals.reduced_chi2_adjusted:.3f} at the noise floor")
+        full, current = settle(current_exts, best[2].parameters, full_mv)
         last_full = (full, full_mv)
     pruned: list[dict[str, Any]] = []
     if len(confirmed) >= 2 and last_full is not None:
@@ -744,17 +748,10 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         if drop:
             confirmed = [c for c in confirmed if c not in drop]
             current_exts = [c for c in current_exts if c not in drop]
-            m = make_model(current_exts)
-            free = _free_names(m, current_exts)
-            start = {k: v for k, v in last_full[0].parameters.items() if k in m.parameter_names}
-            full = refit(m, problem, start, free, spp=FINAL_SPP_FACTOR * spp, seed=seed + 303,
-                         iterations=iterations, model_variance=last_full[1], noise_scale=floor)
-            current = evaluate(m, full.parameters, problem, len(free) + 1, spp=spp, seed=seed, repeats=repeats)
-            current_unc = full.uncertainties
-            current_cov = {a: {b: v for (a2, b), v in full.covariance.items() if a2 == a}
-                           for a in full.uncertainties}
-            say(f"  with {', '.join(confirmed)}: reduced chi2 {current.residuals.reduced_chi2:.3f} (HDR), "
-                f"{current.residuals.reduced_chi2_adjusted:.3f} at the noise floor")
+            full, current = settle(current_exts, last_full[0].parameters, last_full[1])
+    if last_full is not None:
+        current_unc = full.uncertainties
+        current_cov = {a: {b: v for (a2, b), v in full.covariance.items() if a2 == a} for a in full.uncertainties}
     material = [k for k in before.parameters if k in ("sigma_t", "albedo") or k.startswith("phase.")]
     after = current if confirmed else None
     verdict = _verdict(before, loc, first_scores, confirmed, after, [e["effect"] for e in pruned if e["dropped"]])
