@@ -52,7 +52,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 MAGNITUDES: dict[str, list[dict[str, float]]] = {
     "refractive_boundary": [{"n": 1.33}, {"n": 1.5}],
     "lens_blur": [{"core_sigma_px": 1.5, "tail_fraction": 0.02}, {"core_sigma_px": 2.5, "tail_fraction": 0.05}],
-    "stray_light": [{"offset": 0.001}, {"offset": 0.003, "slope_per_mm": 0.0005}],
+    "stray_light": [{"offset": 0.001}, {"offset": 0.003, "slope_per_mm": 0.00015}],
     "angle_offset": [{"delta_deg": 1.5}, {"delta_deg": 3.0}],
     "thickness_error": [{"e": 0.06}, {"e": 0.12}],
     "beam_halo": [{"fraction": 0.03, "sigma_mm": 1.0}, {"fraction": 0.08, "sigma_mm": 1.0}],

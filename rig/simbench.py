@@ -67,10 +67,10 @@ def install_world(cfg: RigConfig, world: str | None) -> InstalledWorld:
     try:
         w = load_world(path)
         check_filters(w, list(cfg.filter.positions))
+        scene = RenderedScene(w, magnification=cfg.camera.magnification,
+                              sensor_px=(KAF0261E.width, KAF0261E.height), pixel_um=KAF0261E.pixel_size_um)
     except WorldError as e:
         raise UsageError(str(e)) from None
-    scene = RenderedScene(w, magnification=cfg.camera.magnification,
-                          sensor_px=(KAF0261E.width, KAF0261E.height), pixel_um=KAF0261E.pixel_size_um)
     prepare_bench(cfg, scene=scene)
     inst = InstalledWorld(w, scene, cfg.sim.bench)
     with _LOCK:

@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from sim_devices.world import World, beam_map
+from sim_devices.world import World, WorldError, beam_map
 
 __all__ = ["MAX_DIRECT_TILT_DEG", "RenderedScene", "raw_nonlinearity"]
 
@@ -87,6 +87,7 @@ class RenderedScene:
         self.pixel_mm = self.pixel_um * 1e-3 / self.magnification
         cols, rows = self.sensor_px
         self.axis_px = world.optics.axis_px or (cols / 2.0, rows / 2.0)
+        _check_stray_light(world, cols, self.pixel_mm)
         self.slab_present = True
         self.renders = 0
         self.disk_hits = 0
@@ -277,6 +278,33 @@ class RenderedScene:
         """[row0, row1) rendered at `spp_profile`."""
         r0, r1, _ = self.row_tiers()[0]
         return r0, r1
+
+
+def _check_stray_light(world: World, cols: int, pixel_mm: float) -> None:
+    """Refuse a stray light that goes negative on the frame.
+
+    Stray light is light: `offset + slope_per_mm * x` (x from the sensor centre) must be >= 0
+    across the whole frame. A world that asks for less than nothing would not add the
+    catalogue's linear background: the scene is clipped at zero after the effects, so the
+    recording would carry a hinge that no catalogue effect has (a session-7..10 bench case,
+    offset 0.003 with slope 0.0005 /mm on a 34 mm field, was zero over the left sixth of
+    the frame, and its diagnosis could not get below reduced chi^2 ~400).
+
+    Raises:
+        WorldError: one line with the world file, the key and the largest slope allowed.
+    """
+    sl = world.effects.get("stray_light")
+    if not sl:
+        return
+    half = 0.5 * (cols - 1) * pixel_mm  # the outermost pixel centres (StrayLight's x)
+    offset, slope = float(sl["offset"]), float(sl["slope_per_mm"])
+    low = offset - abs(slope) * half
+    if low < 0.0:
+        side = "left" if slope > 0 else "right"
+        raise WorldError(
+            f"{world.source}: effects.stray_light: offset + slope_per_mm * x = {low:.3g} at the frame's {side} "
+            f"edge (x = {'-' if slope > 0 else '+'}{half:.1f} mm), but stray light cannot be negative; "
+            f"use |slope_per_mm| <= {offset / half:.3g} or offset >= {abs(slope) * half:.3g}")
 
 
 def _read_cache(path: Path, shape: tuple[int, int]) -> np.ndarray | None:

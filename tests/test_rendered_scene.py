@@ -140,3 +140,28 @@ def test_configure_backend_gives_the_camera_twin_the_world_sensor(tmp_path):
     plain = AltaBackend(cfg.sim.bench)
     configure_backend(plain)
     assert plain.ccd.nonlinearity is None and plain.ccd.sensor.read_noise_e != 9.0
+
+
+@pytest.mark.parametrize("slope, side", [(0.0005, "left"), (-0.0005, "right")])
+def test_stray_light_that_goes_negative_on_the_frame_is_refused_in_one_line(tmp_path, slope, side):
+    import yaml
+
+    from rig.config import load_config
+    from rig.errors import UsageError
+    from rig.simbench import install_world
+    from sim_devices.world import WorldError
+
+    # 512 px of 20 um at magnification 0.3: x reaches +-17.0 mm, where 0.003 - 0.0005 * 17 < 0
+    bad = _world(tmp_path, effects={"stray_light": {"offset": 0.003, "slope_per_mm": slope}})
+    with pytest.raises(WorldError, match=rf"effects\.stray_light: .* frame's {side} edge .*slope_per_mm\| <= 0\.000176"):
+        RenderedScene(bad, magnification=0.3)
+    ok = _world(tmp_path, effects={"stray_light": {"offset": 0.003, "slope_per_mm": slope * 0.3}})
+    assert RenderedScene(ok, magnification=0.3).world is ok  # 0.003 - 0.00015 * 17 > 0
+    cfg = load_config(None)
+    d = yaml.safe_load(yaml.safe_dump(bad.raw))
+    d["materials"]["b"] = d["materials"]["g"]
+    d["beam"]["power_e_per_s"]["b"] = 1e10
+    (tmp_path / "w.yaml").write_text(yaml.safe_dump(d))
+    with pytest.raises(UsageError, match=r"w\.yaml: effects\.stray_light") as e:
+        install_world(cfg, str(tmp_path / "w.yaml"))
+    assert "\n" not in str(e.value)
