@@ -52,6 +52,7 @@ from scipy import ndimage, stats
 from estimate.errors import DataError, EstimateError, ModelParameterError
 from estimate.extensions import EXTENSIONS
 from estimate.fit import FitResult, FitSettings, fit_channel, secant_steps
+from estimate.loss import ScaleCalibration, calibrated_scale
 from estimate.residuals import (
     ALPHA,
     FitResiduals,
@@ -189,6 +190,12 @@ class ChannelDiagnosis:
     #: final fit): effect, stage, chi^2 rise when it is put back to absent, the rise needed,
     #: dropped or not
     pruned: list[dict[str, Any]] = field(default_factory=list)
+    #: the confirmed effects in the order the rounds added them (`confirmed` is ranked by
+    #: `importance` when two or more are named)
+    confirmed_order: list[str] = field(default_factory=list)
+    #: per named effect when two or more are: the chi^2 rise when it alone is put back to
+    #: absent in the final model, and that model ("refit" or "final fit")
+    importance: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     @property
     def significant(self) -> bool:
@@ -234,6 +241,8 @@ class ChannelDiagnosis:
                          if self.lm_after is not None else None),
             "final_fit": _plain(self.final_fit) or None,
             "pruned": _plain(self.pruned),
+            "confirmed_order": list(self.confirmed_order or self.confirmed),
+            "importance": _plain(self.importance),
         }
 
 
@@ -737,10 +746,12 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         full, current = settle(current_exts, best[2].parameters, full_mv)
         last_full = (full, full_mv)
     pruned: list[dict[str, Any]] = []
+    confirmed_order = list(confirmed)
+    importance: dict[str, dict[str, Any]] = {}
     if len(confirmed) >= 2 and last_full is not None:
-        pruned = _prune(problem, make_model, confirmed, current_exts, last_full[0], spp=spp, seed=seed,
-                        model_variance=last_full[1], floor=floor,
-                        n_obs=int(np.sum(np.isfinite(current.residuals.r))))
+        pruned, rises = _prune(problem, make_model, confirmed, current_exts, last_full[0], spp=spp, seed=seed,
+                               model_variance=last_full[1], floor=floor,
+                               n_obs=int(np.sum(np.isfinite(current.residuals.r))))
         drop = [e["effect"] for e in pruned if e["dropped"]]
         for e in pruned:
             say(f"  {e['effect']} with the others in the model: setting it to absent raises chi2 by "
@@ -749,6 +760,10 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             confirmed = [c for c in confirmed if c not in drop]
             current_exts = [c for c in current_exts if c not in drop]
             full, current = settle(current_exts, last_full[0].parameters, last_full[1])
+        if len(confirmed) >= 2:
+            confirmed, importance = _by_importance(confirmed, rises, "refit")
+            say("  named by the chi2 each carries in the refit: "
+                + ", ".join(f"{e} {importance[e]['chi2_rise']:.0f}" for e in confirmed))
     if last_full is not None:
         current_unc = full.uncertainties
         current_cov = {a: {b: v for (a2, b), v in full.covariance.items() if a2 == a} for a in full.uncertainties}
@@ -758,7 +773,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
     return ChannelDiagnosis(problem.channel, before, loc, first_scores, confirmations, confirmed, after,
                             current_unc if confirmed else {}, verdict, time.perf_counter() - t0, material,
                             dict(base.uncertainties), [float(a) for a in problem.angles_deg],
-                            current_cov if confirmed else {}, pruned=pruned)
+                            current_cov if confirmed else {}, pruned=pruned, confirmed_order=confirmed_order,
+                            importance=importance)
 
 
 def _yardstick(problem: Any, before: Evaluation) -> np.ndarray:
@@ -775,8 +791,26 @@ def _bic_bar(effect: str, n_obs: int) -> float:
     return len(FREE_PARAMETERS[effect]) * math.log(max(2, n_obs)) + BIC_STRONG
 
 
+def _by_importance(confirmed: Sequence[str], rises: Mapping[str, float], stage: str
+                   ) -> tuple[list[str], dict[str, dict[str, Any]]]:
+    """The named effects, most important first, and their importance entries.
+
+    Importance is the chi^2 rise when the effect alone is put back to absent in the final
+    model (the others and the material parameters held): how much of the explained mismatch
+    rests on it. The rounds add effects in the order the first-order screening at the base
+    fit suggests, and that fit can be far from the truth: on the simulated bench's
+    refractive-boundary session a lens blur came first, yet in the estimator's fit of both
+    the boundary carried the larger rise and the blur 172 (of chi^2 units at the noise
+    floor). So the effects are named by what they carry in the model that explains the
+    data; the order of the rounds stays in `confirmed_order`.
+    """
+    ranked = sorted(confirmed, key=lambda e: -rises.get(e, -math.inf))
+    return ranked, {e: {"chi2_rise": float(rises[e]), "stage": stage} for e in ranked if e in rises}
+
+
 def _prune_final(problem: Any, model: Any, params: Mapping[str, float], confirmed: Sequence[str],
-                 before: Evaluation, *, spp: int, seed: int, repeats: int) -> list[dict[str, Any]]:
+                 before: Evaluation, *, spp: int, seed: int, repeats: int
+                 ) -> tuple[list[dict[str, Any]], dict[str, float]]:
     """The backward check (`_prune`) at the estimator's final fit: each confirmed effect put
     back to absent, chi^2 at the same seeds in the base fit's noise metric. The effect that
     carries the most is kept whatever its figure; another whose rise falls short of k ln n +
@@ -797,12 +831,12 @@ def _prune_final(problem: Any, model: Any, params: Mapping[str, float], confirme
         needed = _bic_bar(e, n_obs)
         out.append({"effect": e, "stage": "final fit", "chi2_rise": rises[e], "needed": needed,
                     "dropped": bool(rises[e] < needed), "with": [c for c in confirmed if c != e]})
-    return out
+    return out, rises
 
 
 def _prune(problem: Any, make_model: ModelFactory, confirmed: Sequence[str], exts: Sequence[str],
            full: RefitResult, *, spp: int, seed: int, model_variance: np.ndarray, floor: np.ndarray,
-           n_obs: int) -> list[dict[str, Any]]:
+           n_obs: int) -> tuple[list[dict[str, Any]], dict[str, float]]:
     """Backward check of the effects confirmed before the last one, in the joint model.
 
     Effects are added one per round, each judged against the model of the rounds before it.
@@ -814,26 +848,74 @@ def _prune(problem: Any, make_model: ModelFactory, confirmed: Sequence[str], ext
     re-optimised (the profile), so an effect whose conditional rise falls short would not pass
     the forward test either: it is dropped. `model_variance` must be the one `full` was
     fitted with, so that the two chi^2 are paired.
+
+    Returns the checks and every confirmed effect's chi^2 rise (the last one's too: it
+    ranks the named effects, `_by_importance`).
     """
     m = make_model(list(exts))
     free = _free_names(m, exts)
     n_obs = max(2, n_obs)
     out: list[dict[str, Any]] = []
-    for e in confirmed[:-1]:
+    rises: dict[str, float] = {}
+    for e in confirmed:
         neutral = refit(m, problem, _neutral_magnitudes(m, full.parameters, e), free,
                         spp=FINAL_SPP_FACTOR * spp, seed=seed + 303, iterations=0,
                         model_variance=model_variance, noise_scale=floor)
-        rise = float(neutral.chi2 - full.chi2)
+        rises[e] = float(neutral.chi2 - full.chi2)
+        if e == confirmed[-1]:
+            continue  # the last one passed its bar in the model with all the others
         needed = _bic_bar(e, n_obs)
         later = list(confirmed[confirmed.index(e) + 1:])
-        out.append({"effect": e, "stage": "refit", "chi2_rise": rise, "needed": needed,
-                    "dropped": bool(rise < needed), "with": later})
-    return out
+        out.append({"effect": e, "stage": "refit", "chi2_rise": rises[e], "needed": needed,
+                    "dropped": bool(rises[e] < needed), "with": later})
+    return out, rises
+
+
+def _final_fit_start(problem: Any, model: Any, lm: Evaluation, settings: FitSettings,
+                     cal: ScaleCalibration | None) -> tuple[dict[str, float], dict[str, Any]]:
+    """Where the estimator's final fit starts: the LM refit, carried over to the fit's scale.
+
+    The LM refits fit a free scale; the estimator may hold the calibrated one (`cal`).
+    Radiance-valued effect parameters (a stray-light offset and slope, a full-well radiance)
+    are in render units of the refit's scale: at the calibrated scale they are multiplied by
+    scale_refit / scale_calibrated. The refit's material parameters carry the trade between
+    the free scale and the albedo (the simulated bench's stray-light session: scale 1.53x the
+    calibrated one, albedo 0.81 against 0.95), and a fit started there under the calibrated
+    scale drove the albedo to its bound (0.9994) with the slope 18x too small: its log loss
+    ended 9.5x the truth's. So under a calibrated scale the material start is the better, by
+    the log loss at the coarse grid's samples per pixel, of the refit's and the coarse grid's
+    best (`estimate.start.coarse_start`, effect parameters held at their carried-over values).
+    """
+    from estimate.loss import log_loss, reference_delta
+    from estimate.start import coarse_start
+
+    start = dict(lm.parameters)
+    if cal is None:
+        return start, {"from": "refit"}
+    k = float(lm.scale) / float(cal.scale)
+    effect = {n: v for n, v in start.items() if "." in n and not n.startswith("phase.")}
+    for n in effect:
+        if model.specs[n].unit.startswith("radiance"):
+            effect[n] = start[n] = float(start[n]) * k
+    d_ref = reference_delta(settings.delta_range)
+    seed = settings.seed + 99_991
+
+    def loss(p: Mapping[str, float]) -> float:
+        prof = model.render_profiles(p, problem.angles_deg, spp=settings.start_spp, seed=seed)
+        return float(log_loss(problem.measured, prof, problem.valid, cal.scale, d_ref)[0])
+
+    grid, _ = coarse_start(model, problem, start, spp=settings.start_spp, seed=seed, delta_rel=d_ref,
+                           fixed=effect, scale=cal.scale)
+    l_refit, l_grid = loss(start), loss(grid)
+    info = {"from": "refit" if l_refit <= l_grid else "coarse grid", "radiance_factor": k,
+            "loss_refit": l_refit, "loss_grid": l_grid}
+    return (start if l_refit <= l_grid else dict(grid)), info
 
 
 def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, settings: FitSettings, *,
                    spp: int = 256, seed: int = 1000, repeats: int = 6,
-                   log: Callable[[str], None] | None = None) -> FitResult | None:
+                   log: Callable[[str], None] | None = None,
+                   scale_calibration: ScaleCalibration | None = None) -> FitResult | None:
     """The final model fitted by the estimator itself, in place of the Levenberg-Marquardt refit.
 
     The confirmations refit by Levenberg-Marquardt on chi^2 at one fixed seed: fast, and the
@@ -860,14 +942,20 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
     lm = d.after
     exts = list(lm.extensions)
     m = make_model(exts)
+    cal = None
+    if settings.scale == "calibrated":
+        cal = scale_calibration or calibrated_scale(problem.session_path, problem.channel, problem.beam.power())
+    start, start_info = _final_fit_start(problem, m, lm, settings, cal)
     say(f"  final fit with {', '.join(d.confirmed)} by the estimator (log loss, Adam + Gauss-Newton), "
-        "started at the refit ...")
-    fr = fit_channel(problem, m.phase, extensions=exts, start=lm.parameters, settings=settings, forward=m)
+        f"started at the {start_info['from']} ...")
+    fr = fit_channel(problem, m.phase, extensions=exts, start=start, settings=settings, forward=m,
+                     scale_calibration=cal)
     ev = evaluate(m, fr.parameters, problem, len(fr.free) + 1, spp=spp, seed=seed, repeats=repeats)
     b, a = d.before.residuals, ev.residuals
     kept = a.reduced_chi2_adjusted <= b.reduced_chi2_adjusted
     info: dict[str, Any] = {
         "kept": kept, "time_s": time.perf_counter() - t0, "iterations": fr.iterations, "stop_reason": fr.stop_reason,
+        "start": start_info,
         "still_drifting": list(fr.drifting), "loss": fr.loss, "reduced_chi2_estimator": fr.reduced_chi2,
         "reduced_chi2_adjusted": a.reduced_chi2_adjusted, "reduced_chi2_adjusted_lm": lm.residuals.reduced_chi2_adjusted,
         "material": {k: fr.parameters[k] for k in d.material_names},
@@ -888,12 +976,18 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
         # (the bench's refractive-boundary session: the blur confirmed in round 1 ends with a
         # 0.04 px core, though its 0.27 % wide tail still counts). One that no longer carries
         # its BIC bar stays in the fitted model at its fitted value but is no longer named.
-        checks = _prune_final(problem, m, fr.parameters, d.confirmed, d.before, spp=spp, seed=seed, repeats=repeats)
+        checks, rises = _prune_final(problem, m, fr.parameters, d.confirmed, d.before, spp=spp, seed=seed,
+                                     repeats=repeats)
         for e in checks:
             say(f"  {e['effect']} in the final fit: setting it to absent raises chi2 by {e['chi2_rise']:.1f} "
                 f"(needs {e['needed']:.1f})" + (" -> dropped" if e["dropped"] else " -> kept"))
         d.pruned = list(d.pruned) + checks
         d.confirmed = [c for c in d.confirmed if not any(e["effect"] == c and e["dropped"] for e in checks)]
+        d.importance = {}
+        if len(d.confirmed) >= 2:
+            d.confirmed, d.importance = _by_importance(d.confirmed, rises, "final fit")
+            say("  named by the chi2 each carries in the final fit: "
+                + ", ".join(f"{e} {d.importance[e]['chi2_rise']:.0f}" for e in d.confirmed))
     d.verdict = _verdict(d.before, d.localisation, d.candidates, d.confirmed, ev,
                          [e["effect"] for e in d.pruned if e["dropped"]])
     say(f"  final fit: reduced chi2 {a.reduced_chi2:.3f} (HDR), {a.reduced_chi2_adjusted:.3f} at the noise floor "
@@ -1270,6 +1364,13 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                   f"with {', '.join(e['with'])} raises chi2 by {e['chi2_rise']:.1f}, "
                   f"{'less than' if e['dropped'] else 'more than'} the {e['needed']:.1f} adding it needs -> "
                   f"{why if e['dropped'] else 'kept'}", file=out)
+        imp = d.get("importance") or {}
+        if len(imp) >= 2:
+            order = d.get("confirmed_order") or []
+            print(f"  named by the chi2 each carries in the {next(iter(imp.values()))['stage']} (set to absent alone): "
+                  + ", ".join(f"{e} {v['chi2_rise']:.0f}" for e, v in imp.items())
+                  + (f"; the rounds added them as {', '.join(order)}" if list(imp) != order[:len(imp)] else ""),
+                  file=out)
         for name, ps in d["confirmed_effects"].items():
             vals = ", ".join(f"{k.split('.', 1)[1]} = {_fmt(v['value'], v['uncertainty'])}" for k, v in ps.items())
             print(f"  left-out physics: {name} ({vals})", file=out)

@@ -474,9 +474,11 @@ def test_backward_check_drops_an_earlier_effect_that_the_later_one_explains(conc
     # The joint refit as the forward rounds leave it, at the seed and spp _prune pairs with.
     full = refit(m, rec, params, _free_names(m, exts), spp=2 * spp, seed=seed + 303, iterations=0,
                  model_variance=mv, noise_scale=floor)
-    out = _prune(rec, make_model, ["lens_blur", "stray_light"], exts, full, spp=spp, seed=seed, model_variance=mv,
-                 floor=floor, n_obs=rec.measured.size)
+    out, rises = _prune(rec, make_model, ["lens_blur", "stray_light"], exts, full, spp=spp, seed=seed,
+                        model_variance=mv, floor=floor, n_obs=rec.measured.size)
     assert [e["effect"] for e in out] == ["lens_blur"]  # the last effect was tested against the others already
+    assert set(rises) == set(exts) and rises["lens_blur"] == out[0]["chi2_rise"]
+    assert rises["stray_light"] > 10 * out[0]["needed"]  # the stray light is real in both cases
     e = out[0]
     assert e["with"] == ["stray_light"]
     assert e["dropped"] is expect_dropped, e
@@ -488,5 +490,55 @@ def test_backward_check_drops_an_earlier_effect_that_the_later_one_explains(conc
     from estimate.diagnose import _prune_final, evaluate
 
     before = evaluate(make_model([]), TRUE, rec, 3, spp=spp, seed=seed, repeats=3)
-    fin = _prune_final(rec, m, params, ["lens_blur", "stray_light"], before, spp=spp, seed=seed, repeats=3)
+    fin, fin_rises = _prune_final(rec, m, params, ["lens_blur", "stray_light"], before, spp=spp, seed=seed,
+                                  repeats=3)
     assert [(e["effect"], e["stage"], e["dropped"]) for e in fin] == [("lens_blur", "final fit", expect_dropped)], fin
+    assert fin_rises["stray_light"] > fin_rises["lens_blur"] == fin[0]["chi2_rise"]
+
+
+def test_named_effects_are_ranked_by_the_chi2_each_carries_in_the_final_model():
+    """The rounds' order follows the screening at the base fit; the names follow what each
+    effect carries in the model that explains the data, and the summary says both."""
+    from estimate.diagnose import _by_importance, summary_text
+
+    ranked, imp = _by_importance(["lens_blur", "refractive_boundary"],
+                                 {"lens_blur": 172.0, "refractive_boundary": 2400.0}, "final fit")
+    assert ranked == ["refractive_boundary", "lens_blur"]
+    assert list(imp) == ranked and imp["lens_blur"] == {"chi2_rise": 172.0, "stage": "final fit"}
+    rec = record({"stray_light.offset": 0.003}, seed=5)
+    d = diagnose_channel(rec, BaseFit(dict(TRUE), 1e4, "hg"), make_model, candidates=["stray_light"], spp=128,
+                         repeats=3)
+    doc = d.as_dict()
+    assert doc["confirmed_order"] == d.confirmed and doc["importance"] == {}  # one named: nothing to rank
+    doc.update(confirmed_order=["lens_blur", "refractive_boundary"], importance=imp,
+               confirmed_effects={"refractive_boundary": {}, "lens_blur": {}})
+    text = summary_text({"channels": {"g": doc}, "run_id": "x", "refit_run": None})
+    assert ("named by the chi2 each carries in the final fit (set to absent alone): refractive_boundary 2400, "
+            "lens_blur 172; the rounds added them as lens_blur, refractive_boundary") in text
+
+
+def test_final_fit_under_a_calibrated_scale_starts_from_the_refit_carried_to_that_scale():
+    """The LM refit fits a free scale, which trades with the albedo; the estimator's final fit
+    may hold the calibrated scale. Its start takes the refit's stray light in the calibrated
+    scale's units, and the better (by the log loss) of the refit's and the coarse grid's material."""
+    from types import SimpleNamespace
+
+    from estimate.diagnose import _final_fit_start
+    from estimate.loss import ScaleCalibration
+
+    rec = record({"stray_light.offset": 0.01})
+    pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
+    m = make_model(["stray_light"])
+    # What a free-scale refit can end at: 1.5x the scale, the albedo traded down to match.
+    lm = SimpleNamespace(parameters=m.validate({**TRUE, "albedo": 0.75, "stray_light.offset": 0.01 / 1.5}),
+                         scale=1.5e4)
+    st = FitSettings(start_spp=16)
+    same, info = _final_fit_start(pb, m, lm, st, None)
+    assert same == lm.parameters and info == {"from": "refit"}
+    cal = ScaleCalibration(scale=1e4, power_e_per_s=1.0, beam_power=1.0, calibration_nd=1.0, collection_sr=1.0,
+                           pixel_area_mm2=1.0)
+    start, info = _final_fit_start(pb, m, lm, st, cal)
+    assert info["radiance_factor"] == pytest.approx(1.5)
+    assert start["stray_light.offset"] == pytest.approx(0.01)  # the refit's stray light, carried over
+    assert info["from"] == "coarse grid" and info["loss_grid"] < info["loss_refit"]
+    assert start["albedo"] in (0.85, 0.95) and start["sigma_t"] == pytest.approx(2.0, rel=0.01)
