@@ -674,7 +674,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             spec = fm.specs[n]
             if spec.neutral != 0.0 and n not in (start or {}) and init[n] == spec.neutral and peak > 0:
                 init[n] = peak
-    tr: list[Transform] = [transform_for(n, fm.specs[n], peak) for n in names]
+    half_width_mm = 0.5 * problem.measured.shape[-1] * problem.geometry.pixel_mm
+    tr: list[Transform] = [transform_for(n, fm.specs[n], peak, half_width_mm) for n in names]
     z = np.array([t.to_z(init[n]) for n, t in zip(names, tr)])
     adam = _Adam(np.array([t.lr for t in tr]) * st.lr_scale)
     rng = np.random.default_rng(st.seed)

@@ -154,6 +154,11 @@ def test_radiance_valued_transforms_follow_the_render_scale(peak):
     assert t.to_x(-5.0) == 0.0 and t.clamp_z(-5.0) == 0.0  # offset >= 0
     assert t.lr * t.dx_dz(0.0) / peak == pytest.approx(0.3 * RADIANCE_UNIT)
     assert transform_for("albedo", spec, peak).kind == "logit"  # named parameters keep theirs
+    # The slope's z unit moves the profile's ends (half-width 8.5 mm) as far as the offset's.
+    slope = {p.name: p for p in StrayLight.parameters}["slope_per_mm"]
+    ts = transform_for("stray_light.slope_per_mm", slope, peak, 8.5)
+    assert ts.dx_dz(0.0) * 8.5 == pytest.approx(t.dx_dz(0.0))
+    assert transform_for("stray_light.slope_per_mm", slope, peak).dx_dz(0.0) == pytest.approx(t.dx_dz(0.0))
 
 
 def test_fixed_parameters_stay(problem):
