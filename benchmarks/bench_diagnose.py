@@ -48,7 +48,8 @@ sys.path.insert(0, str(ROOT))
 RESULTS = ROOT / "benchmarks" / "results"
 
 #: Two realistic magnitudes per effect (parameters in the forward model's names and units;
-#: stray light in units of the unit-power render, whose profile peaks are ~0.02..0.2).
+#: stray light in units of the unit-power render, whose profile peaks are ~0.02..0.2; its
+#: slope keeps it >= 0 across the bench's 34 mm frame, which the bench enforces).
 MAGNITUDES: dict[str, list[dict[str, float]]] = {
     "refractive_boundary": [{"n": 1.33}, {"n": 1.5}],
     "lens_blur": [{"core_sigma_px": 1.5, "tail_fraction": 0.02}, {"core_sigma_px": 2.5, "tail_fraction": 0.05}],
