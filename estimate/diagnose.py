@@ -889,8 +889,8 @@ def _final_fit_start(problem: Any, model: Any, lm: Evaluation, settings: FitSett
     step fixed (`estimate.transforms`), the fit ended at sigma_t 1.6 % high and albedo 0.945;
     on the refractive-boundary session at n 1.335 (truth 1.33) and albedo 0.954.
     """
-    from estimate.loss import log_loss, reference_delta
-    from estimate.start import coarse_start
+    from estimate.loss import reference_delta
+    from estimate.start import coarse_start, start_loss
 
     start = dict(lm.parameters)
     if cal is None:
@@ -902,14 +902,10 @@ def _final_fit_start(problem: Any, model: Any, lm: Evaluation, settings: FitSett
             effect[n] = start[n] = float(start[n]) * k
     d_ref = reference_delta(settings.delta_range)
     seed = settings.seed + 99_991
-
-    def loss(p: Mapping[str, float]) -> float:
-        prof = model.render_profiles(p, problem.angles_deg, spp=settings.start_spp, seed=seed)
-        return float(log_loss(problem.measured, prof, problem.valid, cal.scale, d_ref)[0])
-
-    grid, _ = coarse_start(model, problem, start, spp=settings.start_spp, seed=seed, delta_rel=d_ref,
-                           fixed=effect, scale=cal.scale)
-    l_refit, l_grid = loss(start), loss(grid)
+    grid, tried = coarse_start(model, problem, start, spp=settings.start_spp, seed=seed, delta_rel=d_ref,
+                               fixed=effect, scale=cal.scale)
+    l_grid = min(loss for _, loss in tried)
+    l_refit = start_loss(model, problem, start, settings.start_spp, seed, d_ref, cal.scale)
     info = {"from": "refit" if l_refit <= l_grid else "coarse grid", "radiance_factor": k,
             "loss_refit": l_refit, "loss_grid": l_grid}
     return (start if l_refit <= l_grid else dict(grid)), info

@@ -14,7 +14,7 @@ from estimate.forward import ForwardModel
 from estimate.loss import log_loss, profile_scale
 from estimate.problem import Problem
 
-__all__ = ["ALBEDO_GRID", "SIGMA_GRID", "coarse_start", "phase_candidates"]
+__all__ = ["ALBEDO_GRID", "SIGMA_GRID", "coarse_start", "phase_candidates", "start_loss"]
 
 #: Extinction coefficients tried (1/mm): log-spaced over what a 1 mm slab's profiles can show.
 SIGMA_GRID = tuple(float(x) for x in np.geomspace(0.5, 16.0, 11))
@@ -41,8 +41,9 @@ def phase_candidates(phase: str) -> list[dict[str, float]]:
     return [{}]
 
 
-def _score(fm: ForwardModel, problem: Problem, params: Mapping[str, float], spp: int, seed: int,
-           delta_rel: float, scale: float | None = None) -> float:
+def start_loss(fm: ForwardModel, problem: Problem, params: Mapping[str, float], spp: int, seed: int,
+               delta_rel: float, scale: float | None = None) -> float:
+    """Log loss of one candidate start at `delta_rel` (scale profiled unless given)."""
     prof = fm.render_profiles(params, problem.angles_deg, spp=spp, seed=seed)
     s = scale if scale is not None else profile_scale(problem.measured, prof, problem.valid, delta_rel)
     return log_loss(problem.measured, prof, problem.valid, s, delta_rel)[0]
@@ -78,7 +79,7 @@ def coarse_start(fm: ForwardModel, problem: Problem, base: Mapping[str, float], 
                 p.update(ph)
                 p.update({"sigma_t": st, "albedo": a})
                 p.update(fixed)
-                loss = _score(fm, problem, p, spp, seed, delta_rel, scale)
+                loss = start_loss(fm, problem, p, spp, seed, delta_rel, scale)
                 tried.append((p, loss))
                 if best is None or loss < best[0]:
                     best = (loss, p)

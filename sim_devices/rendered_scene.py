@@ -293,12 +293,15 @@ def _check_stray_light(world: World, cols: int, pixel_mm: float) -> None:
     Raises:
         WorldError: one line with the world file, the key and the largest slope allowed.
     """
+    from estimate.extensions.stray_light import StrayLight
+
     sl = world.effects.get("stray_light")
     if not sl:
         return
-    half = 0.5 * (cols - 1) * pixel_mm  # the outermost pixel centres (StrayLight's x)
+    # the background the bench adds (`_image_effects`), along one row of the frame
+    low = float(StrayLight.apply(np.zeros(cols), sl, pixel_mm=pixel_mm, profile_only=True).min())
+    half = 0.5 * (cols - 1) * pixel_mm  # the outermost pixel centres
     offset, slope = float(sl["offset"]), float(sl["slope_per_mm"])
-    low = offset - abs(slope) * half
     if low < 0.0:
         side = "left" if slope > 0 else "right"
         raise WorldError(
