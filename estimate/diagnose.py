@@ -681,9 +681,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                         model_variance=current.model_variance * repeats, noise_scale=floor)
             tr = evaluate(m, fit.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats, angle_idx=train,
                           noise_variance=yardstick)
-            k = len(FREE_PARAMETERS[cand.name])
             n_train = int(np.sum(np.isfinite(tr.residuals.r)))
-            dbic = ctrl.chi2 - fit.chi2 - k * math.log(max(n_train, 2))
+            dbic = ctrl.chi2 - fit.chi2 - _bic_penalty(cand.name, n_train)
             entry: dict[str, Any] = {"effect": cand.name, "round": len(confirmed) + 1, "delta_bic": dbic,
                                      "chi2_train_before": cur_train.residuals.chi2_adjusted,
                                      "chi2_train_control": ctrl_tr.residuals.chi2_adjusted,
@@ -786,9 +785,14 @@ def _yardstick(problem: Any, before: Evaluation) -> np.ndarray:
     return np.maximum(floor[:, None] ** 2 * (data_var + base_mc) - base_mc, data_var)
 
 
+def _bic_penalty(effect: str, n_obs: int) -> float:
+    """BIC's price of adding `effect`'s k free parameters on n observations: k ln n."""
+    return len(FREE_PARAMETERS[effect]) * math.log(max(2, n_obs))
+
+
 def _bic_bar(effect: str, n_obs: int) -> float:
     """The chi^2 drop that adding `effect` must reach to be confirmed: k ln n + BIC_STRONG."""
-    return len(FREE_PARAMETERS[effect]) * math.log(max(2, n_obs)) + BIC_STRONG
+    return _bic_penalty(effect, n_obs) + BIC_STRONG
 
 
 def _by_importance(confirmed: Sequence[str], rises: Mapping[str, float], stage: str
