@@ -11,7 +11,11 @@
    (`decorrelated`) the loss is mean(r_A r_B) over two independent half-spp renders A, B
    (r = log(m + delta) - log(I + delta)): the plain loss's expectation contains the
    render's Monte Carlo variance of log I, which pulled fits towards less noisy parameters
-   (albedo 0.9 -> 0.5 on the paper's d = 0.5 um case); the product's does not;
+   (albedo 0.9 -> 0.5 on the paper's d = 0.5 um case); the product's does not.
+   Additive parameters (a stray-light offset and slope: `ForwardModel.additive_parameters`)
+   are not stepped: like a free scale they are solved exactly on each iteration's two
+   renders (bounded least squares on the log residuals, no render), their columns are
+   projected out of the Gauss-Newton matrix, and the final evaluation solves them once more;
 3. after `adam_iterations` (10) Adam steps, Gauss-Newton steps (`optimizer="adam+gn"`):
    z <- z - gn_step (2/n A^T A)^-1 g_avg, with g_avg a running mean (momentum 0.7) of the
    reverse-mode gradients and A = d r / d z from a finite-difference Jacobian with large
@@ -73,6 +77,7 @@ from estimate.loss import (
     chi2,
     decorrelated_loss,
     log_loss,
+    profile_additive,
     profile_scale,
     reference_delta,
 )
@@ -110,6 +115,9 @@ class FitSettings:
     gn_momentum: float = 0.7
     adam_iterations: int = 10        # "adam+gn": Adam iterations before the Gauss-Newton steps
     decorrelated: bool = True
+    #: solve additive parameters (stray-light offset and slope) exactly at every iteration
+    #: instead of stepping them (decorrelated mode only; see fit_channel)
+    profile_additive: bool = True
     lm_spp: int = 1024
     uncertainties: bool = True
     scale: str = "free"              # "free": fitted (profiled) per channel; "calibrated": from the beam power
@@ -206,6 +214,9 @@ class FitResult:
     drifting: list[str] = field(default_factory=list)
     #: per Gauss-Newton iteration: [iteration, predicted decrease of the loss, its noise part]
     gn_trace: list[list[float]] = field(default_factory=list)
+    #: additive parameters (stray-light offset, slope) solved on every iteration's render
+    #: (`FitSettings.profile_additive`) rather than stepped by the optimiser
+    solved: list[str] = field(default_factory=list)
 
     @property
     def free(self) -> list[str]:
@@ -341,8 +352,12 @@ def _gn_direction(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Seque
 
 def _gn_inverse(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequence[Transform], z: np.ndarray,
                 problem: Problem, mean: np.ndarray, dl: float, m: np.ndarray, profiled_scale: bool,
-                damping: float = 1e-3, eig_floor: float | None = None) -> np.ndarray:
+                damping: float = 1e-3, eig_floor: float | None = None,
+                profiled_columns: Sequence[np.ndarray] = ()) -> np.ndarray:
     """Inverse of the Gauss-Newton matrix of the log loss mean(r^2) in the variables z.
+
+    `profiled_columns`: d profiles / d p (N, W) of parameters solved at every iteration
+    outside z (additive ones); like a profiled scale, their directions are projected out.
 
     The matrix is 2/n A^T A with A = dr/dz = -J / (I + delta) dx/dz at this iteration's delta
     and profiles; with a profiled scale the scale's column is projected out (the scale is
@@ -363,9 +378,14 @@ def _gn_inverse(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequenc
     cols = [np.where(valid, -jac[n] / den, 0.0).ravel() * t.dx_dz(float(zz)) for n, t, zz in zip(names, tr, z)]
     A = np.stack(cols, axis=1)
     A = np.where(np.isfinite(A), A, 0.0)
+    out_cols = [np.where(valid, -np.asarray(c) / den, 0.0).ravel() for c in profiled_columns]
     if profiled_scale:
-        a_s = np.where(valid, -m / (np.clip(m, -0.5 * dl, None) + dl), 0.0).ravel()
-        A = A - np.outer(a_s, a_s @ A) / max(float(a_s @ a_s), 1e-300)
+        out_cols.append(np.where(valid, -m / (np.clip(m, -0.5 * dl, None) + dl), 0.0).ravel())
+    if out_cols:
+        Q, R = np.linalg.qr(np.stack(out_cols, axis=1))
+        keep = np.abs(np.diag(R)) > 1e-12 * max(1e-300, float(np.max(np.abs(np.diag(R)))))
+        Q = Q[:, keep]
+        A = A - Q @ (Q.T @ A)
     n = max(1, int(valid.sum()))
     H = 2.0 * (A.T @ A) / n
     H = H + damping * np.diag(np.diag(H)) + 1e-12 * np.eye(len(names))
@@ -458,12 +478,19 @@ def _lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], nam
 
 
 def evaluate(fm: ForwardModel, problem: Problem, params: Mapping[str, float], *, spp: int, seed: int,
-             delta_rel: float, fixed_scale: float | None = None) -> dict[str, Any]:
+             delta_rel: float, fixed_scale: float | None = None,
+             additive: Sequence[str] = ()) -> dict[str, Any]:
     """Profiles (mean of two seeds), their MC variance, scale (profiled unless `fixed_scale`),
     loss (of the mean profile), the loss without its Monte Carlo variance term
-    (`loss_unbiased`, `estimate.loss.decorrelated_loss` of the two seeds) and chi^2."""
+    (`loss_unbiased`, `estimate.loss.decorrelated_loss` of the two seeds), chi^2, and the
+    parameters ("parameters": `params`, with the `additive` ones solved on these renders at
+    `delta_rel`, see `_solve_additive`)."""
     p1 = fm.render_profiles(params, problem.angles_deg, spp=spp, seed=seed)
     p2 = fm.render_profiles(params, problem.angles_deg, spp=spp, seed=seed + 7_777)
+    params = dict(params)
+    if additive:
+        shift = _solve_additive(fm, problem, params, additive, 0.5 * (p1 + p2), delta_rel, fixed_scale)
+        p1, p2 = p1 + shift, p2 + shift
     prof = 0.5 * (p1 + p2)
     mvar = 0.25 * (p1 - p2) ** 2
     # One pixel's two-sample variance estimate is itself very noisy: smooth it along x.
@@ -474,7 +501,29 @@ def evaluate(fm: ForwardModel, problem: Problem, params: Mapping[str, float], *,
     unbiased = decorrelated_loss(problem.measured, p1, p2, problem.valid, s, delta_rel)
     c2 = chi2(problem.measured, problem.variance, prof, problem.valid, s, mvar)
     return {"profiles": prof, "model_variance": mvar, "scale": s, "loss": loss, "loss_unbiased": unbiased,
-            "chi2": c2}
+            "chi2": c2, "parameters": params}
+
+
+def _solve_additive(fm: ForwardModel, problem: Problem, params: dict[str, float], names: Sequence[str],
+                    mean: np.ndarray, delta_rel: float, fixed_scale: float | None,
+                    scale_guess: float | None = None) -> np.ndarray:
+    """Set the additive parameters `names` in `params` (in place) to their log-loss optimum
+    for the render `mean` (made with the old values; with a free scale, the scale and
+    they are solved in turn, twice) and return what that adds to the render (N, W)."""
+    cols = fm.additive_columns(params, len(problem.angles_deg), names)
+    bounds = {n: (fm.specs[n].lower, fm.specs[n].upper) for n in names}
+    old = {n: float(params[n]) for n in names}
+    cur = dict(old)
+    shift = np.zeros_like(mean)
+    s = fixed_scale
+    for _ in range(1 if fixed_scale is not None else 2):
+        if fixed_scale is None:
+            s = profile_scale(problem.measured, mean + shift, problem.valid, delta_rel, guess=scale_guess)
+        assert s is not None
+        cur = profile_additive(problem.measured, mean, problem.valid, s, delta_rel, cols, old, bounds)
+        shift = sum(((cur[n] - old[n]) * cols[n] for n in names), np.zeros_like(mean))
+    params.update(cur)
+    return shift
 
 
 def _jacobian_columns(fm: ForwardModel, problem: Problem, params: Mapping[str, float], names: Sequence[str],
@@ -571,7 +620,7 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
 DRIFT_T = 5.0
 
 
-def _drift(history: Sequence[np.ndarray], names: Sequence[str], tr: Sequence[Transform],
+def _drift(history: Sequence[Sequence[float]], names: Sequence[str],
            window: int) -> tuple[dict[str, float], list[str]]:
     """Per parameter: mean of the last `window` iterates minus the mean of the `window`
     iterates two windows earlier (parameter units), and the names whose drift exceeds
@@ -583,7 +632,7 @@ def _drift(history: Sequence[np.ndarray], names: Sequence[str], tr: Sequence[Tra
     scatter of ~0.01 inside each. Empty when there are fewer than 3 windows of iterates."""
     if len(history) < 3 * window or window < 2:
         return {}, []
-    xs = np.array([[t.to_x(float(h[i])) for i, t in enumerate(tr)] for h in history[-3 * window:]])
+    xs = np.array(history[-3 * window:], dtype=np.float64)
     a, b = xs[-window:], xs[:window]
     d = a.mean(axis=0) - b.mean(axis=0)
     se = np.sqrt(a.var(axis=0, ddof=1) / window + b.var(axis=0, ddof=1) / window)
@@ -675,20 +724,38 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             if spec.neutral != 0.0 and n not in (start or {}) and init[n] == spec.neutral and peak > 0:
                 init[n] = peak
     half_width_mm = 0.5 * problem.measured.shape[-1] * problem.geometry.pixel_mm
-    tr: list[Transform] = [transform_for(n, fm.specs[n], peak, half_width_mm) for n in names]
-    z = np.array([t.to_z(init[n]) for n, t in zip(names, tr)])
+    # Additive parameters (a stray-light offset and slope) are solved exactly on every
+    # iteration's render (`_solve_additive`, like a free scale) instead of being stepped: as
+    # optimiser variables they are nearly degenerate with the albedo and b2 in the tails, so
+    # the Gauss-Newton matrix's weak direction turned each re-estimate of its noisy
+    # Jacobian into a jump (bench stray_light-2, started at the truth: offset +-30 %, slope
+    # x2 every 10 iterations, ending at offset -10 %, slope +49 %).
+    solved = [n for n in fm.additive_parameters() if n in names] \
+        if st.profile_additive and st.decorrelated else []
+    stepped = [n for n in names if n not in solved]
+    solved_cols = list(fm.additive_columns(init, len(problem.angles_deg), solved).values()) if solved else []
+    sol = {n: float(init[n]) for n in solved}
+    tr: list[Transform] = [transform_for(n, fm.specs[n], peak, half_width_mm) for n in stepped]
+    z = np.array([t.to_z(init[n]) for n, t in zip(stepped, tr)])
     adam = _Adam(np.array([t.lr for t in tr]) * st.lr_scale)
     rng = np.random.default_rng(st.seed)
 
     def params_of(zv: np.ndarray) -> dict[str, float]:
         p = dict(init)
-        p.update({n: t.to_x(float(zz)) for n, t, zz in zip(names, tr, zv)})
+        p.update(sol)
+        p.update({n: t.to_x(float(zz)) for n, t, zz in zip(stepped, tr, zv)})
         return p
+
+    def x_row(zv: np.ndarray) -> list[float]:
+        """One iterate in parameter units, in `names` order."""
+        p = params_of(zv)
+        return [float(p[n]) for n in names]
 
     spp = int(st.spp_start)
     schedule = [[0, spp]]
     curve: list[float] = []
     history: list[np.ndarray] = []
+    x_history: list[list[float]] = []
     since_change = 0
     stop = "max_iterations"
     scale = fixed_scale
@@ -713,6 +780,11 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             # otherwise reward parameters whose renders are less noisy (e.g. low albedo).
             pa = fm.render_profiles(p, problem.angles_deg, spp=half, seed=seed_a)
             pb_ = fm.render_profiles(p, problem.angles_deg, spp=half, seed=seed_a + 1)
+            if solved:
+                shift = _solve_additive(fm, problem, p, solved, 0.5 * (pa + pb_), delta_rel, fixed_scale,
+                                        scale_guess=scale)
+                pa, pb_ = pa + shift, pb_ + shift
+                sol.update({n: p[n] for n in solved})
             mean = 0.5 * (pa + pb_)
             if fixed_scale is None:
                 scale = profile_scale(problem.measured, mean, problem.valid, delta_rel, guess=scale)
@@ -742,18 +814,19 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
 
             _, _, grads = fm.value_and_grad(p, problem.angles_deg, loss_fn, spp=spp, seed=seed_a)
             curve_loss = ref["loss"]
-        g = np.array([grads.get(n, 0.0) * t.dx_dz(float(zz)) for n, t, zz in zip(names, tr, z)])
+        g = np.array([grads.get(n, 0.0) * t.dx_dz(float(zz)) for n, t, zz in zip(stepped, tr, z)])
         g = np.where(np.isfinite(g), g, 0.0)
         if mode == "gn":
             if gn_jac is None or it - gn_jac_it >= st.gn_jacobian_every:
-                gn_jac = _gn_jacobian(fm, problem, p, names, spp=st.gn_jacobian_spp,
+                gn_jac = _gn_jacobian(fm, problem, p, stepped, spp=st.gn_jacobian_spp,
                                       seed=st.seed * 100_003 + 70_000 + it)
                 gn_jac_it = it
             # Gradients are averaged over iterations (momentum): a single one's Monte Carlo
             # noise is 2-4x its mean per component at 512 spp (albedo worst), and
             # H^-1 amplifies it along the weakly determined valley direction.
             g_avg = g if g_avg is None else st.gn_momentum * g_avg + (1.0 - st.gn_momentum) * g
-            h_inv = _gn_inverse(gn_jac, names, tr, z, problem, mean, dl, m, fixed_scale is None)
+            h_inv = _gn_inverse(gn_jac, stepped, tr, z, problem, mean, dl, m, fixed_scale is None,
+                                profiled_columns=solved_cols)
             gn_grads.append(g)
             gn_trace.append([it, *_predicted_decrease(h_inv, g_avg, gn_grads[-2 * st.window:], st.gn_momentum)])
             dz = -st.gn_step * (h_inv @ g_avg)
@@ -766,6 +839,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         z = np.array([t.clamp_z(float(zz)) for t, zz in zip(tr, z)])
         curve.append(curve_loss)
         history.append(z.copy())
+        x_history.append(x_row(z))
         since_change += 1
         if progress:
             progress(it, curve_loss, spp)
@@ -782,19 +856,22 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             since_change = 0
     n_avg = min(len(history), st.window * (2 if mode == "gn" else 1))
     z_final = np.mean(history[-n_avg:], axis=0) if history else z
+    sol.update({n: float(np.mean([x[names.index(n)] for x in x_history[-n_avg:]])) for n in solved}
+               if x_history else {})
     final = params_of(z_final)
     lm_losses: list[float] = []
     if st.lm_iterations > 0:
-        final, lm_losses = _lm_polish(fm, problem, final, names, tr, spp=st.lm_spp,
+        final, lm_losses = _lm_polish(fm, problem, final, stepped, tr, spp=st.lm_spp,
                                       seed=st.seed * 100_003 + 40_000, delta_rel=d_ref, iterations=st.lm_iterations,
                                       fixed_scale=fixed_scale)
     ev = evaluate(fm, problem, final, spp=st.final_spp, seed=st.seed * 100_003 + 50_000, delta_rel=d_ref,
-                  fixed_scale=fixed_scale)
+                  fixed_scale=fixed_scale, additive=solved)
+    final = ev["parameters"]
     n_valid = int(problem.valid.sum())
     dof = max(1, n_valid - len(names) - (1 if fixed_scale is None else 0))
     red = ev["chi2"] / dof
     unc: dict[str, float] = {n: float("nan") for n in names}
-    drift, drifting = _drift(history, names, tr, st.window)
+    drift, drifting = _drift(x_history, names, st.window)
     covariance: dict[str, dict[str, float]] = {}
     fisher: dict[str, float] = {}
     spread: dict[str, float] = {}
@@ -816,7 +893,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         # iterates, added in quadrature. The curvature-based intervals describe the
         # minimum of the loss; along the sigma_t / phase valley the iterates wander by more
         # than that (synthetic benchmark: sandwich 0.006 /mm, error 0.057 /mm).
-        xs = np.array([[t.to_x(float(h[i])) for i, t in enumerate(tr)] for h in history[-n_avg:]])
+        xs = np.array(x_history[-n_avg:])
         it_cov = np.cov(xs, rowvar=False, ddof=1).reshape(len(names), len(names)) if len(xs) > 1 \
             else np.zeros((len(names), len(names)))
         for i, n in enumerate(names):
@@ -835,7 +912,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         angles_deg=[float(a) for a in problem.angles_deg], fitted=ev["profiles"], lm_losses=lm_losses,
         model_variance=ev["model_variance"], start=dict(init), settings=st.to_dict(), scale_mode=st.scale,
         scale_calibration=cal.to_dict() if cal is not None else None, fisher_uncertainties=fisher,
-        optimizer_spread=spread, gn_trace=gn_trace, covariance=covariance, drift=drift, drifting=drifting)
+        optimizer_spread=spread, gn_trace=gn_trace, covariance=covariance, drift=drift, drifting=drifting,
+        solved=list(solved))
 
 
 def loss_at(problem: Problem, model: str, params: Mapping[str, float], *, extensions: Sequence[str] = (),

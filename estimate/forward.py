@@ -440,6 +440,32 @@ class ForwardModel:
             out[name] = ((r_hi - r_lo) / (hi - lo))[:, 0, :]
         return out
 
+    def additive_parameters(self) -> list[str]:
+        """Parameters that add `value x a fixed image` to the profiles (`ParameterSpec.additive`).
+
+        Only those whose extension is the last image-space effect applied: an effect after it
+        (sensor compression) would make the sum depend on the scene. Their columns
+        (`additive_columns`) need no render, and a fit can solve for them exactly at every
+        iteration.
+        """
+        exts = self._image_exts()
+        last = exts[-1].name if exts else None
+        return [n for n, s in self.specs.items() if s.additive and n.split(".", 1)[0] == last]
+
+    def additive_columns(self, params: Mapping[str, float], n_angles: int,
+                         names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+        """d profiles / d parameter, arrays (n_angles, W), for additive parameters (all of
+        `additive_parameters()` by default); exact, and without a render."""
+        names = self.additive_parameters() if names is None else list(names)
+        allowed = set(self.additive_parameters())
+        for n in names:
+            if n not in allowed:
+                raise ModelParameterError(f"{n!r} is not an additive parameter of this model")
+        values = self.validate(params)
+        window = self.geometry.window(None, None)
+        zero = np.zeros((int(n_angles), window.height, window.width))
+        return {n: self._image_param_derivative(zero, values, n, window) for n in names}
+
     def _image_param_derivative(self, radiance: np.ndarray, values: Mapping[str, float], name: str,
                                 window: PixelWindow) -> np.ndarray:
         """Exact derivative of the image chain output w.r.t. one image parameter."""

@@ -45,15 +45,16 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize_scalar
+from scipy.optimize import least_squares, minimize_scalar
 
 from estimate.errors import DataError
 
 __all__ = ["DEFAULT_CALIBRATION_ND", "DEFAULT_COLLECTION_SR", "DEFAULT_DELTA_RANGE", "ScaleCalibration",
-           "calibrated_scale", "chi2", "log_loss", "profile_scale", "reference_delta"]
+           "calibrated_scale", "chi2", "log_loss", "profile_additive", "profile_scale", "reference_delta"]
 
 #: Collection solid angle of the lens [sr] when the rig configuration gives none
 #: (`camera.collection_sr`); equal to the default simulated world's `optics.collection_sr`.
@@ -118,6 +119,45 @@ def profile_scale(measured: np.ndarray, model: np.ndarray, valid: np.ndarray, de
 
     res = minimize_scalar(f, bounds=(lg - 3.0, lg + 3.0), method="bounded", options={"xatol": 1e-5})
     return float(math.exp(res.x))
+
+
+def profile_additive(measured: np.ndarray, model: np.ndarray, valid: np.ndarray, scale: float,
+                     delta_rel: float, columns: Mapping[str, np.ndarray], values: Mapping[str, float],
+                     bounds: Mapping[str, tuple[float, float]]) -> dict[str, float]:
+    """The values of additive parameters minimising the log loss for a fixed render.
+
+    `model` was rendered with `values`; parameter k adds `(v_k - values_k) * columns[k]` to
+    it (an additive effect, e.g. a stray-light offset and slope: `ForwardModel.
+    additive_columns`). Solved by bounded least squares on the log residuals at `delta_rel`
+    (no render, milliseconds). Returns the new values, inside `bounds`.
+    """
+    names = list(columns)
+    if not names:
+        return {}
+    m = measured / scale
+    delta = max(delta_rel * float(np.max(np.where(valid, m, -np.inf))), 1e-30)
+    lm = np.log(np.clip(m, -0.5 * delta, None) + delta)[valid]
+    base = np.asarray(model, dtype=np.float64)[valid]
+    cols = np.stack([np.asarray(columns[n], dtype=np.float64)[valid] for n in names], axis=1)
+    x0 = np.array([float(values[n]) for n in names])
+    # Each parameter in units of a typical size of its effect: the columns (ones, x in mm)
+    # and the values (radiance ~1e5) differ by orders of magnitude.
+    unit = np.array([delta / max(float(np.sqrt(np.mean(c ** 2))), 1e-300) for c in cols.T])
+    lo = np.array([bounds[n][0] for n in names])
+    hi = np.array([bounds[n][1] for n in names])
+    floor = 1e-3 * delta  # keeps log finite where a trial value would push the model below 0
+
+    def resid(u: np.ndarray) -> np.ndarray:
+        return lm - np.log(np.clip(base + cols @ (u * unit - x0), floor, None) + delta)
+
+    def jac(u: np.ndarray) -> np.ndarray:
+        I = base + cols @ (u * unit - x0)
+        return np.where((I > floor)[:, None], -cols * unit / (np.clip(I, floor, None) + delta)[:, None], 0.0)
+
+    u0 = np.clip(x0, lo, hi) / unit
+    res = least_squares(resid, u0, jac=jac, bounds=(lo / unit, hi / unit), method="trf",
+                        x_scale=1.0, xtol=1e-10, ftol=1e-10, gtol=1e-12, max_nfev=50)
+    return {n: float(v) for n, v in zip(names, np.clip(res.x * unit, lo, hi))}
 
 
 def chi2(measured: np.ndarray, variance: np.ndarray, model: np.ndarray, valid: np.ndarray, scale: float,

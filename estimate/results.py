@@ -98,6 +98,8 @@ def write_run(run_dir: Path, session_dir: str | os.PathLike[str], fits: Sequence
             "iterations": int(r.iterations), "time_s": float(r.time_s), "stop_reason": r.stop_reason,
             # parameters still moving when the fit stopped (result biased towards the start)
             "still_drifting": list(r.drifting), "drift": {k: _num(v) for k, v in r.drift.items()},
+            # additive parameters solved exactly on every iteration's render, not stepped
+            "solved_each_iteration": list(r.solved),
             "spp_schedule": [list(map(int, x)) for x in r.spp_schedule],
             "start": {k: float(v) for k, v in r.start.items()},
             "angles_deg": [float(a) for a in r.angles_deg],

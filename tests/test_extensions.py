@@ -191,3 +191,21 @@ def test_bad_extension_parameters(ext: str, params: dict, match: str) -> None:
     model = ForwardModel(GEOM, BEAM, phase="exp0", extensions=[ext])
     with pytest.raises(ModelParameterError, match=match.replace(".", r"\.")):
         model.validate(params)
+
+
+def test_additive_parameters_and_their_columns() -> None:
+    """Stray light adds offset + slope * x whatever the scene: its parameters are additive,
+    with exact columns and no render, unless a later effect (sensor compression) bends it."""
+    model = ForwardModel(GEOM, BEAM, phase="exp1", extensions=["lens_blur", "stray_light"])
+    assert model.additive_parameters() == ["stray_light.offset", "stray_light.slope_per_mm"]
+    p = {**BASE, "phase.b1": 1.0, "lens_blur.core_sigma_px": 1.0, "stray_light.offset": 0.003}
+    cols = model.additive_columns(p, 2)
+    jac = model.jacobian(p, [40.0, 140.0], list(cols), spp=64, seed=2)
+    for name, c in cols.items():
+        assert c.shape == (2, N_PIX)
+        assert c == pytest.approx(jac[name], rel=1e-9, abs=1e-12), name
+    assert np.allclose(cols["stray_light.offset"], 1.0)
+    bent = ForwardModel(GEOM, BEAM, phase="exp1", extensions=["stray_light", "sensor_nonlinearity"])
+    assert bent.additive_parameters() == []
+    with pytest.raises(ModelParameterError, match="not an additive parameter"):
+        bent.additive_columns(p, 2, ["stray_light.offset"])

@@ -41,6 +41,9 @@ class ParameterSpec:
         derivative: "ad", "image" or "fd" (see module doc).
         fd_step: absolute finite-difference step for "fd" / default step.
         doc: one line.
+        additive: the effect adds `value x a fixed image` to the render (linear in this
+            parameter, the same image whatever the scene): a fit can solve for it exactly at
+            every iteration instead of stepping it (`ForwardModel.additive_parameters`).
     """
 
     name: str
@@ -52,6 +55,7 @@ class ParameterSpec:
     fd_step: float
     doc: str
     open_lower: bool = False
+    additive: bool = False
 
 
 def check_value(full_name: str, value: float, spec: ParameterSpec) -> float:

@@ -19,9 +19,9 @@ class StrayLight(ImageExtension):
     name = "stray_light"
     parameters = (
         ParameterSpec("offset", 0.0, 0.0, float("inf"), "radiance", "image", 1e-4,
-                      "constant background"),
+                      "constant background", additive=True),
         ParameterSpec("slope_per_mm", 0.0, float("-inf"), float("inf"), "radiance/mm", "image", 1e-4,
-                      "linear variation across the row"),
+                      "linear variation across the row", additive=True),
     )
 
     @staticmethod
