@@ -244,7 +244,48 @@ def run_bench(case: dict[str, Any], work: Path, channel: str, angles: int, spp: 
     truth = {"sigma_t": mat["sigma_t"], "albedo": mat["albedo"]}
     truth.update({f"phase.b{i + 1}": b for i, b in enumerate(mat["phase"].get("b", []))})
     out["truth"] = truth
+    out["truth_reduced_chi2_adjusted"] = truth_at_floor(work, channel, spp, truth)
     return out
+
+
+#: Concealed bench effects whose world parameters are the estimator's, in its units (the
+#: stray light after x the beam map's power, `truth_at_floor`). Sensor compression acts on
+#: raw counts in the bench and has no one full-well radiance in the estimator: left out.
+TRUTH_COMPARABLE = ("refractive_boundary", "lens_blur", "stray_light", "angle_offset", "thickness_error",
+                    "beam_halo", "filter_bandwidth")
+
+
+def truth_at_floor(work: Path, channel: str, spp: int, truth: dict[str, float]) -> float | None:
+    """The true model's reduced chi^2 at the noise floor, evaluated exactly as the diagnosis
+    evaluates its final fit (`estimate.diagnose.refine_channel`: free scale, `spp`, seed 1000,
+    6 repeats, the floor estimated from the residuals): the yardstick for "after".
+
+    The target "reduced chi^2 <= 1.2 after the refit" presumes the truth sits near 1 in that
+    metric; on the bench it need not (the recording's own render noise is not all white).
+    None when a concealed effect has no counterpart in the estimator's units.
+    """
+    import yaml
+
+    from estimate.diagnose import evaluate
+    from estimate.forward import ForwardModel
+    from estimate.problem import load_problem
+
+    world = yaml.safe_load((work / "world.yaml").read_text())
+    effects = world.get("effects") or {}
+    if any(e not in TRUTH_COMPARABLE for e in effects):
+        return None
+    pb = load_problem(work / "session", channel)
+    params = dict(truth)
+    for e, values in effects.items():
+        for k, v in values.items():
+            # The bench adds stray light to the radiance of a unit-power beam; the estimator
+            # renders with the measured beam map, whose total is pb.beam.power().
+            params[f"{e}.{k}"] = float(v) * (pb.beam.power() if e == "stray_light" else 1.0)
+    fm = ForwardModel(pb.geometry, pb.beam, phase="exp3", extensions=list(effects))
+    n_free = len([n for n in fm.parameter_names if n.split(".", 1)[0] in effects or "." not in n
+                  or n.startswith("phase.")])
+    ev = evaluate(fm, params, pb, n_free + 1, spp=spp, seed=1000, repeats=6)
+    return float(ev.residuals.reduced_chi2_adjusted)
 
 
 # ---------------------------------------------------------------------------- scoring
@@ -271,6 +312,7 @@ def score(case: dict[str, Any], res: dict[str, Any]) -> dict[str, Any]:
             "significant": res["significant"], "significant_by": res.get("significant_by"), "ok": ok,
             "reduced_chi2_before": res["reduced_chi2_before"], "reduced_chi2_after": res["reduced_chi2_after"],
             "reduced_chi2_adjusted_before": adj_b, "reduced_chi2_adjusted_after": adj_a, "noise_floor": floor,
+            "truth_reduced_chi2_adjusted": res.get("truth_reduced_chi2_adjusted"),
             "material_error": err, "detectability": res.get("detectability"),
             "time_s": res.get("diagnose_wall_s", res.get("time_s"))}
 
@@ -296,6 +338,10 @@ def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tup
                                 if singles else float("nan")),
         "after_reduced_chi2_le_1.2": (sum(r["reduced_chi2_adjusted_after"] <= 1.2 for r in named_cases)
                                       / len(named_cases) if named_cases else float("nan")),
+        # the same with the truth's own value in that metric as the bar where it exceeds 1.2
+        "after_reduced_chi2_le_truth_or_1.2": (
+            sum(r["reduced_chi2_adjusted_after"] <= max(1.2, r.get("truth_reduced_chi2_adjusted") or 1.2)
+                for r in named_cases) / len(named_cases) if named_cases else float("nan")),
         "clean_sigma_t_rel_err": float(np.mean([r["material_error"]["before"]["sigma_t_rel"] for r in clean]))
         if clean else None,
         "effect_sigma_t_rel_err_before": float(np.mean([r["material_error"]["before"]["sigma_t_rel"]
@@ -306,8 +352,9 @@ def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tup
     }
     lines = [f"Diagnosis proof suite ({source} recordings, {ran}/{total} cases run)", "",
              ("| case | concealed | significant (by) | screened first | named (confirmed) | ok | noise floor f | "
-              "red. chi2 HDR before -> after | red. chi2 at floor before -> after | sigma_t err before -> after | "
-              "possible chi2 gain (needed) | time [s] |"), "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "red. chi2 HDR before -> after | red. chi2 at floor before -> after (truth) | "
+              "sigma_t err before -> after | possible chi2 gain (needed) | time [s] |"),
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         e = r["material_error"]
         sig = f"yes ({r.get('significant_by')})" if r["significant"] else "no"
@@ -316,7 +363,9 @@ def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tup
                      f"{r.get('noise_floor', 1.0):.2f} | "
                      f"{r['reduced_chi2_before']:.2f} -> {r['reduced_chi2_after']:.2f} | "
                      f"{r.get('reduced_chi2_adjusted_before', float('nan')):.2f} -> "
-                     f"{r.get('reduced_chi2_adjusted_after', float('nan')):.2f} | "
+                     f"{r.get('reduced_chi2_adjusted_after', float('nan')):.2f}"
+                     + (f" ({r['truth_reduced_chi2_adjusted']:.2f})" if r.get("truth_reduced_chi2_adjusted") else "")
+                     + " | "
                      f"{100 * e['before']['sigma_t_rel']:.1f}% -> {100 * e['after']['sigma_t_rel']:.1f}% | "
                      f"{_gain(r.get('detectability'))} | {(r['time_s'] or 0):.0f} |")
     names = sorted({r["concealed"][0] for r in singles})
@@ -334,6 +383,8 @@ def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tup
               f"| nothing named on clean sessions | {100 * summary['clean_nothing_named']:.0f} % |",
               (f"| reduced chi2 after <= 1.2 (at the noise floor) | {100 * summary['after_reduced_chi2_le_1.2']:.0f} % "
                "of named cases |"),
+              (f"| ... or <= the truth's own value there, where that is above 1.2 | "
+               f"{100 * summary['after_reduced_chi2_le_truth_or_1.2']:.0f} % of named cases |"),
               f"| one channel's diagnosis <= 300 s | max {summary['max_channel_time_s'] or 0:.0f} s |"]
     return "\n".join(lines), summary
 
@@ -379,6 +430,10 @@ def main() -> int:
             res = json.loads(f.read_text())
             if args.source == "synthetic" and args.detectability and "detectability" not in res:
                 res["detectability"] = detectability(case, args.excess, res["material_before"])
+                f.write_text(json.dumps(res, default=float))
+            if args.source == "bench" and "truth_reduced_chi2_adjusted" not in res:
+                res["truth_reduced_chi2_adjusted"] = truth_at_floor(cache / case["id"], args.channel, args.spp,
+                                                                    res["truth"])
                 f.write_text(json.dumps(res, default=float))
         else:
             if args.time_budget is not None and time.perf_counter() - t0 > args.time_budget:
