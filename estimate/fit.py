@@ -231,7 +231,7 @@ class FitResult:
                 "chi2": self.chi2, "dof": self.dof,
                 "reduced_chi2": self.reduced_chi2, "iterations": self.iterations, "time_s": self.time_s,
                 "stop_reason": self.stop_reason, "extensions": list(self.extensions),
-                "derived": self.derived(), "drifting": list(self.drifting)}
+                "derived": self.derived(), "drifting": list(self.drifting), "solved": list(self.solved)}
 
     def derived(self) -> dict[str, dict[str, float | None]]:
         """sigma_s, sigma_a, g, sigma_s' and the transport albedo with 1-sigma uncertainties

@@ -76,6 +76,14 @@ def test_free_scale_is_fitted(session, capsys):
     assert doc["channels"]["g"]["scale"] != pytest.approx(2e5, rel=1e-6)
 
 
+def test_extension_parameters_are_printed(session, capsys):
+    assert main(["estimate", str(session), "--channels", "g", "--columns", "32", "--max-iterations", "2",
+                 "--spp-max", "64", "--extensions", "stray_light"]) == 0
+    out = capsys.readouterr().out
+    line = next(ln for ln in out.splitlines() if "stray_light.offset" in ln)
+    assert "stray_light.slope_per_mm" in line and "(solved each iteration)" in line
+
+
 def test_missing_session_exit_2(tmp_path, capsys):
     assert main(["estimate", str(tmp_path / "nope")]) == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 1

@@ -116,6 +116,10 @@ def run(args: argparse.Namespace) -> int:
                 pm = {k: f"{d['value']:.4g} +- {d['uncertainty']:.2g}" if d["uncertainty"] is not None
                       else f"{d['value']:.4g}" for k, d in dv.items()}
                 print(f"     sigma_a {pm['sigma_a']} /mm, sigma_s' {pm['sigma_s_reduced']} /mm, g {pm['g']}")
+                ext = [k for k in f.free if "." in k and not k.startswith("phase.")]
+                if ext:
+                    print("     " + ", ".join(f"{k} {p[k]:.4g} +- {u.get(k, float('nan')):.2g}"
+                                           + (" (solved each iteration)" if k in f.solved else "") for k in ext))
                 if f.drifting:
                     print(f"     warning: {', '.join(f.drifting)} still drifting when the fit stopped "
                           "(uncertainties include the last drift); more samples per pixel "
