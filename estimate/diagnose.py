@@ -76,6 +76,7 @@ __all__ = [
     "RefitResult",
     "diagnose_channel",
     "evaluate",
+    "render_stack",
     "plot_diagnosis",
     "refit",
     "run_diagnosis",
@@ -292,7 +293,8 @@ def _smoothed_variance(renders: np.ndarray) -> np.ndarray:
 
 def evaluate(model: Any, params: Mapping[str, float], problem: Any, n_params: int, *, spp: int = 256,
              seed: int = 1000, repeats: int = 4, angle_idx: Sequence[int] | None = None,
-             scale: float | None = None, noise_variance: np.ndarray | None = None) -> Evaluation:
+             scale: float | None = None, noise_variance: np.ndarray | None = None,
+             renders: np.ndarray | None = None) -> Evaluation:
     """Render `repeats` seeds, average, and test the fit (scale refitted unless given).
 
     `noise_variance` (per pixel of the whole problem, e-^2/s^2): the data's noise variance
@@ -300,10 +302,12 @@ def evaluate(model: Any, params: Mapping[str, float], problem: Any, n_params: in
     models are compared in one noise metric; the model's own Monte-Carlo variance (which
     differs between models: a blur averages it over neighbouring pixels) is added to it.
     None: the usual residuals, the noise floor estimated from them.
+    `renders`: the (repeats, N, W) stack these arguments would render (`render_stack`),
+    when the caller already has it.
     """
     idx = list(range(len(problem.angles_deg))) if angle_idx is None else list(angle_idx)
-    angles = [float(problem.angles_deg[i]) for i in idx]
-    renders = np.stack([model.render_profiles(params, angles, spp=spp, seed=seed + 7 * k) for k in range(repeats)])
+    if renders is None:
+        renders = render_stack(model, params, problem, spp=spp, seed=seed, repeats=repeats, angle_idx=idx)
     mean = renders.mean(axis=0)
     mvar = _smoothed_variance(renders) / repeats if repeats > 1 else np.zeros_like(mean)
     meas = np.asarray(problem.measured, dtype=np.float64)[idx]
@@ -320,6 +324,14 @@ def evaluate(model: Any, params: Mapping[str, float], problem: Any, n_params: in
         r = np.where(np.isfinite(nv), r, np.nan)
         res = fit_significance(r, n_params, noise_scale=np.ones(len(idx)))
     return Evaluation(dict(model.validate(params)), list(model.extensions), s, mean, mvar, res, n_params)
+
+
+def render_stack(model: Any, params: Mapping[str, float], problem: Any, *, spp: int = 256, seed: int = 1000,
+                 repeats: int = 4, angle_idx: Sequence[int] | None = None) -> np.ndarray:
+    """The (repeats, N, W) renders `evaluate` averages: seeds seed + 7 k."""
+    idx = list(range(len(problem.angles_deg))) if angle_idx is None else list(angle_idx)
+    angles = [float(problem.angles_deg[i]) for i in idx]
+    return np.stack([model.render_profiles(params, angles, spp=spp, seed=seed + 7 * k) for k in range(repeats)])
 
 
 def _bounds(model: Any, name: str) -> tuple[float, float]:
@@ -813,14 +825,16 @@ def _by_importance(confirmed: Sequence[str], rises: Mapping[str, float], stage: 
 
 
 def _prune_final(problem: Any, model: Any, params: Mapping[str, float], confirmed: Sequence[str],
-                 before: Evaluation, *, spp: int, seed: int, repeats: int
+                 before: Evaluation, *, spp: int, seed: int, repeats: int, renders: np.ndarray | None = None
                  ) -> tuple[list[dict[str, Any]], dict[str, float]]:
     """The backward check (`_prune`) at the estimator's final fit: each confirmed effect put
     back to absent, chi^2 at the same seeds in the base fit's noise metric. The effect that
     carries the most is kept whatever its figure; another whose rise falls short of k ln n +
-    `BIC_STRONG` is dropped (the final fit has no further use for it)."""
+    `BIC_STRONG` is dropped (the final fit has no further use for it). `renders`: the fit's
+    own `render_stack` at these seeds, when the caller has it."""
     yd = _yardstick(problem, before)
-    ref = evaluate(model, params, problem, 0, spp=spp, seed=seed, repeats=repeats, noise_variance=yd)
+    ref = evaluate(model, params, problem, 0, spp=spp, seed=seed, repeats=repeats, noise_variance=yd,
+                   renders=renders)
     n_obs = max(2, int(np.sum(np.isfinite(ref.residuals.r))))
     rises = {}
     for e in confirmed:
@@ -953,7 +967,8 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
         f"started at the {start_info['from']} ...")
     fr = fit_channel(problem, m.phase, extensions=exts, start=start, settings=settings, forward=m,
                      scale_calibration=cal)
-    ev = evaluate(m, fr.parameters, problem, len(fr.free) + 1, spp=spp, seed=seed, repeats=repeats)
+    stack = render_stack(m, fr.parameters, problem, spp=spp, seed=seed, repeats=repeats)
+    ev = evaluate(m, fr.parameters, problem, len(fr.free) + 1, spp=spp, seed=seed, repeats=repeats, renders=stack)
     b, a = d.before.residuals, ev.residuals
     kept = a.reduced_chi2_adjusted <= b.reduced_chi2_adjusted
     info: dict[str, Any] = {
@@ -980,7 +995,7 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
         # 0.04 px core, though its 0.27 % wide tail still counts). One that no longer carries
         # its BIC bar stays in the fitted model at its fitted value but is no longer named.
         checks, rises = _prune_final(problem, m, fr.parameters, d.confirmed, d.before, spp=spp, seed=seed,
-                                     repeats=repeats)
+                                     repeats=repeats, renders=stack)
         for e in checks:
             say(f"  {e['effect']} in the final fit: setting it to absent raises chi2 by {e['chi2_rise']:.1f} "
                 f"(needs {e['needed']:.1f})" + (" -> dropped" if e["dropped"] else " -> kept"))

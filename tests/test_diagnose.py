@@ -28,7 +28,9 @@ from estimate.diagnose import (
     _run_fit_settings,
     _smoothed_variance,
     diagnose_channel,
+    evaluate,
     refine_channel,
+    render_stack,
     screen_candidates,
 )
 from estimate.errors import ModelParameterError
@@ -290,6 +292,20 @@ def test_likelihood_ratio_magnitude_holds_its_level_and_survives_a_misfit():
     c_neutral = float(np.sum((y - both @ np.array([coef[0], 0.0])) ** 2))
     fit = RefitResult({"stray_light.offset": coef[1]}, 1.0, {}, c_fit, 1)
     assert _magnitude_lr_z(fit, c_ctrl, c_neutral, n, 2, "stray_light") > 5.0
+
+
+def test_evaluation_of_a_given_render_stack_is_the_evaluation_that_renders_it():
+    """The final fit's renders are made once and shared by its evaluation and the backward
+    check: evaluating a stack from `render_stack` gives exactly what rendering it anew does."""
+    rec = record({})
+    m = make_model([])
+    stack = render_stack(m, TRUE, rec, spp=32, seed=900, repeats=2, angle_idx=[1, 4])
+    assert stack.shape == (2, 2, rec.measured.shape[1])
+    a = evaluate(m, TRUE, rec, 3, spp=32, seed=900, repeats=2, angle_idx=[1, 4])
+    b = evaluate(m, TRUE, rec, 3, spp=32, seed=900, repeats=2, angle_idx=[1, 4], renders=stack)
+    assert np.array_equal(a.model, b.model) and a.residuals.chi2 == b.residuals.chi2
+    c = evaluate(m, TRUE, rec, 3, spp=32, seed=901, repeats=2, angle_idx=[1, 4])
+    assert not np.array_equal(a.model, c.model)
 
 
 def test_final_fit_by_the_estimator_replaces_the_refit_of_a_confirmed_effect():
