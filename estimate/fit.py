@@ -506,11 +506,13 @@ def evaluate(fm: ForwardModel, problem: Problem, params: Mapping[str, float], *,
 
 def _solve_additive(fm: ForwardModel, problem: Problem, params: dict[str, float], names: Sequence[str],
                     mean: np.ndarray, delta_rel: float, fixed_scale: float | None,
-                    scale_guess: float | None = None) -> np.ndarray:
+                    scale_guess: float | None = None, columns: Mapping[str, np.ndarray] | None = None
+                    ) -> np.ndarray:
     """Set the additive parameters `names` in `params` (in place) to their log-loss optimum
     for the render `mean` (made with the old values; with a free scale, the scale and
-    they are solved in turn, twice) and return what that adds to the render (N, W)."""
-    cols = fm.additive_columns(params, len(problem.angles_deg), names)
+    they are solved in turn, twice) and return what that adds to the render (N, W).
+    `columns`: their `ForwardModel.additive_columns`, when the caller has them."""
+    cols = columns if columns is not None else fm.additive_columns(params, len(problem.angles_deg), names)
     bounds = {n: (fm.specs[n].lower, fm.specs[n].upper) for n in names}
     old = {n: float(params[n]) for n in names}
     cur = dict(old)
@@ -733,7 +735,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     solved = [n for n in fm.additive_parameters() if n in names] \
         if st.profile_additive and st.decorrelated else []
     stepped = [n for n in names if n not in solved]
-    solved_cols = list(fm.additive_columns(init, len(problem.angles_deg), solved).values()) if solved else []
+    # The columns do not depend on the parameters (nothing follows an additive effect).
+    solved_cols = fm.additive_columns(init, len(problem.angles_deg), solved) if solved else {}
     sol = {n: float(init[n]) for n in solved}
     tr: list[Transform] = [transform_for(n, fm.specs[n], peak, half_width_mm) for n in stepped]
     z = np.array([t.to_z(init[n]) for n, t in zip(stepped, tr)])
@@ -782,7 +785,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             pb_ = fm.render_profiles(p, problem.angles_deg, spp=half, seed=seed_a + 1)
             if solved:
                 shift = _solve_additive(fm, problem, p, solved, 0.5 * (pa + pb_), delta_rel, fixed_scale,
-                                        scale_guess=scale)
+                                        scale_guess=scale, columns=solved_cols)
                 pa, pb_ = pa + shift, pb_ + shift
                 sol.update({n: p[n] for n in solved})
             mean = 0.5 * (pa + pb_)
@@ -826,7 +829,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             # H^-1 amplifies it along the weakly determined valley direction.
             g_avg = g if g_avg is None else st.gn_momentum * g_avg + (1.0 - st.gn_momentum) * g
             h_inv = _gn_inverse(gn_jac, stepped, tr, z, problem, mean, dl, m, fixed_scale is None,
-                                profiled_columns=solved_cols)
+                                profiled_columns=list(solved_cols.values()))
             gn_grads.append(g)
             gn_trace.append([it, *_predicted_decrease(h_inv, g_avg, gn_grads[-2 * st.window:], st.gn_momentum)])
             dz = -st.gn_step * (h_inv @ g_avg)
