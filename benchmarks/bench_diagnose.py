@@ -257,8 +257,8 @@ TRUTH_COMPARABLE = ("refractive_boundary", "lens_blur", "stray_light", "angle_of
 
 def truth_at_floor(work: Path, channel: str, spp: int, truth: dict[str, float]) -> float | None:
     """The true model's reduced chi^2 at the noise floor, evaluated exactly as the diagnosis
-    evaluates its final fit (`estimate.diagnose.refine_channel`: free scale, `spp`, seed 1000,
-    6 repeats, the floor estimated from the residuals): the yardstick for "after".
+    evaluates its final fit (`estimate.diagnose.refine_channel`: free scale, `spp`, its default
+    seeds and repeats, the floor estimated from the residuals): the yardstick for "after".
 
     The target "reduced chi^2 <= 1.2 after the refit" presumes the truth sits near 1 in that
     metric; on the bench it need not (the recording's own render noise is not all white).
@@ -266,7 +266,7 @@ def truth_at_floor(work: Path, channel: str, spp: int, truth: dict[str, float]) 
     """
     import yaml
 
-    from estimate.diagnose import evaluate
+    from estimate.diagnose import DEFAULT_REPEATS, DEFAULT_SEED, evaluate
     from estimate.forward import ForwardModel
     from estimate.problem import load_problem
 
@@ -282,7 +282,7 @@ def truth_at_floor(work: Path, channel: str, spp: int, truth: dict[str, float]) 
             # renders with the measured beam map, whose total is pb.beam.power().
             params[f"{e}.{k}"] = float(v) * (pb.beam.power() if e == "stray_light" else 1.0)
     fm = ForwardModel(pb.geometry, pb.beam, phase="exp3", extensions=list(effects))
-    ev = evaluate(fm, params, pb, len(fm.parameter_names) + 1, spp=spp, seed=1000, repeats=6)
+    ev = evaluate(fm, params, pb, len(fm.parameter_names) + 1, spp=spp, seed=DEFAULT_SEED, repeats=DEFAULT_REPEATS)
     return float(ev.residuals.reduced_chi2_adjusted)
 
 

@@ -52,7 +52,7 @@ from scipy import ndimage, stats
 from estimate.errors import DataError, EstimateError, ModelParameterError
 from estimate.extensions import EXTENSIONS
 from estimate.fit import FitResult, FitSettings, fit_channel, secant_steps
-from estimate.loss import ScaleCalibration, calibrated_scale
+from estimate.loss import ScaleCalibration, calibrated_scale, reference_delta
 from estimate.residuals import (
     ALPHA,
     FitResiduals,
@@ -64,10 +64,13 @@ from estimate.residuals import (
     smooth_structure,
 )
 from estimate.screening import CandidateScore, candidate_columns, score_test, screen
+from estimate.start import coarse_start, start_loss
 
 __all__ = [
     "BIC_STRONG",
     "CANDIDATES",
+    "DEFAULT_REPEATS",
+    "DEFAULT_SEED",
     "FREE_PARAMETERS",
     "HOLDOUT_EVERY",
     "BaseFit",
@@ -76,9 +79,9 @@ __all__ = [
     "RefitResult",
     "diagnose_channel",
     "evaluate",
-    "render_stack",
     "plot_diagnosis",
     "refit",
+    "render_stack",
     "run_diagnosis",
     "screen_candidates",
     "summary_text",
@@ -133,6 +136,10 @@ SCREEN_LOG10_P = math.log10(ALPHA / len(CANDIDATES))
 COLUMN_SPP_FACTOR = 4
 #: The final refit (all angles, confirmed effects) uses this many times the diagnosis spp.
 FINAL_SPP_FACTOR = 2
+#: Evaluation seeds and repeats of a diagnosis (`rig diagnose`): every model, the final fit
+#: included, is rendered at seeds DEFAULT_SEED + 7 k, k < DEFAULT_REPEATS.
+DEFAULT_SEED = 1000
+DEFAULT_REPEATS = 6
 #: Pixels pooled in the estimate of the model's Monte-Carlo variance.
 VARIANCE_POOL_PX = 15
 
@@ -292,7 +299,7 @@ def _smoothed_variance(renders: np.ndarray) -> np.ndarray:
 
 
 def evaluate(model: Any, params: Mapping[str, float], problem: Any, n_params: int, *, spp: int = 256,
-             seed: int = 1000, repeats: int = 4, angle_idx: Sequence[int] | None = None,
+             seed: int = DEFAULT_SEED, repeats: int = 4, angle_idx: Sequence[int] | None = None,
              scale: float | None = None, noise_variance: np.ndarray | None = None,
              renders: np.ndarray | None = None) -> Evaluation:
     """Render `repeats` seeds, average, and test the fit (scale refitted unless given).
@@ -326,7 +333,7 @@ def evaluate(model: Any, params: Mapping[str, float], problem: Any, n_params: in
     return Evaluation(dict(model.validate(params)), list(model.extensions), s, mean, mvar, res, n_params)
 
 
-def render_stack(model: Any, params: Mapping[str, float], problem: Any, *, spp: int = 256, seed: int = 1000,
+def render_stack(model: Any, params: Mapping[str, float], problem: Any, *, spp: int = 256, seed: int = DEFAULT_SEED,
                  repeats: int = 4, angle_idx: Sequence[int] | None = None) -> np.ndarray:
     """The (repeats, N, W) renders `evaluate` averages: seeds seed + 7 k."""
     idx = list(range(len(problem.angles_deg))) if angle_idx is None else list(angle_idx)
@@ -544,7 +551,7 @@ def _holdout(n: int) -> tuple[list[int], list[int]]:
 
 # ---------------------------------------------------------------------------- main
 def screen_candidates(problem: Any, base: BaseFit, make_model: ModelFactory, *,
-                      candidates: Sequence[str] | None = None, spp: int = 256, seed: int = 1000,
+                      candidates: Sequence[str] | None = None, spp: int = 256, seed: int = DEFAULT_SEED,
                       repeats: int = 3) -> tuple[Evaluation, dict[str, Any], list[CandidateScore]]:
     """Locate and screen only (no refit): the base evaluation, its localisation and the
     ranked score tests of `candidates` (default: all not already in the base model)."""
@@ -580,8 +587,8 @@ def _targeted_significance(ev: Evaluation, scores: Sequence[CandidateScore]) -> 
 
 
 def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
-                     candidates: Sequence[str] | None = None, spp: int = 256, seed: int = 1000,
-                     repeats: int = 6, iterations: int = 12,
+                     candidates: Sequence[str] | None = None, spp: int = 256, seed: int = DEFAULT_SEED,
+                     repeats: int = DEFAULT_REPEATS, iterations: int = 12,
                      log: Callable[[str], None] | None = None) -> ChannelDiagnosis:
     """Diagnose one channel.
 
@@ -907,9 +914,6 @@ def _final_fit_start(problem: Any, model: Any, lm: Evaluation, settings: FitSett
     step fixed (`estimate.transforms`), the fit ended at sigma_t 1.6 % high and albedo 0.945;
     on the refractive-boundary session at n 1.335 (truth 1.33) and albedo 0.954.
     """
-    from estimate.loss import reference_delta
-    from estimate.start import coarse_start, start_loss
-
     start = dict(lm.parameters)
     if cal is None:
         return start, {"from": "refit"}
@@ -930,7 +934,7 @@ def _final_fit_start(problem: Any, model: Any, lm: Evaluation, settings: FitSett
 
 
 def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, settings: FitSettings, *,
-                   spp: int = 256, seed: int = 1000, repeats: int = 6,
+                   spp: int = 256, seed: int = DEFAULT_SEED, repeats: int = DEFAULT_REPEATS,
                    log: Callable[[str], None] | None = None,
                    scale_calibration: ScaleCalibration | None = None) -> FitResult | None:
     """The final model fitted by the estimator itself, in place of the Levenberg-Marquardt refit.
@@ -1150,8 +1154,8 @@ def _check_same_session(session_dir: Any, run_doc: Mapping[str, Any], run_dir: A
 
 
 def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[str] | None = None,
-                  channels: Sequence[str] | None = None, spp: int = 256, repeats: int = 6, iterations: int = 8,
-                  seed: int = 1000, plots: bool = True, log: Callable[[str], None] | None = None,
+                  channels: Sequence[str] | None = None, spp: int = 256, repeats: int = DEFAULT_REPEATS,
+                  iterations: int = 8, seed: int = DEFAULT_SEED, plots: bool = True, log: Callable[[str], None] | None = None,
                   refine: bool = True) -> dict[str, Any]:
     """Diagnose every channel of an estimate run of a session and write the results.
 
