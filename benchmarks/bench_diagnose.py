@@ -281,7 +281,7 @@ def truth_at_floor(work: Path, channel: str, spp: int, truth: dict[str, float]) 
             # The bench adds stray light to the radiance of a unit-power beam; the estimator
             # renders with the measured beam map, whose total is pb.beam.power().
             params[f"{e}.{k}"] = float(v) * (pb.beam.power() if e == "stray_light" else 1.0)
-    fm = ForwardModel(pb.geometry, pb.beam, phase="exp3", extensions=list(effects))
+    fm = ForwardModel(pb.geometry, pb.beam, phase="exp3", extensions=list(effects), profile_y_shape=pb.y_shapes())
     ev = evaluate(fm, params, pb, len(fm.parameter_names) + 1, spp=spp, seed=DEFAULT_SEED, repeats=DEFAULT_REPEATS)
     return float(ev.residuals.reduced_chi2_adjusted)
 

@@ -1217,7 +1217,8 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
                        _cache: dict = cache) -> Any:
             key = tuple(exts)
             if key not in _cache:
-                _cache[key] = ForwardModel(_pb.geometry, _pb.beam, phase=_phase, extensions=key)
+                _cache[key] = ForwardModel(_pb.geometry, _pb.beam, phase=_phase, extensions=key,
+                                           profile_y_shape=_pb.y_shapes())
             return _cache[key]
 
         base = BaseFit({k: float(v) for k, v in (c.get("parameters") or {}).items()}, float(c.get("scale", 1.0)),

@@ -689,7 +689,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     st = settings or FitSettings()
     t0 = time.monotonic()
     phase = model_phase(model)
-    fm = forward or ForwardModel(problem.geometry, problem.beam, phase=phase, extensions=extensions)
+    fm = forward or ForwardModel(problem.geometry, problem.beam, phase=phase, extensions=extensions,
+                                 profile_y_shape=problem.y_shapes())
     fixed = dict(fixed or {})
     fm.validate(fixed)
     if st.scale not in ("free", "calibrated"):
@@ -924,6 +925,7 @@ def loss_at(problem: Problem, model: str, params: Mapping[str, float], *, extens
             forward: ForwardModel | None = None, fixed_scale: float | None = None) -> dict[str, Any]:
     """Loss / chi^2 of given parameters (e.g. the true ones: the noise floor), scale profiled
     unless `fixed_scale`."""
-    fm = forward or ForwardModel(problem.geometry, problem.beam, phase=model_phase(model), extensions=extensions)
+    fm = forward or ForwardModel(problem.geometry, problem.beam, phase=model_phase(model), extensions=extensions,
+                                 profile_y_shape=problem.y_shapes())
     return evaluate(fm, problem, params, spp=spp, seed=seed, delta_rel=reference_delta(delta_range),
                     fixed_scale=fixed_scale)

@@ -38,6 +38,7 @@ from estimate.errors import ModelParameterError
 from estimate.extensions import EXTENSIONS, IMAGE_ORDER, check_value, get_extension
 from estimate.extensions.base import ImageExtension, ParameterSpec
 from estimate.extensions.filter_bandwidth import band_nodes
+from estimate.extensions.lens_blur import TRUNCATION_PX as LENS_BLUR_RADIUS
 from estimate.extensions.refractive_boundary import INTERNAL_REFLECTIONS
 from estimate.geometry import PixelWindow, RigGeometry
 from estimate.mitsuba_env import init_mitsuba
@@ -76,6 +77,10 @@ def phase_specs(phase: str) -> dict[str, ParameterSpec]:
     raise ModelParameterError(f"unknown phase model {phase!r}; use 'exp<M>' (e.g. exp3), 'hg' or 'tthg'")
 
 
+def _angle_key(angle_deg: float) -> float:
+    return round(float(angle_deg), 6)
+
+
 def render_seed(seed: int, angle_index: int, band_index: int = 0) -> int:
     """Mitsuba seed of one render of a call (uint32)."""
     return (int(seed) * 1_000_003 + angle_index * 7919 + band_index * 104_729) % (2 ** 32)
@@ -93,12 +98,20 @@ class ForwardModel:
         variant: Mitsuba variant; None = automatic (`estimate.mitsuba_env`).
         max_depth: path length limit of `prbvolpath`.
         rr_depth: depth at which Russian roulette starts.
+        profile_y_shape: the recording's shape across the rows around the profile row, per
+            stage angle (degrees -> array (2 TRUNCATION_PX + 1, W) over the profile columns,
+            `estimate.problem.Problem.y_shapes`), for the lens blur of profile renders
+            (`estimate.extensions.lens_blur`); angles without one, other columns and None
+            use the line-spread function.
     """
 
     def __init__(self, geometry: RigGeometry, beam: BeamProfile, *, phase: str = "exp3",
                  extensions: Iterable[str] = (), variant: str | None = None,
-                 max_depth: int = 64, rr_depth: int = 16) -> None:
+                 max_depth: int = 64, rr_depth: int = 16,
+                 profile_y_shape: Mapping[float, np.ndarray] | None = None) -> None:
         self.geometry = geometry
+        self.profile_y_shape: dict[float, np.ndarray] = {
+            _angle_key(a): np.asarray(h, dtype=np.float64) for a, h in (profile_y_shape or {}).items()}
         self.beam_profile = beam
         self.phase = phase
         self.extensions: tuple[str, ...] = tuple(dict.fromkeys(extensions))
@@ -227,10 +240,32 @@ class ForwardModel:
     def _image_exts(self) -> list[type[ImageExtension]]:
         return [EXTENSIONS[n] for n in IMAGE_ORDER if n in self.extensions]  # type: ignore[misc]
 
-    def _post(self, radiance: np.ndarray, values: Mapping[str, float], profile_only: bool) -> np.ndarray:
+    def _y_shape(self, angles: Sequence[float], window: PixelWindow) -> np.ndarray | None:
+        """`y_shape_for(angles)` when the lens blur acts on this window's profile rows."""
+        if "lens_blur" not in self.extensions or window != self.geometry.profile_window():
+            return None
+        return self.y_shape_for(angles)
+
+    def y_shape_for(self, angles: Sequence[float]) -> np.ndarray | None:
+        """The recording's y-shape for these angles' profile rows (N, 2T + 1, W), h = 1 for
+        angles without one; None when the model has none (the lens blur uses its LSF)."""
+        if not self.profile_y_shape:
+            return None
+        window = self.geometry.profile_window()
+        rows = []
+        for a in angles:
+            h = self.profile_y_shape.get(_angle_key(a))
+            if h is None or h.shape[-1] != window.width:
+                h = np.ones((2 * LENS_BLUR_RADIUS + 1, window.width))
+            rows.append(h)
+        return np.stack(rows)
+
+    def _post(self, radiance: np.ndarray, values: Mapping[str, float], profile_only: bool,
+              y_shape: np.ndarray | None = None) -> np.ndarray:
         img = radiance
         for ext in self._image_exts():
-            img = ext.apply(img, ext.values(values), pixel_mm=self.geometry.pixel_mm, profile_only=profile_only)
+            img = ext.apply(img, ext.values(values), pixel_mm=self.geometry.pixel_mm, profile_only=profile_only,
+                            y_shape=y_shape)
         return img
 
     def _check_call(self, angles: Sequence[float], spp: int, seed: int) -> list[float]:
@@ -270,7 +305,7 @@ class ForwardModel:
         window = self.geometry.window(columns, rows)
         with self._lock:
             rad = self._render_radiance(values, angles, window, spp, seed)
-        return self._post(rad, values, profile_only=window.height == 1)
+        return self._post(rad, values, profile_only=window.height == 1, y_shape=self._y_shape(angles, window))
 
     # ------------------------------------------------------------------ derivatives
     def vjp(self, params: Mapping[str, float], angles_deg: Sequence[float], cotangent: np.ndarray, *,
@@ -315,7 +350,7 @@ class ForwardModel:
                 if image_exts:
                     # The image chain's pull-back and parameter derivatives need the radiance.
                     rad = self._render_radiance(values, ang, window, spp, seed, first_index=grp.start)
-                    cot_rad, ext_grads = self._pullback(rad, cot_g, values, window)
+                    cot_rad, ext_grads = self._pullback(rad, cot_g, values, window, self._y_shape(ang, window))
                     for name, gv in ext_grads.items():
                         grads[name] += gv
                 else:
@@ -348,7 +383,7 @@ class ForwardModel:
         return grads
 
     def _pullback(self, radiance: np.ndarray, cot_out: np.ndarray, values: Mapping[str, float],
-                  window: PixelWindow) -> tuple[np.ndarray, dict[str, float]]:
+                  window: PixelWindow, y_shape: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, float]]:
         """Cotangent on the scene radiance, and image-parameter gradients."""
         exts = self._image_exts()
         pm = self.geometry.pixel_mm
@@ -357,14 +392,15 @@ class ForwardModel:
         img = radiance
         for ext in exts:
             inputs.append(img)
-            img = ext.apply(img, ext.values(values), pixel_mm=pm, profile_only=profile_only)
+            img = ext.apply(img, ext.values(values), pixel_mm=pm, profile_only=profile_only, y_shape=y_shape)
         grads: dict[str, float] = {}
         cot = cot_out
         for ext, inp in zip(reversed(exts), reversed(inputs)):
             v = ext.values(values)
-            for short, dimg in ext.param_derivatives(inp, v, pixel_mm=pm, profile_only=profile_only).items():
+            for short, dimg in ext.param_derivatives(inp, v, pixel_mm=pm, profile_only=profile_only,
+                                                     y_shape=y_shape).items():
                 grads[f"{ext.name}.{short}"] = float(np.sum(dimg * cot))
-            cot = ext.vjp_input(inp, cot, v, pixel_mm=pm, profile_only=profile_only)
+            cot = ext.vjp_input(inp, cot, v, pixel_mm=pm, profile_only=profile_only, y_shape=y_shape)
         return cot, grads
 
     def value_and_grad(self, params: Mapping[str, float], angles_deg: Sequence[float],
@@ -407,7 +443,8 @@ class ForwardModel:
                 if base_rad is None:
                     with self._lock:
                         base_rad = self._render_radiance(values, angles, window, spp, seed)
-                out[name] = self._image_param_derivative(base_rad, values, name, window)
+                out[name] = self._image_param_derivative(base_rad, values, name, window,
+                                                         self._y_shape(angles, window))
                 continue
             x = values[name]
             h = float((steps or {}).get(name, spec.fd_step * max(1.0, abs(x))))
@@ -432,11 +469,13 @@ class ForwardModel:
                 if one_sided and lo == x:
                     r_lo = np.asarray(base_profiles, dtype=np.float64)[:, None, :]
                 else:
-                    r_lo = self._post(self._render_radiance(v_lo, angles, window, spp, seed), v_lo, profile_only)
+                    r_lo = self._post(self._render_radiance(v_lo, angles, window, spp, seed), v_lo, profile_only,
+                                      self._y_shape(angles, window))
                 if one_sided and hi == x:
                     r_hi = np.asarray(base_profiles, dtype=np.float64)[:, None, :]
                 else:
-                    r_hi = self._post(self._render_radiance(v_hi, angles, window, spp, seed), v_hi, profile_only)
+                    r_hi = self._post(self._render_radiance(v_hi, angles, window, spp, seed), v_hi, profile_only,
+                                      self._y_shape(angles, window))
             out[name] = ((r_hi - r_lo) / (hi - lo))[:, 0, :]
         return out
 
@@ -467,7 +506,7 @@ class ForwardModel:
         return {n: self._image_param_derivative(zero, values, n, window) for n in names}
 
     def _image_param_derivative(self, radiance: np.ndarray, values: Mapping[str, float], name: str,
-                                window: PixelWindow) -> np.ndarray:
+                                window: PixelWindow, y_shape: np.ndarray | None = None) -> np.ndarray:
         """Exact derivative of the image chain output w.r.t. one image parameter."""
         ext_name, short = name.split(".", 1)
         pm = self.geometry.pixel_mm
@@ -477,18 +516,18 @@ class ForwardModel:
         for i, ext in enumerate(exts):
             v = ext.values(values)
             if ext.name == ext_name:
-                d = ext.param_derivatives(img, v, pixel_mm=pm, profile_only=profile_only)[short]
-                out = ext.apply(img, v, pixel_mm=pm, profile_only=profile_only)
+                d = ext.param_derivatives(img, v, pixel_mm=pm, profile_only=profile_only, y_shape=y_shape)[short]
+                out = ext.apply(img, v, pixel_mm=pm, profile_only=profile_only, y_shape=y_shape)
                 # Push the derivative through the rest of the chain (linearised).
                 for later in exts[i + 1:]:
                     lv = later.values(values)
                     eps = 1e-4 * max(1e-30, float(np.max(np.abs(d))) or 1.0)
-                    plus = later.apply(out + eps * d, lv, pixel_mm=pm, profile_only=profile_only)
-                    minus = later.apply(out - eps * d, lv, pixel_mm=pm, profile_only=profile_only)
-                    out = later.apply(out, lv, pixel_mm=pm, profile_only=profile_only)
+                    plus = later.apply(out + eps * d, lv, pixel_mm=pm, profile_only=profile_only, y_shape=y_shape)
+                    minus = later.apply(out - eps * d, lv, pixel_mm=pm, profile_only=profile_only, y_shape=y_shape)
+                    out = later.apply(out, lv, pixel_mm=pm, profile_only=profile_only, y_shape=y_shape)
                     d = (plus - minus) / (2 * eps)
                 return d[:, 0, :]
-            img = ext.apply(img, v, pixel_mm=pm, profile_only=profile_only)
+            img = ext.apply(img, v, pixel_mm=pm, profile_only=profile_only, y_shape=y_shape)
         raise ModelParameterError(f"{name!r} is not an image-space parameter of this model")
 
 

@@ -30,12 +30,61 @@ import numpy as np
 
 from estimate.beam import BeamProfile, map_from_pixel_image
 from estimate.errors import DataError
+from estimate.extensions.lens_blur import TRUNCATION_PX as LENS_BLUR_RADIUS
 from estimate.geometry import RigGeometry
 
-__all__ = ["DEFAULT_COLUMNS", "Problem", "load_problem", "session_channels"]
+__all__ = ["DEFAULT_COLUMNS", "Y_SHAPE_SMOOTH_PX", "Problem", "load_problem", "session_channels", "y_shape_from_rows"]
 
 #: Default width of the profile window (pixels of the ROI, i.e. binned pixels).
 DEFAULT_COLUMNS = 256
+#: Box width (pixels along x) over which the rows are averaged before their ratio is taken
+#: (`y_shape_from_rows`): the y-shape changes slowly along x, pixel noise does not.
+Y_SHAPE_SMOOTH_PX = 9
+#: Largest y-shape value kept: a row far brighter than the profile row is a defect (a hot
+#: column, a reflection) or noise over a dark profile pixel, not the spot's shape.
+Y_SHAPE_MAX = 4.0
+
+
+def y_shape_from_rows(rows: np.ndarray, usable: np.ndarray, j: int, columns: tuple[int, int],
+                      radius: int = LENS_BLUR_RADIUS) -> np.ndarray:
+    """h(x, dy) = I(x, j + dy) / I(x, j) of one stack, dy = -radius..radius.
+
+    Args:
+        rows: the stack's radiance (rows, columns of the ROI), e-/s.
+        usable: bool, same shape: measured pixels (finite variance, mask set).
+        j: the profile row's index in `rows`.
+        columns: [c0, c1) of the profile window in `rows`.
+        radius: largest |dy| (the lens blur's truncation).
+
+    Each row and the profile row are averaged over `Y_SHAPE_SMOOTH_PX` usable pixels along x
+    (negative noise clipped at 0) before the ratio; where the profile row's average is not
+    positive, h = 1 (nothing known: the line-spread function's assumption). Rows beyond the
+    recorded band repeat the band's outermost row on that side (a single-row recording
+    gives h = 1, the LSF). Values are clipped to [0, `Y_SHAPE_MAX`]; h(x, 0) = 1.
+    """
+    c0, c1 = columns
+    n_rows = rows.shape[0]
+    k = np.ones(Y_SHAPE_SMOOTH_PX)
+
+    def smooth(r: int) -> np.ndarray:
+        ok = usable[r, c0:c1] & np.isfinite(rows[r, c0:c1])
+        val = np.where(ok, np.clip(rows[r, c0:c1], 0.0, None), 0.0)
+        num = np.convolve(val, k, mode="same")
+        den = np.convolve(ok.astype(np.float64), k, mode="same")
+        return np.where(den > 0, num / np.maximum(den, 1.0), np.nan)
+
+    base = smooth(j)
+    out = np.ones((2 * radius + 1, c1 - c0))
+    lo, hi = max(0, j - radius), min(n_rows - 1, j + radius)
+    for r in range(lo, hi + 1):
+        if r == j:
+            continue
+        with np.errstate(invalid="ignore", divide="ignore"):
+            h = smooth(r) / base
+        out[r - j + radius] = np.clip(np.where(np.isfinite(h) & (base > 0), h, 1.0), 0.0, Y_SHAPE_MAX)
+    out[: lo - j + radius] = out[lo - j + radius]
+    out[hi - j + radius + 1:] = out[hi - j + radius]
+    return out
 
 
 @dataclass
@@ -59,6 +108,10 @@ class Problem:
         angle_correction_deg: added to the recorded angles of a session captured before
             capture applied the calibrated rotation zero (its plan has no stage_offset_deg):
             180 - rotation_zero_deg; 0 otherwise.
+        y_shape: the recording's shape across the rows around the profile row, shape
+            (N, 2 TRUNCATION_PX + 1, W): h(x, dy) = I(x, row + dy) / I(x, row) at
+            dy = -TRUNCATION_PX..TRUNCATION_PX (`y_shape_from_rows`), for the lens blur of
+            profile renders (`estimate.extensions.lens_blur`); None = unknown (h = 1).
     """
 
     angles_deg: np.ndarray
@@ -74,10 +127,18 @@ class Problem:
     session_path: str = ""
     missing: list[str] = field(default_factory=list)
     angle_correction_deg: float = 0.0
+    y_shape: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.valid is None:
             self.valid = np.isfinite(self.variance) & np.isfinite(self.measured)
+
+    def y_shapes(self) -> dict[float, np.ndarray]:
+        """`y_shape` per angle (degrees -> (2 TRUNCATION_PX + 1, W)); empty when unknown.
+        What `estimate.forward.ForwardModel(profile_y_shape=...)` takes."""
+        if self.y_shape is None:
+            return {}
+        return {float(a): self.y_shape[i] for i, a in enumerate(self.angles_deg)}
 
     @property
     def n_angles(self) -> int:
@@ -241,6 +302,7 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
     meas_rows: list[np.ndarray] = []
     var_rows: list[np.ndarray] = []
     mask_rows: list[np.ndarray] = []
+    bands: list[tuple[np.ndarray, np.ndarray, int]] = []   # (radiance, usable, profile row index)
     ids: list[str] = []
     roi0: dict[str, int] | None = None
     for r in usable:
@@ -270,6 +332,7 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
         meas_rows.append(rad[j])
         var_rows.append(var[j])
         mask_rows.append(mask[j])
+        bands.append((rad, np.isfinite(var) & (var > 0) & (mask > 0.5), j))
         ids.append(r.id)
     if len(ids) < 2 or roi0 is None:
         raise DataError(f"channel {channel!r}: only {len(ids)} readable stack(s); need at least 2")
@@ -307,6 +370,7 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
         i, k = map(int, np.argwhere(np.isnan(variance) | (variance < 0))[0])
         raise DataError(f"stack {ids[i]}: variance NaN or negative at column {roi0['x'] + (c0 + k) * bx}")
     valid = np.isfinite(variance) & (mask > 0.5) & (variance > 0)
+    y_shape = np.stack([y_shape_from_rows(b_rad, b_ok, b_j, (c0, c1)) for b_rad, b_ok, b_j in bands])
 
     # Geometry in the stacks' pixel grid: a binned pixel is one bigger pixel; the ROI
     # origin shifts the continuous centre coordinate.
@@ -337,5 +401,5 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
         angles_deg=np.asarray(angles)[order], x_mm=x_mm, measured=measured[order],
         variance=variance[order], geometry=geometry, beam=beam, channel=channel, wavelength_nm=wl,
         valid=valid[order], stack_ids=[ids[i] for i in order], session_path=str(s.path), missing=missing,
-        angle_correction_deg=correction,
+        angle_correction_deg=correction, y_shape=y_shape[order],
     )

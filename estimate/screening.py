@@ -125,8 +125,10 @@ def score_test(r: np.ndarray, X: np.ndarray, Z: np.ndarray, excess: float | None
     return CandidateScore(name, lm, rank, float(10 ** logsf), logsf, lm / max(exc, 1.0), coef.tolist())
 
 
-def image_columns(name: str, base: np.ndarray, pixel_mm: float) -> list[np.ndarray]:
-    """Columns of an image-space extension from the base-fit render (unscaled), each (N, W)."""
+def image_columns(name: str, base: np.ndarray, pixel_mm: float,
+                  y_shape: np.ndarray | None = None) -> list[np.ndarray]:
+    """Columns of an image-space extension from the base-fit render (unscaled), each (N, W).
+    `y_shape`: the recording's shape across rows for the lens blur (`ForwardModel.y_shape_for`)."""
     base = np.asarray(base, dtype=np.float64)
     if name == "stray_light":
         w = base.shape[-1]
@@ -138,7 +140,7 @@ def image_columns(name: str, base: np.ndarray, pixel_mm: float) -> list[np.ndarr
         neutral = {p.name: p.neutral for p in d}
         core = dict(neutral, core_sigma_px=1.5)
         tail = dict(neutral, tail_fraction=0.02)
-        return [(LensBlur.apply(img, v, pixel_mm=pixel_mm, profile_only=True)[:, 0, :] - base)
+        return [(LensBlur.apply(img, v, pixel_mm=pixel_mm, profile_only=True, y_shape=y_shape)[:, 0, :] - base)
                 for v in (core, tail)]
     if name == "sensor_nonlinearity":
         pos = np.clip(base, 0, None)
@@ -161,7 +163,8 @@ def candidate_columns(model: Any, params: Mapping[str, float], angles_deg: Seque
     pm = model.geometry.pixel_mm
     for name in names:
         if EXTENSIONS[name].kind == "image":
-            out[name] = image_columns(name, base, pm)
+            ys = model.y_shape_for(angles_deg) if name == "lens_blur" and hasattr(model, "y_shape_for") else None
+            out[name] = image_columns(name, base, pm, ys)
             continue
         cols = []
         for probe in PROBES[name]:

@@ -76,6 +76,57 @@ def test_lens_blur_conserves_energy_and_spreads() -> None:
     assert prof.sum() == pytest.approx(1.0, rel=1e-6)
 
 
+def _separable_scene(width: int = 161) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A compact spot on a faint background, I(x, y) = a(x) g(y): (image (1, 129, W), a, g)."""
+    x = np.arange(width)
+    a = np.exp(-0.5 * ((x - width / 2) / 5.0) ** 2) + 0.02
+    y = np.arange(-64, 65)
+    g = np.exp(-0.5 * (y / 4.0) ** 2)
+    return (g[:, None] * a[None, :])[None], a, g
+
+
+def test_lens_blur_profile_with_the_recorded_y_shape_matches_the_2d_blur() -> None:
+    ext = get_extension("lens_blur")
+    values = {"core_sigma_px": 1.5, "tail_fraction": 0.02, "tail_scale_px": 20.0}
+    full, a, g = _separable_scene()
+    truth = ext.apply(full, values, pixel_mm=0.04, profile_only=False)[:, 64, :]
+    row = a[None, None, :]
+    h = np.broadcast_to((g / g[64])[None, :, None], (1, 129, a.size)).copy()
+    lsf = ext.apply(row, values, pixel_mm=0.04, profile_only=True)[:, 0, :]
+    shaped = ext.apply(row, values, pixel_mm=0.04, profile_only=True, y_shape=h)[:, 0, :]
+    # The LSF treats the spot as constant along y: too bright wherever the blur mixes rows.
+    assert np.max(np.abs(lsf / truth - 1)) > 0.05
+    assert np.max(np.abs(shaped / truth - 1)) < 2e-3
+    # A recording without y structure (h = 1) is exactly the LSF.
+    flat = ext.apply(row, values, pixel_mm=0.04, profile_only=True, y_shape=np.ones((1, 129, a.size)))
+    assert np.allclose(flat[:, 0, :], lsf, rtol=1e-12, atol=1e-15)
+
+
+def test_lens_blur_with_y_shape_adjoint_and_derivatives() -> None:
+    ext = get_extension("lens_blur")
+    values = IMAGE_CASES["lens_blur"]
+    rng = np.random.default_rng(8)
+    img = rng.random((2, 1, 40))
+    h = rng.uniform(0.0, 1.5, (2, 129, 40))
+    x = rng.normal(size=img.shape)
+    c = rng.normal(size=img.shape)
+    # linear in the image: <B x, c> = <x, B^T c>
+    bx = ext.apply(x, values, pixel_mm=0.04, profile_only=True, y_shape=h)
+    btc = ext.vjp_input(img, c, values, pixel_mm=0.04, profile_only=True, y_shape=h)
+    assert float((bx * c).sum()) == pytest.approx(float((x * btc).sum()), rel=1e-10)
+    derivs = ext.param_derivatives(img, values, pixel_mm=0.04, profile_only=True, y_shape=h)
+    for p in ext.parameters:
+        step = 1e-5 * max(1.0, abs(values[p.name]))
+        hi, lo = dict(values), dict(values)
+        hi[p.name] += step
+        lo[p.name] -= step
+        fd = (ext.apply(img, hi, pixel_mm=0.04, profile_only=True, y_shape=h)
+              - ext.apply(img, lo, pixel_mm=0.04, profile_only=True, y_shape=h)) / (2 * step)
+        assert np.allclose(derivs[p.name], fd, rtol=2e-3, atol=1e-6 * np.abs(fd).max() + 1e-12), p.name
+    with pytest.raises(ValueError, match="y_shape"):
+        ext.apply(img, values, pixel_mm=0.04, profile_only=True, y_shape=h[:1])
+
+
 def test_sensor_nonlinearity_raw_and_hdr() -> None:
     x = np.linspace(0, 100_000, 11)
     y = apply_raw(x, 0.2, 100_000.0)
@@ -161,6 +212,34 @@ def test_image_parameters_in_vjp_and_jacobian() -> None:
         assert grads[name] == pytest.approx(float((j * cot).sum()), rel=1e-3, abs=1e-9), name
     # the offset passes through the (compressive) sensor: slightly less than sum(cot)
     assert 0.8 * cot.sum() < grads["stray_light.offset"] <= cot.sum() * (1 + 1e-9)
+
+
+def test_forward_model_blurs_profiles_with_the_recorded_y_shape() -> None:
+    angles = [40.0, 140.0]
+    rng = np.random.default_rng(9)
+    shape = {a: rng.uniform(0.2, 1.0, (129, N_PIX)) for a in angles}
+    plain = ForwardModel(GEOM, BEAM, phase="exp1", extensions=["lens_blur", "stray_light"])
+    shaped = ForwardModel(GEOM, BEAM, phase="exp1", extensions=["lens_blur", "stray_light"],
+                          profile_y_shape=shape)
+    p = {**BASE, "phase.b1": 1.0, "lens_blur.core_sigma_px": 1.2, "lens_blur.tail_fraction": 0.05,
+         "lens_blur.tail_scale_px": 5.0, "stray_light.offset": 0.001}
+    material = {k: v for k, v in p.items() if not k.startswith(("lens_blur.", "stray_light."))}
+    unblurred = ForwardModel(GEOM, BEAM, phase="exp1").render(material, angles, spp=64, seed=2)
+    ext = get_extension("lens_blur")
+    h = np.stack([shape[a] for a in angles])
+    want = ext.apply(unblurred, ext.values(p), pixel_mm=GEOM.pixel_mm, profile_only=True, y_shape=h)[:, 0, :] + 0.001
+    got = shaped.render_profiles(p, angles, spp=64, seed=2)
+    assert np.allclose(got, want, rtol=1e-6, atol=1e-12)
+    assert not np.allclose(got, plain.render_profiles(p, angles, spp=64, seed=2), rtol=1e-3)
+    # an angle without a recorded shape gets h = 1, i.e. the line-spread function
+    assert np.allclose(shaped.render_profiles(p, [75.0], spp=64, seed=2),
+                       plain.render_profiles(p, [75.0], spp=64, seed=2), rtol=1e-9, atol=1e-15)
+    # gradients of the blur's parameters agree with the model's own Jacobian
+    cot = rng.random((2, N_PIX))
+    grads = shaped.vjp(p, angles, cot, spp=64, seed=2, fd_parameters=False)
+    jac = shaped.jacobian(p, angles, ["lens_blur.core_sigma_px", "lens_blur.tail_fraction"], spp=64, seed=2)
+    for name, j in jac.items():
+        assert grads[name] == pytest.approx(float((j * cot).sum()), rel=1e-3, abs=1e-9), name
 
 
 def test_filter_bandwidth_zero_spread_matches_single_wavelength(base_model: ForwardModel) -> None:

@@ -7,7 +7,7 @@ import pytest
 from synth_session import CENTER_PX, PITCH_MM, make_session
 
 from estimate.errors import DataError
-from estimate.problem import load_problem
+from estimate.problem import Y_SHAPE_MAX, load_problem, y_shape_from_rows
 
 TRUTH = {"g": {"sigma_t": 3.0, "albedo": 0.85, "phase.b1": 3.0}, "r": {"sigma_t": 2.0, "albedo": 0.9, "phase.b1": 2.0}}
 
@@ -63,6 +63,43 @@ def test_session_from_before_the_stage_offset_gets_its_angles_corrected(tmp_path
     pb = load_problem(s, "g")
     assert pb.angle_correction_deg == pytest.approx(0.4)
     assert pb.angles_deg == pytest.approx([30.4, 150.4])
+
+
+def test_y_shape_from_the_recorded_rows():
+    x = np.arange(60)
+    rows = np.arange(20)
+    j = 8
+    g = np.exp(-0.5 * ((rows - j) / 3.0) ** 2)
+    img = g[:, None] * (1.0 + 0.001 * x[None, :])
+    ok = np.ones(img.shape, bool)
+    h = y_shape_from_rows(img, ok, j, (10, 50), radius=64)
+    assert h.shape == (129, 40)
+    assert np.allclose(h[64], 1.0)
+    # inside the band: the spot's own shape (the slow x trend cancels in the ratio)
+    for dy in (-8, -3, 1, 5, 11):
+        assert np.allclose(h[64 + dy, 5:-5], g[j + dy], rtol=1e-3), dy
+    # beyond the band: its outermost row on that side
+    assert np.allclose(h[:64 - 8], h[64 - 8]) and np.allclose(h[64 + 12:], h[64 + 11])
+    # a single-row recording, or an unlit profile row, says nothing: h = 1 (the LSF)
+    assert np.all(y_shape_from_rows(img[j:j + 1], ok[j:j + 1], 0, (10, 50)) == 1.0)
+    dark = img.copy()
+    dark[j] = 0.0
+    assert np.all(y_shape_from_rows(dark, ok, j, (10, 50))[64 + 1] == 1.0)
+    # a hot row is clipped; unusable pixels are left out of the averages
+    hot = img.copy()
+    hot[j + 1] *= 100.0
+    assert np.all(y_shape_from_rows(hot, ok, j, (10, 50))[65] == Y_SHAPE_MAX)
+    masked = ok.copy()
+    masked[j + 2, 20:25] = False
+    hm = y_shape_from_rows(np.where(masked, img, 1e6), masked, j, (10, 50))
+    assert np.allclose(hm[66, 5:-5], g[j + 2], rtol=1e-2)  # the masked 1e6 values left no trace
+
+
+def test_a_recording_without_y_structure_has_a_flat_y_shape(session):
+    pb = load_problem(session, "g", columns=40)
+    # the synthetic session repeats the profile row over its band: h = 1, the LSF
+    assert pb.y_shape.shape == (2, 129, 40) and np.all(pb.y_shape == 1.0)
+    assert set(pb.y_shapes()) == {30.0, 150.0}
 
 
 def test_missing_stack_refused_unless_partial(session):

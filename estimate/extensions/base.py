@@ -106,24 +106,30 @@ class Extension:
 
 
 class ImageExtension(Extension):
-    """An image-space effect on radiance arrays shaped (..., H, W)."""
+    """An image-space effect on radiance arrays shaped (..., H, W).
+
+    `y_shape` (profile renders only, else None): the recorded image's shape across the rows
+    around the profile row, per image row, shaped (N, 2 TRUNCATION_PX + 1, W) with N the
+    leading size of `image` (`estimate.problem.Problem.y_shape`). Only effects that mix
+    rows (the lens blur) use it; the others ignore it.
+    """
 
     kind = "image"
 
     @classmethod
     def apply(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
-              profile_only: bool) -> np.ndarray:
+              profile_only: bool, y_shape: np.ndarray | None = None) -> np.ndarray:
         raise NotImplementedError
 
     @classmethod
     def vjp_input(cls, image: np.ndarray, cotangent: np.ndarray, values: Mapping[str, float], *,
-                  pixel_mm: float, profile_only: bool) -> np.ndarray:
+                  pixel_mm: float, profile_only: bool, y_shape: np.ndarray | None = None) -> np.ndarray:
         """Cotangent w.r.t. the input image given one w.r.t. the output."""
         raise NotImplementedError
 
     @classmethod
     def param_derivatives(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
-                          profile_only: bool) -> dict[str, np.ndarray]:
+                          profile_only: bool, y_shape: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """d output / d parameter for each parameter (central differences of this exact,
         deterministic image function with a small relative step; no rendering noise)."""
         out = {}
@@ -136,6 +142,7 @@ class ImageExtension(Extension):
             b = min(p.upper, base + h)
             lo[p.name] = a
             hi[p.name] = b
-            out[p.name] = (cls.apply(image, hi, pixel_mm=pixel_mm, profile_only=profile_only)
-                           - cls.apply(image, lo, pixel_mm=pixel_mm, profile_only=profile_only)) / (b - a)
+            out[p.name] = (cls.apply(image, hi, pixel_mm=pixel_mm, profile_only=profile_only, y_shape=y_shape)
+                           - cls.apply(image, lo, pixel_mm=pixel_mm, profile_only=profile_only, y_shape=y_shape)
+                           ) / (b - a)
         return out

@@ -4,12 +4,31 @@ PSF = (1 - tail_fraction) * core + tail_fraction * tail, both normalised:
 - core: Gaussian of standard deviation `core_sigma_px` (0 = a delta: no core blur);
 - tail (veiling glare): 2D kernel (1 + r^2 / s^2)^(-3/2), s = `tail_scale_px`, whose line
   spread function is the Lorentzian 1 / (1 + x^2 / s^2).
-Both are truncated at `TRUNCATION_PX` and renormalised. Full frames are blurred in 2D;
-a single rendered profile row is blurred with the line-spread function (this treats the
-image as constant along y over the PSF: exact for the tail of a spot much taller than
-the PSF, an approximation near a narrow spot's peak; render a band and blur in 2D when
-that matters). Zero padding outside the rendered window. The PSF is symmetric, so the
-operator is self-adjoint. Derivative: exact through this image function.
+Both are truncated at `TRUNCATION_PX` and renormalised. Full frames are blurred in 2D.
+
+A single rendered profile row cannot be blurred in 2D: the rows above and below it are not
+rendered. The line-spread function (LSF, the PSF summed over y) is exact only for an image
+that is constant along y over the PSF. The rig's spot is not: the beam is a few pixels wide,
+and light seen at pixel distance dy from the profile row is weaker by the image's shape
+h(x, dy) = I(x, y0 + dy) / I(x, y0). On the simulated bench (beam sigma 3.75 px, core blur
+1.5 px) the LSF made the blurred spot 4-7 % too bright against the tails, and the true
+model fitted worse than one without any blur. With `y_shape` (h per image row, from the
+recording's rows around the profile row: `estimate.problem.Problem.y_shape`) each LSF
+weight is multiplied by the mean of h under the PSF's spread in y at that x offset:
+
+    out(x) = sum_dx I(x - dx) [ (1 - f) G(dx) E_G[h(x - dx, .)] + f L(dx) E_T|dx[h(x - dx, .)] ]
+
+with G, L the core's and the tail's LSF (as `line_spread`), E_G the mean over dy under the
+core's normalised Gaussian and E_T|dx the mean under the tail kernel's conditional
+distribution of dy at offset dx. The image is taken as I(x', y0) h(x', dy) near the
+profile row, i.e. its y-shape is the recording's. h = 1 everywhere gives the LSF exactly.
+The recorded rows are themselves blurred, so for a spot of width sigma_y the core's factor
+is computed as if the spot were sqrt(sigma_y^2 + sigma_core^2) wide. At the bench's 3.75 px
+beam and 1.5 px blur that leaves the profile about 0.7 % too bright near the spot, where
+the LSF left it about 6 % too bright. Zero padding outside the rendered window. The PSF is
+symmetric, so the full-frame and LSF operators are self-adjoint; the weighted profile
+operator is not (`vjp_input` applies its transpose). Derivative: exact through this image
+function.
 """
 
 from __future__ import annotations
@@ -21,7 +40,7 @@ from scipy import ndimage, signal
 
 from estimate.extensions.base import ImageExtension, ParameterSpec
 
-__all__ = ["TRUNCATION_PX", "LensBlur", "line_spread", "psf_2d"]
+__all__ = ["TRUNCATION_PX", "LensBlur", "line_spread", "profile_weights", "psf_2d"]
 
 TRUNCATION_PX = 64
 
@@ -41,6 +60,59 @@ def line_spread(values: Mapping[str, float], radius: int = TRUNCATION_PX) -> np.
     tail /= tail.sum()
     f = values["tail_fraction"]
     return (1.0 - f) * core + f * tail
+
+
+def profile_weights(values: Mapping[str, float], y_shape: np.ndarray, radius: int = TRUNCATION_PX) -> np.ndarray:
+    """Weights w[n, k, x'] of the profile blur: the light of source pixel x' of row n that
+    lands at x' + (k - radius) (module docstring). `y_shape`: (N, 2 radius + 1, W), h at
+    dy = -radius..radius (row `radius` is dy = 0). Returns (N, 2 radius + 1, W).
+    """
+    h = np.asarray(y_shape, dtype=np.float64)
+    if h.ndim != 3 or h.shape[1] != 2 * radius + 1:
+        raise ValueError(f"y_shape has shape {h.shape}; expected (N, {2 * radius + 1}, W)")
+    x = np.arange(-radius, radius + 1, dtype=float)
+    core = _gauss(x, values["core_sigma_px"])
+    core /= core.sum()
+    s = values["tail_scale_px"]
+    tail = 1.0 / (1.0 + (x / s) ** 2)
+    tail /= tail.sum()
+    f = values["tail_fraction"]
+    # Core: separable, so the mean of h over y is one number per source pixel.
+    e_core = np.einsum("d,ndw->nw", core, h)
+    w = (1.0 - f) * core[None, :, None] * e_core[:, None, :]
+    if f > 0:
+        # Tail: the 2D kernel (1 + r^2 / s^2)^-3/2 at offset dx, normalised over dy.
+        t2 = (1.0 + (x[:, None] ** 2 + x[None, :] ** 2) / s ** 2) ** -1.5   # [dx, dy]
+        cond = t2 / t2.sum(axis=1, keepdims=True)
+        e_tail = np.einsum("kd,ndw->nkw", cond, h)
+        w = w + f * tail[None, :, None] * e_tail
+    return w
+
+
+def _weighted_profile(img: np.ndarray, w: np.ndarray, transpose: bool) -> np.ndarray:
+    """out[n, x] = sum_k img[n, x - dx_k] w[n, k, x - dx_k] (or its transpose:
+    out[n, x'] = sum_k img[n, x' + dx_k] w[n, k, x']), img (N, W), zero padding."""
+    n_k = w.shape[1]
+    radius = n_k // 2
+    width = img.shape[-1]
+    out = np.zeros_like(img)
+    for k in range(n_k):
+        dx = k - radius
+        if abs(dx) >= width:
+            continue
+        if transpose:
+            # source x' gathers the cotangent at x' + dx
+            if dx >= 0:
+                out[:, :width - dx] += img[:, dx:] * w[:, k, :width - dx]
+            else:
+                out[:, -dx:] += img[:, :width + dx] * w[:, k, -dx:]
+        else:
+            src = img * w[:, k, :]
+            if dx >= 0:
+                out[:, dx:] += src[:, :width - dx]
+            else:
+                out[:, :width + dx] += src[:, -dx:]
+    return out
 
 
 def psf_2d(values: Mapping[str, float], radius: int = TRUNCATION_PX) -> np.ndarray:
@@ -67,12 +139,24 @@ class LensBlur(ImageExtension):
     )
 
     @classmethod
+    def _profile_rows(cls, img: np.ndarray, y_shape: np.ndarray) -> tuple[np.ndarray, tuple[int, ...]]:
+        """img (..., 1, W) or (N, W) -> (N, W) for the weighted profile blur."""
+        n = np.asarray(y_shape).shape[0]
+        flat = img.reshape(-1, img.shape[-1])
+        if flat.shape[0] != n:
+            raise ValueError(f"y_shape has {n} rows for an image of {flat.shape[0]} profile rows")
+        return flat, img.shape
+
+    @classmethod
     def apply(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
-              profile_only: bool) -> np.ndarray:
+              profile_only: bool, y_shape: np.ndarray | None = None) -> np.ndarray:
         img = np.asarray(image, dtype=np.float64)
         if values["core_sigma_px"] == 0 and values["tail_fraction"] == 0:
             return img.copy()
         if profile_only or img.shape[-2] == 1:
+            if y_shape is not None:
+                flat, shape = cls._profile_rows(img, y_shape)
+                return _weighted_profile(flat, profile_weights(values, y_shape), False).reshape(shape)
             return ndimage.convolve1d(img, line_spread(values), axis=-1, mode="constant")
         k = psf_2d(values)
         k = k.reshape((1,) * (img.ndim - 2) + k.shape)
@@ -80,5 +164,10 @@ class LensBlur(ImageExtension):
 
     @classmethod
     def vjp_input(cls, image: np.ndarray, cotangent: np.ndarray, values: Mapping[str, float], *,
-                  pixel_mm: float, profile_only: bool) -> np.ndarray:
-        return cls.apply(cotangent, values, pixel_mm=pixel_mm, profile_only=profile_only)
+                  pixel_mm: float, profile_only: bool, y_shape: np.ndarray | None = None) -> np.ndarray:
+        cot = np.asarray(cotangent, dtype=np.float64)
+        if (y_shape is not None and (profile_only or cot.shape[-2] == 1)
+                and not (values["core_sigma_px"] == 0 and values["tail_fraction"] == 0)):
+            flat, shape = cls._profile_rows(cot, y_shape)
+            return _weighted_profile(flat, profile_weights(values, y_shape), True).reshape(shape)
+        return cls.apply(cot, values, pixel_mm=pixel_mm, profile_only=profile_only)

@@ -45,14 +45,14 @@ class SensorNonlinearity(ImageExtension):
 
     @classmethod
     def apply(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
-              profile_only: bool) -> np.ndarray:
+              profile_only: bool, y_shape: np.ndarray | None = None) -> np.ndarray:
         img = np.asarray(image, dtype=np.float64)
         r = np.clip(img / values["full_well_radiance"], 0.0, 1.0)
         return img * (1.0 - values["compression"] * r ** 2)
 
     @classmethod
     def vjp_input(cls, image: np.ndarray, cotangent: np.ndarray, values: Mapping[str, float], *,
-                  pixel_mm: float, profile_only: bool) -> np.ndarray:
+                  pixel_mm: float, profile_only: bool, y_shape: np.ndarray | None = None) -> np.ndarray:
         img = np.asarray(image, dtype=np.float64)
         w = values["full_well_radiance"]
         r = img / w
