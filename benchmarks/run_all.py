@@ -39,6 +39,7 @@ LONG = [
     ("sim_render", "the simulated bench's render cost and noise"),
     ("bench_paper_sim", "the paper's simulation experiment, exp3 and two-term HG (issue 6)"),
     ("bench_diagnose", "diagnosis proof suite on concealed effects (issue 7)"),
+    ("bench_profile_blur", "profile-row lens blur against the bench's 2D blur (issue 7; after bench_diagnose)"),
 ]
 
 

@@ -154,7 +154,8 @@ class Problem:
         return Problem(self.angles_deg[idx], self.x_mm, self.measured[idx], self.variance[idx],
                        self.geometry, self.beam, self.channel, self.wavelength_nm,
                        self.valid[idx], [self.stack_ids[i] for i in idx], self.session_path,
-                       list(self.missing), self.angle_correction_deg)
+                       list(self.missing), self.angle_correction_deg,
+                       None if self.y_shape is None else self.y_shape[idx])
 
 
 def session_channels(session_dir: str | os.PathLike[str]) -> list[str]:

@@ -100,6 +100,7 @@ def test_a_recording_without_y_structure_has_a_flat_y_shape(session):
     # the synthetic session repeats the profile row over its band: h = 1, the LSF
     assert pb.y_shape.shape == (2, 129, 40) and np.all(pb.y_shape == 1.0)
     assert set(pb.y_shapes()) == {30.0, 150.0}
+    assert set(pb.subset([1]).y_shapes()) == {150.0}
 
 
 def test_missing_stack_refused_unless_partial(session):
