@@ -33,7 +33,8 @@ from estimate.errors import DataError
 from estimate.extensions.lens_blur import TRUNCATION_PX as LENS_BLUR_RADIUS
 from estimate.geometry import RigGeometry
 
-__all__ = ["DEFAULT_COLUMNS", "Y_SHAPE_SMOOTH_PX", "Problem", "load_problem", "session_channels", "y_shape_from_rows"]
+__all__ = ["DEFAULT_COLUMNS", "Y_SHAPE_MAX", "Y_SHAPE_SMOOTH_PX", "Problem", "load_problem", "session_channels",
+           "y_shape_from_rows"]
 
 #: Default width of the profile window (pixels of the ROI, i.e. binned pixels).
 DEFAULT_COLUMNS = 256

@@ -163,8 +163,7 @@ def candidate_columns(model: Any, params: Mapping[str, float], angles_deg: Seque
     pm = model.geometry.pixel_mm
     for name in names:
         if EXTENSIONS[name].kind == "image":
-            ys = model.y_shape_for(angles_deg) if name == "lens_blur" and hasattr(model, "y_shape_for") else None
-            out[name] = image_columns(name, base, pm, ys)
+            out[name] = image_columns(name, base, pm, model.y_shape_for(angles_deg) if name == "lens_blur" else None)
             continue
         cols = []
         for probe in PROBES[name]:

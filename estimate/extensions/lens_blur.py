@@ -51,13 +51,19 @@ def _gauss(x: np.ndarray, s: float) -> np.ndarray:
     return np.exp(-0.5 * (x / s) ** 2)
 
 
-def line_spread(values: Mapping[str, float], radius: int = TRUNCATION_PX) -> np.ndarray:
-    """1D kernel (odd length 2*radius+1), sums to 1."""
+def _line_spread_parts(values: Mapping[str, float], radius: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Offsets x (px) and the core's and the tail's line spread at them, each summing to 1."""
     x = np.arange(-radius, radius + 1, dtype=float)
     core = _gauss(x, values["core_sigma_px"])
     core /= core.sum()
     tail = 1.0 / (1.0 + (x / values["tail_scale_px"]) ** 2)
     tail /= tail.sum()
+    return x, core, tail
+
+
+def line_spread(values: Mapping[str, float], radius: int = TRUNCATION_PX) -> np.ndarray:
+    """1D kernel (odd length 2*radius+1), sums to 1."""
+    _, core, tail = _line_spread_parts(values, radius)
     f = values["tail_fraction"]
     return (1.0 - f) * core + f * tail
 
@@ -70,12 +76,8 @@ def profile_weights(values: Mapping[str, float], y_shape: np.ndarray, radius: in
     h = np.asarray(y_shape, dtype=np.float64)
     if h.ndim != 3 or h.shape[1] != 2 * radius + 1:
         raise ValueError(f"y_shape has shape {h.shape}; expected (N, {2 * radius + 1}, W)")
-    x = np.arange(-radius, radius + 1, dtype=float)
-    core = _gauss(x, values["core_sigma_px"])
-    core /= core.sum()
+    x, core, tail = _line_spread_parts(values, radius)
     s = values["tail_scale_px"]
-    tail = 1.0 / (1.0 + (x / s) ** 2)
-    tail /= tail.sum()
     f = values["tail_fraction"]
     # Core: separable, so the mean of h over y is one number per source pixel.
     e_core = np.einsum("d,ndw->nw", core, h)
