@@ -11,8 +11,8 @@ rendered. The line-spread function (LSF, the PSF summed over y) is exact only fo
 that is constant along y over the PSF. The rig's spot is not: the beam is a few pixels wide,
 and light seen at pixel distance dy from the profile row is weaker by the image's shape
 h(x, dy) = I(x, y0 + dy) / I(x, y0). On the simulated bench (beam sigma 3.75 px, core blur
-1.5 px) the LSF made the blurred spot 4-7 % too bright against the tails, and the true
-model fitted worse than one without any blur. With `y_shape` (h per image row, from the
+1.5 px, 2 % tail) the LSF put 4-21 % too much light in 16-pixel bins near the spot, against
+the bench's 2D blur of the same radiance (`benchmarks/bench_profile_blur.py`). With `y_shape` (h per image row, from the
 recording's rows around the profile row: `estimate.problem.Problem.y_shape`) each LSF
 weight is multiplied by the mean of h under the PSF's spread in y at that x offset:
 
@@ -22,10 +22,9 @@ with G, L the core's and the tail's LSF (as `line_spread`), E_G the mean over dy
 core's normalised Gaussian and E_T|dx the mean under the tail kernel's conditional
 distribution of dy at offset dx. The image is taken as I(x', y0) h(x', dy) near the
 profile row, i.e. its y-shape is the recording's. h = 1 everywhere gives the LSF exactly.
-The recorded rows are themselves blurred, so for a spot of width sigma_y the core's factor
-is computed as if the spot were sqrt(sigma_y^2 + sigma_core^2) wide. At the bench's 3.75 px
-beam and 1.5 px blur that leaves the profile about 0.7 % too bright near the spot, where
-the LSF left it about 6 % too bright. Zero padding outside the rendered window. The PSF is
+On the bench this leaves 3-5 %. The recorded rows are themselves blurred (a spot sigma_y
+wide reads sqrt(sigma_y^2 + sigma_core^2)), but mostly the bench's band rows carry render
+noise, which the 2D blur mixes in and a smooth y-shape cannot. Zero padding outside the rendered window. The PSF is
 symmetric, so the full-frame and LSF operators are self-adjoint; the weighted profile
 operator is not (`vjp_input` applies its transpose). Derivative: exact through this image
 function.
