@@ -17,7 +17,8 @@ collection solid angle. The straight beam: E(u, v) * P_f * nd * pixel_area_mm2 *
 Monte Carlo noise. One radiance image per (angle, filter) is rendered and reused for
 every exposure, so its Monte Carlo noise is frozen into every frame of a stack (a fixed
 pattern, not averaged away by more exposures). It is kept small where it matters: the
-profile rows (axis row +- `profile_halfwidth_rows`) at `spp_profile`, the band around
+profile rows (axis row +- `profile_halfwidth_rows`, widened to 3 core sigmas + 1 row of a
+world's lens blur, which mixes those rows into the profile) at `spp_profile`, the band around
 them (+- `band_halfwidth_rows`) at `spp_band`, the rest of the frame at `spp_outside`
 (it only feeds blooming and full-frame views). benchmarks/sim_render.py measures the
 residual noise against the sensor noise of a merged bracket.
@@ -193,7 +194,16 @@ class RenderedScene:
         rs = self.world.render
         rows_n = self.sensor_px[1]
         centre = min(rows_n - 1, math.floor(self.axis_px[1]))
-        p0, p1 = max(0, centre - rs.profile_halfwidth_rows), min(rows_n, centre + rs.profile_halfwidth_rows + 1)
+        half = rs.profile_halfwidth_rows
+        blur = self.world.effects.get("lens_blur")
+        if blur:
+            # The lens blur mixes the rows around the profile row into it: 3 core sigmas of
+            # them (and one more row, as the estimator's profile row may sit one off the axis
+            # row) must carry profile-quality noise. With the default 2 rows, a 1.5 px blur
+            # mixed 32-spp band rows into the profile, and their frozen noise put 3-5 %
+            # errors in 16-px bins near the spot that no smooth model can follow.
+            half = max(half, math.ceil(3.0 * float(blur.get("core_sigma_px", 0.0))) + 1)
+        p0, p1 = max(0, centre - half), min(rows_n, centre + half + 1)
         b0, b1 = max(0, centre - rs.band_halfwidth_rows), min(rows_n, centre + rs.band_halfwidth_rows + 1)
         b0, b1 = min(b0, p0), max(b1, p1)
         tiers = [(p0, p1, rs.spp_profile)]

@@ -44,6 +44,17 @@ def test_render_is_cached_in_memory_and_on_disk(tmp_path):
     assert other.cache_key(45.4, "r") != fresh.cache_key(45.4, "r")
 
 
+def test_a_lens_blur_widens_the_profile_quality_rows(tmp_path):
+    plain = RenderedScene(_world(tmp_path), magnification=0.3)
+    blurred = RenderedScene(_world(tmp_path, effects={"lens_blur": {"core_sigma_px": 1.5, "tail_fraction": 0.02}}),
+                            magnification=0.3)
+    r0, r1 = plain.profile_rows()
+    b0, b1 = blurred.profile_rows()
+    assert (r0, r1) == (249, 252)  # axis row 250 +- 1 (profile_halfwidth_rows)
+    assert (b0, b1) == (250 - 6, 250 + 7)  # +- (ceil(3 x 1.5) + 1)
+    assert blurred.row_tiers()[0][2] == plain.row_tiers()[0][2]  # at the profile spp
+
+
 def test_scale_is_radiance_times_power_pixel_area_and_collection(tmp_path):
     w = _world(tmp_path)
     s = RenderedScene(w, magnification=0.3)
