@@ -9,7 +9,8 @@ noise and from the material:
 * `recorded`: weighted by the recording's y-shape (`Problem.y_shape`, what `rig estimate`
   and `rig diagnose` use now);
 * `unblurred`: weighted by the y-shape of the bench's own unblurred rows, the very rows (render
-  noise included) that the 2D blur mixes in: a bound that no estimate from a recording reaches.
+  noise included) that the 2D blur mixes in: what a shape estimated from the recording could
+  reach at best.
 
 Each is divided by the bench's 2D blur (plus the world's stray light) in 16-pixel bins of
 the central 128 pixels around the spot; the table gives the largest |ratio - 1| per angle.

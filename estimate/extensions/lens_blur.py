@@ -22,9 +22,9 @@ with G, L the core's and the tail's LSF (as `line_spread`), E_G the mean over dy
 core's normalised Gaussian and E_T|dx the mean under the tail kernel's conditional
 distribution of dy at offset dx. The image is taken as I(x', y0) h(x', dy) near the
 profile row, i.e. its y-shape is the recording's. h = 1 everywhere gives the LSF exactly.
-On the bench this leaves 3-5 %. The recorded rows are themselves blurred (a spot sigma_y
-wide reads sqrt(sigma_y^2 + sigma_core^2)), but mostly the bench's band rows carry render
-noise, which the 2D blur mixes in and a smooth y-shape cannot. Zero padding outside the rendered window. The PSF is
+On the bench this leaves 1.4-5.3 % (0.4-1.7 % with the unblurred rows' own shape). The
+recorded shape is that of the blurred image, stray light included: a spot sigma_y wide
+reads as sqrt(sigma_y^2 + sigma_core^2) wide. Zero padding outside the rendered window. The PSF is
 symmetric, so the full-frame and LSF operators are self-adjoint; the weighted profile
 operator is not (`vjp_input` applies its transpose). Derivative: exact through this image
 function.
