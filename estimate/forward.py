@@ -437,14 +437,14 @@ class ForwardModel:
         window = self.geometry.window(columns, None)
         out: dict[str, np.ndarray] = {}
         base_rad: np.ndarray | None = None
+        y_shape = self._y_shape(angles, window)
         for name in names:
             spec = self._spec(name)
             if spec.derivative == "image":
                 if base_rad is None:
                     with self._lock:
                         base_rad = self._render_radiance(values, angles, window, spp, seed)
-                out[name] = self._image_param_derivative(base_rad, values, name, window,
-                                                         self._y_shape(angles, window))
+                out[name] = self._image_param_derivative(base_rad, values, name, window, y_shape)
                 continue
             x = values[name]
             h = float((steps or {}).get(name, spec.fd_step * max(1.0, abs(x))))
@@ -470,12 +470,12 @@ class ForwardModel:
                     r_lo = np.asarray(base_profiles, dtype=np.float64)[:, None, :]
                 else:
                     r_lo = self._post(self._render_radiance(v_lo, angles, window, spp, seed), v_lo, profile_only,
-                                      self._y_shape(angles, window))
+                                      y_shape)
                 if one_sided and hi == x:
                     r_hi = np.asarray(base_profiles, dtype=np.float64)[:, None, :]
                 else:
                     r_hi = self._post(self._render_radiance(v_hi, angles, window, spp, seed), v_hi, profile_only,
-                                      self._y_shape(angles, window))
+                                      y_shape)
             out[name] = ((r_hi - r_lo) / (hi - lo))[:, 0, :]
         return out
 
