@@ -24,7 +24,15 @@
    coefficients form a curved, strongly correlated valley (condition number of A ~40);
    Adam's per-parameter steps crossed it slowly, overshot from the coarse start and, on the
    benchmark's synthetic session, stopped 9-11 % high in sigma_t after 80 iterations and
-   146 s; with these steps the same session ends 2-6 % from the truth in ~100 s;
+   146 s. Two things make the Gauss-Newton steps cross the valley (session 14):
+   the Jacobian's log-space columns are smoothed along the row (`gn_smooth_px`, 3 px)
+   before A^T A is formed, because the finite differences' per-pixel Monte Carlo noise adds
+   its own Gram matrix, which inflated the valley's eigenvalue up to 63x at 256 spp (2-6x
+   after smoothing) and so shortened the steps along it as much; and each eigen-direction
+   of the step is shrunk by its averaged gradient's signal / (signal + noise) (`gn_snr`,
+   `_snr_step`), so the longer steps do not turn gradient noise into excursions along b2
+   against b3. On the benchmark session the fit then ends within 1 % of sigma_t on 2 of 3
+   seeds and 6-9 % on the third (15 % before), in the same ~75 iterations;
 4. progressive samples per pixel: start at `spp_start` (128); the loss at the reference
    delta is tracked; when over the last 2 x `window` iterations its fitted slope is not
    significantly negative (above -2 standard errors from the scatter of the losses about
@@ -67,6 +75,7 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 import numpy as np
+from scipy.ndimage import gaussian_filter1d
 
 from estimate.errors import ModelParameterError
 from estimate.forward import ForwardModel
@@ -110,9 +119,11 @@ class FitSettings:
     lm_iterations: int = 0           # LM polish steps at most (stops when a step gains < 0.1 % or none is accepted)
     optimizer: str = "adam+gn"       # "adam": Adam throughout; "adam+gn": Adam first, then Gauss-Newton steps
     gn_step: float = 0.3             # fraction of the Gauss-Newton step taken per iteration
-    gn_jacobian_every: int = 10      # iterations between re-estimates of the Gauss-Newton matrix
+    gn_jacobian_every: int = 15      # iterations between re-estimates of the Gauss-Newton matrix
     gn_jacobian_spp: int = 256
     gn_momentum: float = 0.7
+    gn_smooth_px: float = 3.0        # Gaussian smoothing (px) of the Jacobian's log-space columns along the row
+    gn_snr: bool = True              # shrink each Gauss-Newton eigen-direction by its gradient's signal/(signal+noise)
     adam_iterations: int = 10        # "adam+gn": Adam iterations before the Gauss-Newton steps
     decorrelated: bool = True
     #: solve additive parameters (stray-light offset and slope) exactly at every iteration
@@ -160,6 +171,10 @@ class FitSettings:
                 least = 0 if f.name in ("seed", "lm_iterations", "adam_iterations") else 1
                 if not (isinstance(v, int) and not isinstance(v, bool)) or v < least:
                     raise bad(f"a whole number >= {least}")
+            elif f.name == "gn_smooth_px":
+                if not (_finite_number(v) and v >= 0):
+                    raise bad("a number of pixels >= 0 (0: no smoothing)")
+                v = float(v)
             elif isinstance(default, float):
                 if not (_finite_number(v) and v > 0):
                     raise bad("a positive number")
@@ -316,6 +331,37 @@ _GN_DB = 0.5
 GN_EIG_FLOOR = 1e-4
 
 
+def _smooth_rows(a: np.ndarray, valid: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Gaussian smoothing (sigma in pixels) of (N, W) columns along each row, over valid
+    pixels only (normalised convolution); invalid pixels come back as 0."""
+    if sigma_px <= 0.0:
+        return np.where(valid, a, 0.0)
+    w = valid.astype(float)
+    num = gaussian_filter1d(np.where(valid, a, 0.0), sigma_px, axis=-1, mode="constant")
+    norm = gaussian_filter1d(w, sigma_px, axis=-1, mode="constant")
+    return np.where(valid & (norm > 0), num / np.where(norm > 0, norm, 1.0), 0.0)
+
+
+def _snr_step(h_inv: np.ndarray, g_avg: np.ndarray, recent: Sequence[np.ndarray], momentum: float) -> np.ndarray:
+    """H^-1 g_avg with each eigen-direction of H^-1 shrunk by s = m^2 / (m^2 + v): m the
+    averaged gradient's component along it, v that component's Monte Carlo variance (as in
+    `_predicted_decrease`: successive differences of the recent gradients, times
+    (1 - momentum) / (1 + momentum) for the exponential average). Directions where the
+    gradient is mostly noise (the sigma_t / phase valley's floor, b2 against b3) get short
+    steps instead of H^-1's amplification of that noise; well-measured directions keep the
+    full Gauss-Newton step. With fewer than 3 gradients there is no noise estimate: s = 1."""
+    mu, V = np.linalg.eigh(0.5 * (h_inv + h_inv.T))
+    proj = V.T @ g_avg
+    if len(recent) >= 3:
+        d = np.diff(np.asarray(recent), axis=0)
+        cov = 0.5 * (d.T @ d) / len(d) * (1.0 - momentum) / (1.0 + momentum)
+        var = np.einsum("ik,ij,jk->k", V, cov, V)
+        shrink = proj ** 2 / np.maximum(proj ** 2 + var, 1e-300)
+    else:
+        shrink = np.ones_like(proj)
+    return V @ (mu * shrink * proj)
+
+
 def secant_steps(fm: ForwardModel, params: Mapping[str, float], names: Sequence[str]) -> dict[str, float]:
     """Finite-difference steps (in each parameter's own units) for Jacobians that must
     describe the mean trend of Monte Carlo renders rather than one seed's jagged surface:
@@ -353,7 +399,7 @@ def _gn_direction(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Seque
 def _gn_inverse(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequence[Transform], z: np.ndarray,
                 problem: Problem, mean: np.ndarray, dl: float, m: np.ndarray, profiled_scale: bool,
                 damping: float = 1e-3, eig_floor: float | None = None,
-                profiled_columns: Sequence[np.ndarray] = ()) -> np.ndarray:
+                profiled_columns: Sequence[np.ndarray] = (), smooth_px: float = 0.0) -> np.ndarray:
     """Inverse of the Gauss-Newton matrix of the log loss mean(r^2) in the variables z.
 
     `profiled_columns`: d profiles / d p (N, W) of parameters solved at every iteration
@@ -371,11 +417,19 @@ def _gn_inverse(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequenc
     capping the predicted decrease at the loss): its small eigenvalues are noise, and the
     fit diverged both times (sigma_t 2 -> 11 and 18). The inflated matrix is kept: it makes
     the steps short but safe.
+
+    `smooth_px` > 0 smooths each column of A along the row first (`_smooth_rows`, Gaussian,
+    valid pixels only). The columns are smooth functions of x and the noise is nearly
+    independent per pixel, so this removes most of the noise Gram matrix: at the benchmark's
+    end point the generalised eigenvalues of one 256-spp matrix against a smoothed
+    4096-spp one fell from 1.2-63 to 0.9-5.8 with 3 px (the 4096-spp matrix smoothed with
+    3 px moves by 0.79-0.99 against itself smoothed with 2 px: the bias is small).
     """
     eig_floor = GN_EIG_FLOOR if eig_floor is None else eig_floor
     valid = problem.valid
     den = np.clip(mean, 0.0, None) + dl
-    cols = [np.where(valid, -jac[n] / den, 0.0).ravel() * t.dx_dz(float(zz)) for n, t, zz in zip(names, tr, z)]
+    cols = [_smooth_rows(np.where(valid, -jac[n] / den, 0.0), valid, smooth_px).ravel() * t.dx_dz(float(zz))
+            for n, t, zz in zip(names, tr, z)]
     A = np.stack(cols, axis=1)
     A = np.where(np.isfinite(A), A, 0.0)
     out_cols = [np.where(valid, -np.asarray(c) / den, 0.0).ravel() for c in profiled_columns]
@@ -830,10 +884,11 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             # H^-1 amplifies it along the weakly determined valley direction.
             g_avg = g if g_avg is None else st.gn_momentum * g_avg + (1.0 - st.gn_momentum) * g
             h_inv = _gn_inverse(gn_jac, stepped, tr, z, problem, mean, dl, m, fixed_scale is None,
-                                profiled_columns=list(solved_cols.values()))
+                                profiled_columns=list(solved_cols.values()), smooth_px=st.gn_smooth_px)
             gn_grads.append(g)
-            gn_trace.append([it, *_predicted_decrease(h_inv, g_avg, gn_grads[-2 * st.window:], st.gn_momentum)])
-            dz = -st.gn_step * (h_inv @ g_avg)
+            recent = gn_grads[-2 * st.window:]
+            gn_trace.append([it, *_predicted_decrease(h_inv, g_avg, recent, st.gn_momentum)])
+            dz = -st.gn_step * (_snr_step(h_inv, g_avg, recent, st.gn_momentum) if st.gn_snr else h_inv @ g_avg)
             cap = 5.0 * adam.lr / st.lr_scale
             z = z + np.clip(dz, -cap, cap)
         else:

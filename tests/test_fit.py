@@ -369,3 +369,68 @@ def test_drift_flags_iterates_still_moving_and_not_stationary_ones():
     assert drift["sigma_t"] == pytest.approx(np.exp(z_sigma[-8:]).mean() - np.exp(z_sigma[-24:-16]).mean())
     assert drift["sigma_t"] < 0 and abs(drift["b"]) < 0.1
     assert _drift(hist[:20], ["sigma_t", "b"], 8) == ({}, [])
+
+
+def test_smooth_rows_keeps_smooth_columns_and_ignores_invalid_pixels():
+    from estimate.fit import _smooth_rows
+
+    x = np.linspace(-1.0, 1.0, 101)
+    col = np.vstack([1.0 + 0.5 * x, np.full_like(x, 2.0)])   # a Gaussian leaves both unchanged
+    valid = np.ones_like(col, bool)
+    valid[1, 40:45] = False
+    col_bad = col.copy()
+    col_bad[1, 40:45] = 1e6                        # garbage in masked pixels must not leak
+    out = _smooth_rows(col_bad, valid, 3.0)
+    assert out[0, 12:-12] == pytest.approx(col[0, 12:-12], rel=1e-9)   # edges: exact for constants only
+    assert out[1][valid[1]] == pytest.approx(col[1][valid[1]], rel=1e-9)
+    assert np.all(out[~valid] == 0.0)
+    assert _smooth_rows(col_bad, valid, 0.0)[valid] == pytest.approx(col_bad[valid])
+
+
+def test_smoothing_removes_most_of_the_noise_gram_matrix():
+    """The Gauss-Newton matrix from a noisy finite-difference Jacobian is inflated by the
+    noise's own Gram matrix, most along the weakly determined direction; smoothing the
+    log-space columns along the row (they are smooth, the noise is per pixel) brings its
+    generalised eigenvalues against the noise-free matrix back towards 1."""
+    from types import SimpleNamespace
+
+    from scipy.linalg import eigh
+
+    from estimate.fit import _gn_inverse
+    from estimate.transforms import Transform
+
+    rng = np.random.default_rng(3)
+    n, w = 4, 200
+    x = np.linspace(-3.0, 3.0, w)
+    prof = np.exp(-np.abs(x))[None, :] * np.linspace(0.8, 1.2, n)[:, None]
+    pb = SimpleNamespace(valid=np.ones((n, w), bool))
+    # two nearly parallel columns: a valley
+    jac = {"a": prof * (1.0 + 0.1 * x), "b": prof * (1.0 + 0.12 * x + 0.02 * x ** 2)}
+    noisy = {k: v + 0.1 * prof * rng.standard_normal(v.shape) for k, v in jac.items()}
+    lin = [Transform("linear", 0.1, -10, 10)] * 2
+
+    def gram(j: dict, s: float) -> np.ndarray:
+        return np.linalg.inv(_gn_inverse(j, ["a", "b"], lin, np.zeros(2), pb, prof, 1e-3, prof, False,
+                                         damping=0.0, eig_floor=1e-12, smooth_px=s))
+
+    exact = gram(jac, 0.0)
+    raw = eigh(gram(noisy, 0.0), exact, eigvals_only=True)
+    smooth = eigh(gram(noisy, 3.0), exact, eigvals_only=True)
+    assert raw.max() > 3.0                       # the valley's eigenvalue, inflated by the noise
+    assert smooth.max() < 1.0 + 0.25 * (raw.max() - 1.0)
+    assert smooth.min() > 0.8
+
+
+def test_snr_step_keeps_measured_directions_and_shrinks_noisy_ones():
+    from estimate.fit import _snr_step
+
+    h_inv = np.diag([1.0, 100.0])                  # the second direction is weak: H^-1 amplifies it
+    g = np.array([0.5, 0.01])
+    rng = np.random.default_rng(0)
+    steady = [g.copy() for _ in range(6)]
+    assert _snr_step(h_inv, g, steady, 0.7) == pytest.approx(h_inv @ g)   # no noise: the Newton step
+    assert _snr_step(h_inv, g, steady[:2], 0.7) == pytest.approx(h_inv @ g)   # too few to tell: unchanged
+    noisy = [g + np.array([1e-3, 0.3]) * rng.standard_normal(2) for _ in range(16)]
+    step = _snr_step(h_inv, g, noisy, 0.7)
+    assert step[0] == pytest.approx(0.5, rel=0.01)      # signal >> noise: kept
+    assert 0.0 < step[1] < 0.1 * (h_inv @ g)[1]         # noise >> signal: shrunk
