@@ -39,8 +39,9 @@ DIAMETERS = (0.5, 0.3, 0.2, 0.01)
 SIGMAS = (2.0, 6.0)
 ALBEDO = 0.9
 SCALE = "calibrated"  # intensity scale of the fits (--scale); as rig estimate's default
-#: Part of the fit cache's name, changed with the fit's recipe (joint coarse grid since session 3).
-RECIPE = "jointgrid"
+#: Part of the fit cache's name, changed with the fit's recipe (joint coarse grid since session 3;
+#: smoothed Gauss-Newton matrix and signal/noise-shrunk steps since session 14).
+RECIPE = "jointgrid-smoothgn"
 
 WORLD_TEMPLATE = """\
 # Paper section 4 simulation case: poly-disperse Mie, mean diameter {d} um, sigma_t {s} /mm.
@@ -224,6 +225,8 @@ def main() -> int:
                     help="also refit each case's fitted models with sigma_t and albedo held at the truth")
     ap.add_argument("--scale", choices=("calibrated", "free"), default="calibrated",
                     help="intensity scale of the fits: calibrated (default, as rig estimate) or free")
+    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "bench_paper_sim.json"),
+                    help="results JSON (a run of some models or cases only may keep the full table's file)")
     ap.add_argument("--unbiased", action="store_true",
                     help="add the losses without Monte Carlo variance (fit and truth) to cached fits that lack them")
     args = ap.parse_args()
@@ -269,7 +272,7 @@ def main() -> int:
         print(f"\n{'case':<12}{'model':<7}{'loss(truth sigma_t, albedo)/loss(free)':>40}")
         for c in checks:
             print(f"{c['case']:<12}{c['model']:<7}{c['fixed_over_free']:>40.3f}")
-    out = ROOT / "benchmarks" / "results" / "bench_paper_sim.json"
+    out = Path(args.out)
     out.write_text(json.dumps({"fits": rows, "truth_checks": checks}, indent=1, default=float))
     print(f"wrote {out} (targets: S/A/L met, s/a/l missed: sigma_t 3 %, albedo 0.01, loss 10 %)")
     return 0
