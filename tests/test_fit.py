@@ -434,3 +434,29 @@ def test_snr_step_keeps_measured_directions_and_shrinks_noisy_ones():
     step = _snr_step(h_inv, g, noisy, 0.7)
     assert step[0] == pytest.approx(0.5, rel=0.01)      # signal >> noise: kept
     assert 0.0 < step[1] < 0.1 * (h_inv @ g)[1]         # noise >> signal: shrunk
+
+
+def test_exact_columns_are_not_smoothed():
+    """Image-space parameters (the lens blur's) have exact, possibly sharp Jacobian columns:
+    the Gauss-Newton matrix takes them as they are."""
+    from types import SimpleNamespace
+
+    from estimate.fit import _gn_inverse
+    from estimate.transforms import Transform
+
+    n, w = 2, 120
+    x = np.linspace(-3.0, 3.0, w)
+    prof = np.exp(-np.abs(x))[None, :] * np.ones((n, 1))
+    pb = SimpleNamespace(valid=np.ones((n, w), bool))
+    sharp = prof * (np.abs(x) < 0.1)                  # a 2-pixel feature
+    jac = {"a": sharp, "b": prof}
+    lin = [Transform("linear", 0.1, -10, 10)] * 2
+
+    def h(**kw):
+        return np.linalg.inv(_gn_inverse(jac, ["a", "b"], lin, np.zeros(2), pb, prof, 1e-3, prof, False,
+                                         damping=0.0, eig_floor=1e-12, **kw))
+
+    raw, smooth, kept = h(), h(smooth_px=3.0), h(smooth_px=3.0, exact={"a"})
+    assert kept[0, 0] == pytest.approx(raw[0, 0], rel=1e-9)
+    assert smooth[0, 0] < 0.7 * raw[0, 0]             # smoothing would have spread the sharp column
+    assert kept[1, 1] == pytest.approx(smooth[1, 1], rel=1e-9)
