@@ -31,8 +31,8 @@
    after smoothing) and so shortened the steps along it as much; and each eigen-direction
    of the step is shrunk by its averaged gradient's signal / (signal + noise) (`gn_snr`,
    `_snr_step`), so the longer steps do not turn gradient noise into excursions along b2
-   against b3. On the benchmark session the fit then ends within 1 % of sigma_t on 2 of 3
-   seeds and 6-9 % on the third (15 % before), in the same ~75 iterations;
+   against b3. On the benchmark session the fit then ends 1-3 % from the truth's sigma_t
+   (seed 0 twice) and 5-6 % (seeds 1, 2), against 15 % before, in the same ~75 iterations;
 4. progressive samples per pixel: start at `spp_start` (128); the loss at the reference
    delta is tracked; when over the last 2 x `window` iterations its fitted slope is not
    significantly negative (above -2 standard errors from the scatter of the losses about
