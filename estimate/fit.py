@@ -299,23 +299,26 @@ def _flattened(losses: Sequence[float], window: int) -> bool:
     return slope > -2.0 * se
 
 
+def _averaged_gradient_cov(recent: Sequence[np.ndarray], momentum: float) -> np.ndarray | None:
+    """Covariance of the momentum-averaged gradient: the per-iteration covariance C from
+    successive differences of the recent gradients (C = mean(d d^T) / 2, which ignores slow
+    trends), times (1 - m) / (1 + m) for an exponential average with momentum m; None with
+    fewer than 3 gradients."""
+    if len(recent) < 3:
+        return None
+    d = np.diff(np.asarray(recent), axis=0)
+    return 0.5 * (d.T @ d) / len(d) * (1.0 - momentum) / (1.0 + momentum)
+
+
 def _predicted_decrease(h_inv: np.ndarray, g_avg: np.ndarray, recent: Sequence[np.ndarray],
                         momentum: float) -> tuple[float, float]:
     """The loss decrease the Gauss-Newton model predicts for a full step, 0.5 g^T H^-1 g with
     g the averaged gradient, and the part of it that the gradient's Monte Carlo noise alone
-    would produce, 0.5 tr(H^-1 C_avg).
-
-    C_avg is the covariance of the averaged gradient: the per-iteration covariance C from
-    successive differences of the recent gradients (C = mean(d d^T) / 2, which ignores slow
-    trends), times (1 - m) / (1 + m) for an exponential average with momentum m.
+    would produce, 0.5 tr(H^-1 C_avg) (`_averaged_gradient_cov`).
     """
     pred = 0.5 * float(g_avg @ h_inv @ g_avg)
-    if len(recent) < 3:
-        return pred, float("nan")
-    d = np.diff(np.asarray(recent), axis=0)
-    cov = 0.5 * (d.T @ d) / len(d)
-    noise = 0.5 * float(np.trace(h_inv @ cov)) * (1.0 - momentum) / (1.0 + momentum)
-    return pred, noise
+    cov = _averaged_gradient_cov(recent, momentum)
+    return pred, float("nan") if cov is None else 0.5 * float(np.trace(h_inv @ cov))
 
 
 #: Finite-difference steps, in the optimiser's variables z, for the Gauss-Newton matrix.
@@ -344,21 +347,18 @@ def _smooth_rows(a: np.ndarray, valid: np.ndarray, sigma_px: float) -> np.ndarra
 
 def _snr_step(h_inv: np.ndarray, g_avg: np.ndarray, recent: Sequence[np.ndarray], momentum: float) -> np.ndarray:
     """H^-1 g_avg with each eigen-direction of H^-1 shrunk by s = m^2 / (m^2 + v): m the
-    averaged gradient's component along it, v that component's Monte Carlo variance (as in
-    `_predicted_decrease`: successive differences of the recent gradients, times
-    (1 - momentum) / (1 + momentum) for the exponential average). Directions where the
+    averaged gradient's component along it, v that component's Monte Carlo variance
+    (`_averaged_gradient_cov`). Directions where the
     gradient is mostly noise (the sigma_t / phase valley's floor, b2 against b3) get short
     steps instead of H^-1's amplification of that noise; well-measured directions keep the
     full Gauss-Newton step. With fewer than 3 gradients there is no noise estimate: s = 1."""
     mu, V = np.linalg.eigh(0.5 * (h_inv + h_inv.T))
     proj = V.T @ g_avg
-    if len(recent) >= 3:
-        d = np.diff(np.asarray(recent), axis=0)
-        cov = 0.5 * (d.T @ d) / len(d) * (1.0 - momentum) / (1.0 + momentum)
-        var = np.einsum("ik,ij,jk->k", V, cov, V)
-        shrink = proj ** 2 / np.maximum(proj ** 2 + var, 1e-300)
-    else:
-        shrink = np.ones_like(proj)
+    cov = _averaged_gradient_cov(recent, momentum)
+    if cov is None:
+        return V @ (mu * proj)
+    var = np.einsum("ik,ij,jk->k", V, cov, V)
+    shrink = proj ** 2 / np.maximum(proj ** 2 + var, 1e-300)
     return V @ (mu * shrink * proj)
 
 
