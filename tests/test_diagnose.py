@@ -365,6 +365,10 @@ def test_recorded_fit_settings_round_trip():
     st = FitSettings(seed=3, time_limit_s=60.0, lm_iterations=2, delta_range=(1e-3, 1e-1), decorrelated=False)
     assert FitSettings.from_dict(st.to_dict()) == st
     assert FitSettings.from_dict({"gn_step": 1, "time_limit_s": None}).gn_step == 1.0
+    # 0 switches the Gauss-Newton matrix's smoothing off; a negative width is refused in one line.
+    assert FitSettings.from_dict({"gn_smooth_px": 0}).gn_smooth_px == 0.0
+    with pytest.raises(ModelParameterError, match="gn_smooth_px = -1 is not a number of pixels >= 0"):
+        FitSettings.from_dict({"gn_smooth_px": -1})
 
 
 def test_significance_counts_fitted_parameters_and_localise_finds_the_tails():
