@@ -840,12 +840,17 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             # Two independent half-spp renders A, B; loss mean(rA * rB) with r = log(m + delta)
             # - log(I + delta): its expectation has no Monte Carlo variance term, which would
             # otherwise reward parameters whose renders are less noisy (e.g. low albedo).
-            pa = fm.render_profiles(p, problem.angles_deg, spp=half, seed=seed_a)
-            pb_ = fm.render_profiles(p, problem.angles_deg, spp=half, seed=seed_a + 1)
+            # Each render keeps its paths for the gradient's replay below (`linearize`): the
+            # cotangent of A needs B's residuals, so neither is known before both are rendered.
+            lin_a = fm.linearize(p, problem.angles_deg, spp=half, seed=seed_a)
+            lin_b = fm.linearize(p, problem.angles_deg, spp=half, seed=seed_a + 1)
+            pa, pb_ = lin_a.profiles, lin_b.profiles
             if solved:
                 shift = _solve_additive(fm, problem, p, solved, 0.5 * (pa + pb_), delta_rel, fixed_scale,
                                         scale_guess=scale, columns=solved_cols)
                 pa, pb_ = pa + shift, pb_ + shift
+                # (The linearizations keep the previous additive values: the last image-space
+                # effect adds them, so the pull-back through the chain does not depend on them.)
                 sol.update({n: p[n] for n in solved})
             mean = 0.5 * (pa + pb_)
             if fixed_scale is None:
@@ -859,8 +864,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             n_v = max(1, int(problem.valid.sum()))
             cot_a = np.where(problem.valid & (pa >= 0), -rb / (np.clip(pa, 0, None) + dl) / n_v, 0.0)
             cot_b = np.where(problem.valid & (pb_ >= 0), -ra / (np.clip(pb_, 0, None) + dl) / n_v, 0.0)
-            ga = fm.vjp(p, problem.angles_deg, cot_a, spp=half, seed=seed_a)
-            gb = fm.vjp(p, problem.angles_deg, cot_b, spp=half, seed=seed_a + 1)
+            ga = lin_a.vjp(cot_a)
+            gb = lin_b.vjp(cot_b)
             grads = {k: ga.get(k, 0.0) + gb.get(k, 0.0) for k in set(ga) | set(gb)}
         else:
             ref: dict[str, float] = {}

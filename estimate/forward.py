@@ -44,7 +44,7 @@ from estimate.geometry import PixelWindow, RigGeometry
 from estimate.mitsuba_env import init_mitsuba
 from estimate.mitsuba_phase import exp_phase_dict, tthg_phase_dict
 
-__all__ = ["BASE_SPECS", "ForwardModel", "phase_specs", "render_seed"]
+__all__ = ["BASE_SPECS", "ForwardModel", "Linearization", "phase_specs", "render_seed"]
 
 _INF = float("inf")
 #: Largest number of paths (pixels x spp) traced in one launch; bounds memory (~0.2 kB each).
@@ -308,13 +308,64 @@ class ForwardModel:
         return self._post(rad, values, profile_only=window.height == 1, y_shape=self._y_shape(angles, window))
 
     # ------------------------------------------------------------------ derivatives
+    def linearize(self, params: Mapping[str, float], angles_deg: Sequence[float], *, spp: int = 128,
+                  seed: int = 0, columns: tuple[int, int] | None = None) -> Linearization:
+        """Render the profiles and keep what their vector-Jacobian product needs.
+
+        Returns a `Linearization` whose `profiles` equal `render_profiles(..., seed=seed)`
+        (same paths) and whose `vjp(cotangent)` equals `vjp(params, ..., cotangent, seed=seed)`,
+        for a cotangent that may be computed from the profiles themselves or from other
+        renders. Path replay needs the primal pass's per-path radiance; keeping it avoids
+        tracing the primal paths a second time (a separate render plus `vjp` traced them twice).
+        The kept state (~0.1 kB a path) is freed by `vjp`, which can be called once.
+        """
+        values = self.validate(params)
+        angles = self._check_call(angles_deg, spp, seed)
+        window = self.geometry.window(columns, None)
+        dr = self.dr
+        mi = self.mi
+        ad_names = [n for n, s in self.specs.items() if s.derivative == "ad"]
+        groups, passes = self._groups(len(angles), window, spp)
+        spp_pass = max(1, math.ceil(int(spp) / passes))
+        kept: list[_KeptGroup] = []
+        pending = []
+        with self._lock:
+            for grp in groups:
+                ang = [angles[i] for i in grp]
+                bundle = self._bundle(len(grp))
+                leaves = {n: dr.opaque(mi.Float, values[n]) for n in ad_names}
+                for leaf in leaves.values():
+                    dr.enable_grad(leaf)
+                integrator = bundle.scene.integrator()
+                integrator.copy_width = window.width
+                sensor = bundle.sensor(window)
+                group = _KeptGroup(grp, bundle, leaves)
+                for j, (x, w) in enumerate(self._bands()):
+                    # The leaves go into the scene now (the primal pass ignores their
+                    # gradients) and again before the replay, which other renders may precede.
+                    bundle.assign(values, leaves, ang, x)
+                    for q in range(passes):
+                        img, state = integrator.render_kept(bundle.scene, sensor,
+                                                            render_seed(seed, grp.start + 1000 * q, j), spp_pass)
+                        pending.append((grp, w / passes, img))
+                        group.passes.append((x, w / passes, state))
+                kept.append(group)
+            dr.eval()
+            rad = np.zeros((len(angles), window.height, window.width))
+            for grp, w, img in pending:
+                a = np.array(img, dtype=np.float64).reshape(window.height, len(grp), window.width)
+                rad[grp.start:grp.stop] += w * a.transpose(1, 0, 2)
+        y_shape = self._y_shape(angles, window)
+        profiles = self._post(rad, values, profile_only=window.height == 1, y_shape=y_shape)[:, 0, :]
+        return Linearization(self, values, angles, window, int(spp), int(seed), columns, rad, profiles, kept)
+
     def vjp(self, params: Mapping[str, float], angles_deg: Sequence[float], cotangent: np.ndarray, *,
             spp: int = 128, seed: int = 0, columns: tuple[int, int] | None = None,
             fd_parameters: bool = True, base_profiles: np.ndarray | None = None) -> dict[str, float]:
         """Vector-Jacobian product: d/dtheta sum(cotangent * profiles(theta)) for every parameter.
 
         `cotangent` has the shape of `render_profiles` (N, W), e.g. dLoss/dprofile. "ad"
-        parameters come from Dr.Jit reverse mode (one adjoint render per angle), "image"
+        parameters come from Dr.Jit reverse mode (path replay of one primal render), "image"
         ones exactly through the image-space functions, "fd" ones (only if `fd_parameters`)
         from central differences with common random numbers (2 extra forward renders each).
         Uses the same seeds as `render_profiles(..., seed=seed)`; pass that call's result
@@ -323,64 +374,12 @@ class ForwardModel:
         `refractive_boundary` (next-event rays must end inside the medium there, and
         prbvolpath drops the attenuation derivative of such rays); it is always computed,
         `fd_parameters=False` skips only the other "fd" (extension) parameters (reported 0).
+        When the profiles are needed too, `linearize` gives both for the price of this call.
         """
-        values = self.validate(params)
         angles = self._check_call(angles_deg, spp, seed)
-        window = self.geometry.window(columns, None)
-        cot = np.asarray(cotangent, dtype=np.float64)
-        if cot.shape != (len(angles), window.width):
-            raise ModelParameterError(
-                f"cotangent shape {cot.shape} != (angles, width) = {(len(angles), window.width)}")
-        if not np.all(np.isfinite(cot)):
-            raise ModelParameterError("cotangent contains NaN or infinite values")
-        cot = cot[:, None, :]
-        dr = self.dr
-        mi = self.mi
-        grads = {n: 0.0 for n in self.specs}
-        ad_names = [n for n, s in self.specs.items() if s.derivative == "ad"]
-        image_exts = self._image_exts()
-        bands = self._bands()
-        groups, passes = self._groups(len(angles), window, spp)
-        spp_pass = max(1, math.ceil(int(spp) / passes))
-        with self._lock:
-            for grp in groups:
-                cot_g = cot[grp.start:grp.stop]
-                ang = [angles[i] for i in grp]
-                bundle = self._bundle(len(grp))
-                if image_exts:
-                    # The image chain's pull-back and parameter derivatives need the radiance.
-                    rad = self._render_radiance(values, ang, window, spp, seed, first_index=grp.start)
-                    cot_rad, ext_grads = self._pullback(rad, cot_g, values, window, self._y_shape(ang, window))
-                    for name, gv in ext_grads.items():
-                        grads[name] += gv
-                else:
-                    cot_rad = cot_g
-                leaves = {n: dr.opaque(mi.Float, values[n]) for n in ad_names}
-                for leaf in leaves.values():
-                    dr.enable_grad(leaf)
-                c_img = cot_rad.transpose(1, 0, 2).reshape(window.height, len(grp) * window.width)
-                integrator = bundle.scene.integrator()
-                integrator.copy_width = window.width
-                for j, (x, w) in enumerate(bands):
-                    bundle.assign(values, leaves, ang, x)
-                    for q in range(passes):
-                        c = mi.TensorXf(np.ascontiguousarray((w / passes) * c_img, dtype=np.float32)
-                                        .reshape(window.height, len(grp) * window.width, 1))
-                        # Path replay: its primal pass uses the same seed as the forward render.
-                        integrator.render_backward(bundle.scene, bundle.params, c, sensor=bundle.sensor(window),
-                                                   seed=render_seed(seed, grp.start + 1000 * q, j),
-                                                   spp=spp_pass)
-                for n, leaf in leaves.items():
-                    g = dr.grad(leaf)
-                    grads[n] += float(g[0]) if dr.width(g) else 0.0
-        fd_names = [n for n, s in self.specs.items() if s.derivative == "fd"
-                    and (fd_parameters or n == "sigma_t")]
-        if fd_names:
-            jac = self.jacobian(values, angles, fd_names, spp=spp, seed=seed, columns=columns,
-                                base_profiles=base_profiles)
-            for n in fd_names:
-                grads[n] = float(np.sum(jac[n] * cot[:, 0, :]))
-        return grads
+        _check_cotangent(cotangent, len(angles), self.geometry.window(columns, None).width)
+        lin = self.linearize(params, angles, spp=spp, seed=seed, columns=columns)
+        return lin.vjp(cotangent, fd_parameters=fd_parameters, base_profiles=base_profiles)
 
     def _pullback(self, radiance: np.ndarray, cot_out: np.ndarray, values: Mapping[str, float],
                   window: PixelWindow, y_shape: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, float]]:
@@ -412,11 +411,10 @@ class ForwardModel:
         gradient is `vjp` of that cotangent with the same seed (so the adjoint replays the
         forward render's paths).
         """
-        prof = self.render_profiles(params, angles_deg, spp=spp, seed=seed)
-        value, cot = loss(prof)
-        grads = self.vjp(params, angles_deg, cot, spp=spp, seed=seed, fd_parameters=fd_parameters,
-                         base_profiles=prof)
-        return float(value), prof, grads
+        lin = self.linearize(params, angles_deg, spp=spp, seed=seed)
+        value, cot = loss(lin.profiles)
+        grads = lin.vjp(cot, fd_parameters=fd_parameters, base_profiles=lin.profiles)
+        return float(value), lin.profiles, grads
 
     def jacobian(self, params: Mapping[str, float], angles_deg: Sequence[float], names: Sequence[str], *,
                  spp: int = 128, seed: int = 0, steps: Mapping[str, float] | None = None,
@@ -529,6 +527,97 @@ class ForwardModel:
                 return d[:, 0, :]
             img = ext.apply(img, v, pixel_mm=pm, profile_only=profile_only, y_shape=y_shape)
         raise ModelParameterError(f"{name!r} is not an image-space parameter of this model")
+
+
+def _check_cotangent(cotangent: np.ndarray, n_angles: int, width: int) -> np.ndarray:
+    cot = np.asarray(cotangent, dtype=np.float64)
+    if cot.shape != (n_angles, width):
+        raise ModelParameterError(f"cotangent shape {cot.shape} != (angles, width) = {(n_angles, width)}")
+    if not np.all(np.isfinite(cot)):
+        raise ModelParameterError("cotangent contains NaN or infinite values")
+    return cot
+
+
+class _KeptGroup:
+    """One launch group of a `Linearization`: its scene, gradient leaves and kept passes."""
+
+    def __init__(self, grp: range, bundle: _SceneBundle, leaves: dict[str, Any]) -> None:
+        self.grp = grp
+        self.bundle = bundle
+        self.leaves = leaves
+        self.passes: list[tuple[float, float, Any]] = []   # (band node, weight, KeptPrimal)
+
+
+class Linearization:
+    """Profiles rendered at one parameter point, with the state of their paths kept for one
+    vector-Jacobian product (`ForwardModel.linearize`)."""
+
+    def __init__(self, model: ForwardModel, values: dict[str, float], angles: list[float], window: PixelWindow,
+                 spp: int, seed: int, columns: tuple[int, int] | None, radiance: np.ndarray,
+                 profiles: np.ndarray, groups: list[_KeptGroup]) -> None:
+        self.model = model
+        self.values = values
+        self.angles = angles
+        self.window = window
+        self.spp = spp
+        self.seed = seed
+        self.columns = columns
+        self.radiance = radiance
+        #: the rendered profiles (N, W), image-space extensions applied
+        self.profiles = profiles
+        self._groups: list[_KeptGroup] | None = groups
+
+    def vjp(self, cotangent: np.ndarray, *, fd_parameters: bool = True,
+            base_profiles: np.ndarray | None = None) -> dict[str, float]:
+        """d/dtheta sum(cotangent * profiles(theta)) for every parameter, as
+        `ForwardModel.vjp` with this render's parameters, seed and spp. Once per linearization.
+
+        Raises:
+            ModelParameterError: cotangent of the wrong shape or not finite.
+            RuntimeError: called a second time (the replay consumed the kept paths).
+        """
+        m = self.model
+        cot = _check_cotangent(cotangent, len(self.angles), self.window.width)[:, None, :]
+        if self._groups is None:
+            raise RuntimeError("Linearization.vjp was already called; linearize again")
+        groups, self._groups = self._groups, None
+        dr = m.dr
+        mi = m.mi
+        window = self.window
+        grads = {n: 0.0 for n in m.specs}
+        image_exts = m._image_exts()
+        with m._lock:
+            for group in groups:
+                grp = group.grp
+                ang = [self.angles[i] for i in grp]
+                cot_g = cot[grp.start:grp.stop]
+                if image_exts:
+                    cot_rad, ext_grads = m._pullback(self.radiance[grp.start:grp.stop], cot_g, self.values, window,
+                                                     m._y_shape(ang, window))
+                    for name, gv in ext_grads.items():
+                        grads[name] += gv
+                else:
+                    cot_rad = cot_g
+                c_img = cot_rad.transpose(1, 0, 2).reshape(window.height, len(grp) * window.width)
+                integrator = group.bundle.scene.integrator()
+                band = None
+                for x, w, state in group.passes:
+                    if x != band:
+                        group.bundle.assign(self.values, group.leaves, ang, x)
+                        band = x
+                    c = mi.TensorXf(np.ascontiguousarray(w * c_img, dtype=np.float32)
+                                    .reshape(window.height, len(grp) * window.width, 1))
+                    integrator.backward_kept(group.bundle.scene, state, c)
+                for n, leaf in group.leaves.items():
+                    g = dr.grad(leaf)
+                    grads[n] += float(g[0]) if dr.width(g) else 0.0
+        fd_names = [n for n, s in m.specs.items() if s.derivative == "fd" and (fd_parameters or n == "sigma_t")]
+        if fd_names:
+            jac = m.jacobian(self.values, self.angles, fd_names, spp=self.spp, seed=self.seed, columns=self.columns,
+                             base_profiles=base_profiles)
+            for n in fd_names:
+                grads[n] = float(np.sum(jac[n] * cot[:, 0, :]))
+        return grads
 
 
 class _SceneBundle:
