@@ -6,7 +6,8 @@
    at 32 spp) unless `start` gives sigma_t and albedo;
 2. Adam on unconstrained variables (`estimate.transforms`: log sigma_t, logit albedo,
    exp coefficients clamped to +-200, tanh for HG g, logit for the lobe weight), gradient
-   from `ForwardModel.vjp` of the log loss (`estimate.loss`) with delta drawn at random per
+   from the reverse-mode pass of the log loss (`estimate.loss`; `ForwardModel.linearize`
+   keeps each render's paths for its replay, so a render is traced once) with delta drawn at random per
    iteration and the scale profiled out; every iteration uses new seeds. By default
    (`decorrelated`) the loss is mean(r_A r_B) over two independent half-spp renders A, B
    (r = log(m + delta) - log(I + delta)): the plain loss's expectation contains the
@@ -31,8 +32,13 @@
    after smoothing) and so shortened the steps along it as much; and each eigen-direction
    of the step is shrunk by its averaged gradient's signal / (signal + noise) (`gn_snr`,
    `_snr_step`), so the longer steps do not turn gradient noise into excursions along b2
-   against b3. On the benchmark session the fit then ends 1-3 % from the truth's sigma_t
-   (seed 0 twice) and 5-6 % (seeds 1, 2), against 15 % before, in the same ~75 iterations;
+   against b3. On the benchmark session the fit then ended 1-3 % from the truth's sigma_t
+   (seed 0 twice) and 5-6 % (seeds 1, 2), against 15 % before, in the same ~75 iterations.
+   Since session 15 the matrix is that of the loss averaged over delta (`gn_delta_nodes`
+   midpoints of log delta), matching the momentum-averaged gradient, which mixes the
+   iterations' random deltas: with the iteration's own delta the matrix's weakest
+   eigenvalue changed by up to 25x between iterations, and a large-delta matrix applied to
+   small-delta gradients threw b2 and b3 to -5 / +5 (seeds 3 and 4 ended 22 % and 13 % high);
 4. progressive samples per pixel: start at `spp_start` (128); the loss at the reference
    delta is tracked; when over the last 2 x `window` iterations its fitted slope is not
    significantly negative (above -2 standard errors from the scatter of the losses about
@@ -124,6 +130,7 @@ class FitSettings:
     gn_momentum: float = 0.7
     gn_smooth_px: float = 3.0        # Gaussian smoothing (px) of the Jacobian's log-space columns along the row
     gn_snr: bool = True              # shrink each Gauss-Newton eigen-direction by its gradient's signal/(signal+noise)
+    gn_delta_nodes: int = 6          # Gauss-Newton matrix averaged over this many deltas (0: the iteration's delta)
     adam_iterations: int = 10        # "adam+gn": Adam iterations before the Gauss-Newton steps
     decorrelated: bool = True
     #: solve additive parameters (stray-light offset and slope) exactly at every iteration
@@ -168,7 +175,7 @@ class FitSettings:
                 if not isinstance(v, bool):
                     raise bad("true or false")
             elif isinstance(default, int):
-                least = 0 if f.name in ("seed", "lm_iterations", "adam_iterations") else 1
+                least = 0 if f.name in ("seed", "lm_iterations", "adam_iterations", "gn_delta_nodes") else 1
                 if not (isinstance(v, int) and not isinstance(v, bool)) or v < least:
                     raise bad(f"a whole number >= {least}")
             elif f.name == "gn_smooth_px":
@@ -397,7 +404,7 @@ def _gn_direction(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Seque
 
 
 def _gn_inverse(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequence[Transform], z: np.ndarray,
-                problem: Problem, mean: np.ndarray, dl: float, m: np.ndarray, profiled_scale: bool,
+                problem: Problem, mean: np.ndarray, dl: float | Sequence[float], m: np.ndarray, profiled_scale: bool,
                 damping: float = 1e-3, eig_floor: float | None = None,
                 profiled_columns: Sequence[np.ndarray] = (), smooth_px: float = 0.0,
                 exact: Collection[str] = ()) -> np.ndarray:
@@ -419,6 +426,16 @@ def _gn_inverse(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequenc
     fit diverged both times (sigma_t 2 -> 11 and 18). The inflated matrix is kept: it makes
     the steps short but safe.
 
+    `dl` (absolute delta) may be several values: the matrix is then the mean of theirs, the
+    Gauss-Newton matrix of the loss averaged over delta. The fit draws delta at random per
+    iteration and averages the gradients over iterations (momentum), so its averaged gradient
+    is that of the delta-averaged loss; a matrix at the iteration's own delta did not match
+    it. Over the default range (0.01-0.2) the matrix's weakest eigenvalue changed by up to 25x
+    from one iteration to the next, and when a large-delta matrix met gradients averaged
+    over small deltas the step along the weakest direction (b2 against b3) was up to 50x
+    the usual, capped per component (the benchmark at seed 3: b2 -1.7 -> -5, sigma_t 21 %
+    high at the end).
+
     `smooth_px` > 0 smooths each column of A along the row first (`_smooth_rows`, Gaussian,
     valid pixels only), except those named in `exact` (image-space parameters such as the
     lens blur's, whose columns are exact and may be sharp). The finite-difference columns are smooth functions of x and the noise is nearly
@@ -429,21 +446,24 @@ def _gn_inverse(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequenc
     """
     eig_floor = GN_EIG_FLOOR if eig_floor is None else eig_floor
     valid = problem.valid
-    den = np.clip(mean, 0.0, None) + dl
-    cols = [_smooth_rows(np.where(valid, -jac[n] / den, 0.0), valid, 0.0 if n in exact else smooth_px).ravel()
-            * t.dx_dz(float(zz)) for n, t, zz in zip(names, tr, z)]
-    A = np.stack(cols, axis=1)
-    A = np.where(np.isfinite(A), A, 0.0)
-    out_cols = [np.where(valid, -np.asarray(c) / den, 0.0).ravel() for c in profiled_columns]
-    if profiled_scale:
-        out_cols.append(np.where(valid, -m / (np.clip(m, -0.5 * dl, None) + dl), 0.0).ravel())
-    if out_cols:
-        Q, R = np.linalg.qr(np.stack(out_cols, axis=1))
-        keep = np.abs(np.diag(R)) > 1e-12 * max(1e-300, float(np.max(np.abs(np.diag(R)))))
-        Q = Q[:, keep]
-        A = A - Q @ (Q.T @ A)
     n = max(1, int(valid.sum()))
-    H = 2.0 * (A.T @ A) / n
+    dls = [float(dl)] if np.isscalar(dl) else [float(x) for x in dl]  # type: ignore[arg-type]
+    H = np.zeros((len(names), len(names)))
+    for d in dls:
+        den = np.clip(mean, 0.0, None) + d
+        cols = [_smooth_rows(np.where(valid, -jac[nm] / den, 0.0), valid, 0.0 if nm in exact else smooth_px).ravel()
+                * t.dx_dz(float(zz)) for nm, t, zz in zip(names, tr, z)]
+        A = np.stack(cols, axis=1)
+        A = np.where(np.isfinite(A), A, 0.0)
+        out_cols = [np.where(valid, -np.asarray(c) / den, 0.0).ravel() for c in profiled_columns]
+        if profiled_scale:
+            out_cols.append(np.where(valid, -m / (np.clip(m, -0.5 * d, None) + d), 0.0).ravel())
+        if out_cols:
+            Q, R = np.linalg.qr(np.stack(out_cols, axis=1))
+            keep = np.abs(np.diag(R)) > 1e-12 * max(1e-300, float(np.max(np.abs(np.diag(R)))))
+            Q = Q[:, keep]
+            A = A - Q @ (Q.T @ A)
+        H += 2.0 * (A.T @ A) / n / len(dls)
     H = H + damping * np.diag(np.diag(H)) + 1e-12 * np.eye(len(names))
     # Eigenvalue floor: directions the data barely constrain (two-term HG with the
     # forward lobe's weight -> 1 leaves g_backward free; albedo -> 1) have eigenvalues near
@@ -831,6 +851,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     gn_trace: list[list[float]] = []
     # Columns the Jacobian gets exactly (image-space parameters) carry no Monte Carlo noise to smooth away.
     exact_columns = {n for n in stepped if fm.derivative_kind(n) == "image"}
+    gn_nodes = [math.exp(lo + (k + 0.5) / st.gn_delta_nodes * (hi - lo)) for k in range(st.gn_delta_nodes)]
     for it in range(1, st.max_iterations + 1):
         p = params_of(z)
         delta_rel = math.exp(rng.uniform(lo, hi))
@@ -892,7 +913,11 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             # noise is 2-4x its mean per component at 512 spp (albedo worst), and
             # H^-1 amplifies it along the weakly determined valley direction.
             g_avg = g if g_avg is None else st.gn_momentum * g_avg + (1.0 - st.gn_momentum) * g
-            h_inv = _gn_inverse(gn_jac, stepped, tr, z, problem, mean, dl, m, fixed_scale is None,
+            # The matrix of the delta-averaged loss, whose gradient g_avg estimates: a
+            # midpoint rule over log delta at `gn_delta_nodes` nodes (0: this iteration's delta).
+            m_max = dl / delta_rel
+            gn_dl = [max(q * m_max, 1e-30) for q in gn_nodes] if gn_nodes else dl
+            h_inv = _gn_inverse(gn_jac, stepped, tr, z, problem, mean, gn_dl, m, fixed_scale is None,
                                 profiled_columns=list(solved_cols.values()), smooth_px=st.gn_smooth_px,
                                 exact=exact_columns)
             gn_grads.append(g)

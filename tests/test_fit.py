@@ -95,6 +95,32 @@ def test_gn_matrix_with_solved_columns_is_the_schur_complement():
     assert not np.allclose(schur, full[:2, :2], rtol=0.05)
 
 
+def test_gn_matrix_over_several_deltas_is_the_mean_of_their_matrices():
+    """The delta-averaged Gauss-Newton matrix (the fit's randomly drawn delta averaged out) is
+    the mean of the single-delta matrices, with the profiled scale projected out per delta;
+    small and large deltas weight the dim tails differently, so the matrices differ."""
+    from types import SimpleNamespace
+
+    from estimate.fit import _gn_inverse
+    from estimate.transforms import Transform
+
+    n, w = 2, 60
+    x = np.linspace(-3.0, 3.0, w)
+    prof = np.tile(np.exp(-2.0 * x ** 2) + 1e-3, (n, 1))
+    pb = SimpleNamespace(valid=np.ones((n, w), bool))
+    jac = {"a": prof * x ** 2, "b": prof * np.abs(x)}
+    lin = Transform("linear", 0.1, -10, 10)
+
+    def h(dl):
+        return np.linalg.inv(_gn_inverse(jac, ["a", "b"], [lin] * 2, np.zeros(2), pb, prof, dl, prof, True,
+                                         damping=0.0, eig_floor=1e-12))
+
+    small, large = h(0.002), h(0.1)
+    assert not np.allclose(small, large, rtol=0.5)
+    assert h([0.002, 0.1]) == pytest.approx(0.5 * (small + large), rel=1e-6)
+    assert h([0.1]) == pytest.approx(large, rel=1e-12)
+
+
 def test_calibrated_scale_from_beam_power_and_lens(problem, tmp_path):
     cal = calibrated_scale(problem.session_path, "g", problem.beam.power())
     assert cal.scale == pytest.approx(2e5, rel=1e-6) and cal.defaults == ()
