@@ -40,8 +40,9 @@ SIGMAS = (2.0, 6.0)
 ALBEDO = 0.9
 SCALE = "calibrated"  # intensity scale of the fits (--scale); as rig estimate's default
 #: Part of the fit cache's name, changed with the fit's recipe (joint coarse grid since session 3;
-#: smoothed Gauss-Newton matrix and signal/noise-shrunk steps since session 14).
-RECIPE = "jointgrid-smoothgn"
+#: smoothed Gauss-Newton matrix and signal/noise-shrunk steps since session 14; the matrix of
+#: the delta-averaged loss and kept-path gradients since session 15).
+RECIPE = "jointgrid-smoothgn-davg"
 
 WORLD_TEMPLATE = """\
 # Paper section 4 simulation case: poly-disperse Mie, mean diameter {d} um, sigma_t {s} /mm.

@@ -38,7 +38,9 @@
    midpoints of log delta), matching the momentum-averaged gradient, which mixes the
    iterations' random deltas: with the iteration's own delta the matrix's weakest
    eigenvalue changed by up to 25x between iterations, and a large-delta matrix applied to
-   small-delta gradients threw b2 and b3 to -5 / +5 (seeds 3 and 4 ended 22 % and 13 % high);
+   small-delta gradients threw b2 and b3 to -5 / +5 (seeds 3 and 4 ended 22 % and 13 % high).
+   With it the benchmark's fits end 2-7.5 % high at seeds 0-5, still walking down the valley
+   when the 2-minute budget ends (flagged as drifting, the drift in the uncertainty);
 4. progressive samples per pixel: start at `spp_start` (128); the loss at the reference
    delta is tracked; when over the last 2 x `window` iterations its fitted slope is not
    significantly negative (above -2 standard errors from the scatter of the losses about
