@@ -231,11 +231,7 @@ class ForwardModel:
                         img = self._launch(bundle, window, spp_pass, seed, first_index + grp.start, j, q, False)
                         # No sync here: Dr.Jit runs this launch while Python traces the next.
                         pending.append((grp, w / passes, img))
-        out = np.zeros((len(angles), window.height, window.width))
-        for grp, w, img in pending:
-            a = np.array(img, dtype=np.float64).reshape(window.height, len(grp), window.width)
-            out[grp.start:grp.stop] += w * a.transpose(1, 0, 2)
-        return out
+        return _gather_radiance(pending, len(angles), window)
 
     def _image_exts(self) -> list[type[ImageExtension]]:
         return [EXTENSIONS[n] for n in IMAGE_ORDER if n in self.extensions]  # type: ignore[misc]
@@ -351,10 +347,7 @@ class ForwardModel:
                         group.passes.append((x, w / passes, state))
                 kept.append(group)
             dr.eval()
-            rad = np.zeros((len(angles), window.height, window.width))
-            for grp, w, img in pending:
-                a = np.array(img, dtype=np.float64).reshape(window.height, len(grp), window.width)
-                rad[grp.start:grp.stop] += w * a.transpose(1, 0, 2)
+            rad = _gather_radiance(pending, len(angles), window)
         y_shape = self._y_shape(angles, window)
         profiles = self._post(rad, values, profile_only=window.height == 1, y_shape=y_shape)[:, 0, :]
         return Linearization(self, values, angles, window, int(spp), int(seed), columns, rad, profiles, kept)
@@ -527,6 +520,16 @@ class ForwardModel:
                 return d[:, 0, :]
             img = ext.apply(img, v, pixel_mm=pm, profile_only=profile_only, y_shape=y_shape)
         raise ModelParameterError(f"{name!r} is not an image-space parameter of this model")
+
+
+def _gather_radiance(pending: Sequence[tuple[range, float, Any]], n_angles: int, window: PixelWindow) -> np.ndarray:
+    """(N, H, W) radiance from launches' images (H, len(group) * W), each weighted (band node
+    weight / sample passes) into its angle group."""
+    out = np.zeros((n_angles, window.height, window.width))
+    for grp, w, img in pending:
+        a = np.array(img, dtype=np.float64).reshape(window.height, len(grp), window.width)
+        out[grp.start:grp.stop] += w * a.transpose(1, 0, 2)
+    return out
 
 
 def _check_cotangent(cotangent: np.ndarray, n_angles: int, width: int) -> np.ndarray:
