@@ -73,7 +73,7 @@ def main() -> int:
                "spp_schedule": r.spp_schedule, "lm_losses": r.lm_losses, "parameters": r.parameters,
                "uncertainties": r.uncertainties, "loss": r.loss, "reduced_chi2": r.reduced_chi2,
                "start": r.start, "loss_curve": r.loss_curve, "gn_trace": r.gn_trace,
-               "drift": r.drift, "still_drifting": r.drifting}
+               "drift": r.drift, "still_drifting": r.drifting, "polish": r.polish}
         if truth:
             fs = r.scale if args.scale == "calibrated" else None
             ev = loss_at(pb, args.model, truth, spp=r.settings["final_spp"], fixed_scale=fs)
@@ -98,7 +98,11 @@ def main() -> int:
                 print(f"{k:<24}{v:.4g}" if isinstance(v, float) else f"{k:<24}{v}")
         print("parameters", {k: round(v, 4) for k, v in r.parameters.items()})
         print("uncertainties", {k: round(v, 4) for k, v in r.uncertainties.items()})
-        print("drift over the last windows", {k: round(v, 4) for k, v in r.drift.items()},
+        for i, e in enumerate(r.polish):
+            print(f"polish step {i + 1}: {'kept' if e['accepted'] else 'undone'}"
+                  f"{' after ' + str(e['halvings']) + ' halving(s)' if e['halvings'] else ''}, loss without render "
+                  f"noise {e['loss']:.3g} -> {e['loss_new']:.3g}, sigma_t step {e['step'].get('sigma_t', 0.0):+.4f}")
+        print("drift (the last polish step, else over the last windows)", {k: round(v, 4) for k, v in r.drift.items()},
               "still drifting:", r.drifting or "none")
         out["derived"] = r.derived()
         print("derived", {k: (round(v["value"], 4), v["uncertainty"] and round(v["uncertainty"], 4))

@@ -100,6 +100,10 @@ def write_run(run_dir: Path, session_dir: str | os.PathLike[str], fits: Sequence
             "still_drifting": list(r.drifting), "drift": {k: _num(v) for k, v in r.drift.items()},
             # additive parameters solved exactly on every iteration's render, not stepped
             "solved_each_iteration": list(r.solved),
+            # Gauss-Newton polish at the final spp after the iterations: per step the loss
+            # without render noise before / after, whether it was kept, and the step
+            "polish": [{"loss": _num(e["loss"]), "loss_new": _num(e["loss_new"]), "accepted": bool(e["accepted"]),
+                        "halvings": int(e.get("halvings", 0)), "step": {k: _num(v) for k, v in e["step"].items()}} for e in r.polish],
             "spp_schedule": [list(map(int, x)) for x in r.spp_schedule],
             "start": {k: float(v) for k, v in r.start.items()},
             "angles_deg": [float(a) for a in r.angles_deg],

@@ -318,7 +318,8 @@ def test_final_fit_by_the_estimator_replaces_the_refit_of_a_confirmed_effect():
                          repeats=3, iterations=8)
     assert d.confirmed == ["stray_light"]
     lm = d.after
-    st = FitSettings(seed=2, scale="free", max_iterations=14, spp_start=64, spp_max=128, final_spp=256, window=3)
+    st = FitSettings(seed=2, scale="free", max_iterations=14, spp_start=64, spp_max=128, final_spp=256, window=3,
+                     polish_steps=1)
     fr = refine_channel(pb, d, make_model, st, spp=128, repeats=3)
     assert fr is not None and d.final_fit["kept"] and d.final_fit["iterations"] == fr.iterations
     assert fr.extensions == ["stray_light"] and fr.start["sigma_t"] == lm.parameters["sigma_t"]

@@ -22,8 +22,9 @@ from estimate.problem import Problem, load_problem
 
 TRUTH = {"sigma_t": 3.0, "albedo": 0.85, "phase.b1": 3.0, "phase.b2": 0.0, "phase.b3": 0.0}
 PHASE = {k: v for k, v in TRUTH.items() if k.startswith("phase.")}
+# One polish step (default 4): the polish has its own tests below; here it keeps the suite short.
 FAST = {"max_iterations": 30, "spp_start": 128, "spp_max": 256, "final_spp": 512, "start_spp": 64, "window": 4,
-        "lm_spp": 512, "lm_iterations": 4}
+        "lm_spp": 512, "lm_iterations": 4, "polish_steps": 1}
 
 
 @pytest.fixture(scope="module")
@@ -397,6 +398,28 @@ def test_drift_flags_iterates_still_moving_and_not_stationary_ones():
     assert _drift(hist[:20], ["sigma_t", "b"], 8) == ({}, [])
 
 
+def test_window_estimate_follows_a_drift_to_its_end_and_averages_a_settled_window():
+    from estimate.fit import _window_estimate, _window_scatter
+
+    rng = np.random.default_rng(11)
+    n = 16
+    t = np.arange(n)
+    rows = np.stack([2.3 - 0.01 * t + 0.004 * rng.normal(size=n),    # drifting, noisy
+                     0.9 + 0.002 * rng.normal(size=n)], axis=1)      # settled
+    end = _window_estimate(rows, trend=True)
+    mean = _window_estimate(rows, trend=False)
+    # The mean lags the last iterate by half the window's drift; the trend's end does not.
+    assert mean[0] == pytest.approx(2.3 - 0.01 * (n - 1) / 2, abs=0.004)
+    assert end[0] == pytest.approx(2.3 - 0.01 * (n - 1), abs=0.006)
+    assert end[1] == pytest.approx(0.9, abs=0.003)
+    assert np.allclose(mean, rows.mean(axis=0))
+    # The scatter about the trend is the noise, not the drift.
+    assert np.std(_window_scatter(rows, trend=True)[:, 0]) == pytest.approx(0.004, rel=0.5)
+    assert np.std(_window_scatter(rows, trend=False)[:, 0]) > 0.04
+    # Too few rows for a line: the mean.
+    assert np.allclose(_window_estimate(rows[:2], trend=True), rows[:2].mean(axis=0))
+
+
 def test_smooth_rows_keeps_smooth_columns_and_ignores_invalid_pixels():
     from estimate.fit import _smooth_rows
 
@@ -486,3 +509,53 @@ def test_exact_columns_are_not_smoothed():
     assert kept[0, 0] == pytest.approx(raw[0, 0], rel=1e-9)
     assert smooth[0, 0] < 0.7 * raw[0, 0]             # smoothing would have spread the sharp column
     assert kept[1, 1] == pytest.approx(smooth[1, 1], rel=1e-9)
+
+
+def _polish_setup(problem):
+    from estimate.forward import ForwardModel
+    from estimate.transforms import transform_for
+
+    fm = ForwardModel(problem.geometry, problem.beam, phase="exp3", profile_y_shape=problem.y_shapes())
+    names = ["sigma_t", "albedo", "phase.b1", "phase.b2", "phase.b3"]
+    tr = [transform_for(n, fm.specs[n]) for n in names]
+    scale = calibrated_scale(problem.session_path, "g", problem.beam.power()).scale
+    return fm, names, tr, scale
+
+
+def test_gn_polish_walks_towards_the_truth_and_reports_its_steps(problem):
+    """From a start 15 % high in sigma_t, the polish's full Gauss-Newton steps at a fixed,
+    moderate spp bring sigma_t within a third of that and lower the loss without render noise."""
+    from estimate.fit import _gn_polish
+
+    fm, names, tr, scale = _polish_setup(problem)
+    start = fm.default_parameters()
+    start.update(TRUTH)
+    start["sigma_t"] = 3.45
+    out, trace, renders = _gn_polish(fm, problem, start, names, tr, steps=3, spp=256, jacobian_spp=256, seed=5,
+                                     delta_nodes=[0.02, 0.1], reference_delta_rel=0.045, fixed_scale=scale)
+    assert renders is not None and renders[0].shape == problem.measured.shape
+    assert trace and trace[0]["accepted"]
+    assert abs(out["sigma_t"] - 3.0) < 0.15, out
+    kept = [e for e in trace if e["accepted"]]
+    assert kept[-1]["loss_new"] < trace[0]["loss"]
+    # Each kept step is what the parameters moved by.
+    assert sum(e["step"]["sigma_t"] for e in kept) == pytest.approx(out["sigma_t"] - 3.45, abs=1e-9)
+
+
+def test_gn_polish_undoes_a_step_that_makes_the_fit_grossly_worse(problem, monkeypatch):
+    """A matrix that points uphill (here: forced) gives a step whose loss rises far beyond
+    the noise, and so do its halves: it is undone and the polish stops at its start."""
+    import estimate.fit as fit_mod
+
+    fm, names, tr, scale = _polish_setup(problem)
+    start = fm.default_parameters()
+    start.update(TRUTH)
+    # Uphill, every component at the cap (1 in z: sigma_t x e, ...), so that even the
+    # quarter step of the last halving stays far worse.
+    monkeypatch.setattr(fit_mod, "_gn_inverse", lambda *a, **k: -1e4 * np.eye(len(names)))
+    out, trace, _ = fit_mod._gn_polish(fm, problem, start, names, tr, steps=3, spp=128, jacobian_spp=128, seed=5,
+                                       delta_nodes=[0.045], reference_delta_rel=0.045, fixed_scale=scale,
+                                       caps=np.full(len(names), 4.0))
+    assert len(trace) == 1 and not trace[0]["accepted"] and trace[0]["halvings"] == 2
+    assert trace[0]["loss_new"] > trace[0]["loss"]
+    assert all(out[n] == start[n] for n in names)

@@ -35,7 +35,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--extensions", default="", help="forward-model extensions to include, comma separated")
     p.add_argument("--allow-partial", action="store_true", help="fit the stacks present when some are missing")
     p.add_argument("--max-iterations", type=int, default=None, help="optimiser iterations at most (80: 10 Adam, then Gauss-Newton)")
-    p.add_argument("--spp-max", type=int, default=None, help="largest samples per pixel of the optimiser (512); the final evaluation uses twice that")
+    p.add_argument("--spp-max", type=int, default=None, help="largest samples per pixel of the optimiser's iterations (256); with it set, the "
+                   "Gauss-Newton polish and the final evaluation use twice that (else 1024)")
     p.add_argument("--seed", type=int, default=0, help="random seed (renders, delta draws)")
     p.add_argument("--scale", choices=("calibrated", "free"), default="calibrated",
                    help="measured/rendered intensity scale: from the calibrated beam power and the lens's "
