@@ -41,8 +41,9 @@ ALBEDO = 0.9
 SCALE = "calibrated"  # intensity scale of the fits (--scale); as rig estimate's default
 #: Part of the fit cache's name, changed with the fit's recipe (joint coarse grid since session 3;
 #: smoothed Gauss-Newton matrix and signal/noise-shrunk steps since session 14; the matrix of
-#: the delta-averaged loss and kept-path gradients since session 15).
-RECIPE = "jointgrid-smoothgn-davg"
+#: the delta-averaged loss and kept-path gradients since session 15; iterations to 256 spp and
+#: a 1024-spp Gauss-Newton polish since session 16).
+RECIPE = "jointgrid-smoothgn-davg-polish"
 
 WORLD_TEMPLATE = """\
 # Paper section 4 simulation case: poly-disperse Mie, mean diameter {d} um, sigma_t {s} /mm.

@@ -604,8 +604,8 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
     A step is halved (twice at most; then the polish stops) only when the loss without
     render noise (mean r_A r_B over the deltas) of the new point's renders rises by more
     than `gross` x the polish's starting loss plus 3 standard errors of the difference
-    (from the pixels' products): a finer acceptance test does not work here. With the same seeds on both
-    sides (common random numbers) the comparison rejected steps that fresh renders showed
+    (from the pixels' products): a finer acceptance test does not work here. With the same
+    seeds on both sides (common random numbers) the comparison rejected steps that fresh renders showed
     to be good (benchmark, session 16: sigma_t stuck at 2.29 where three unchecked steps
     went 2.37 -> 2.24 -> 2.12 -> 2.06), and with new seeds the estimator scatters by about
     the loss itself near the optimum (it can be negative there).
@@ -625,7 +625,10 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
     n_v = max(1, int(valid.sum()))
     cols_out = list((solved_columns or {}).values())
 
-    def state(p_in: Mapping[str, float], k: int) -> tuple[dict[str, float], np.ndarray, np.ndarray, float, float]:
+    def state(p_in: Mapping[str, float], k: int
+              ) -> tuple[dict[str, float], np.ndarray, np.ndarray, float, tuple[float, float]]:
+        """Renders A, B at `p_in` (seeds of step k), the solved values and scale, and the loss
+        without render noise with its standard error."""
         p = dict(p_in)
         pa = fm.render_profiles(p, angles, spp=spp, seed=seed + 2 * k)
         pb = fm.render_profiles(p, angles, spp=spp, seed=seed + 2 * k + 1)
