@@ -106,6 +106,7 @@ from estimate.loss import (
     calibrated_scale,
     chi2,
     decorrelated_loss,
+    decorrelated_loss_se,
     log_loss,
     profile_additive,
     profile_scale,
@@ -638,16 +639,8 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
             pa, pb = pa + shift, pb + shift
         sc = fixed_scale if fixed_scale is not None else profile_scale(meas, 0.5 * (pa + pb), valid,
                                                                         reference_delta_rel, guess=scale_guess)
-        m = meas / sc
-        m_max = float(np.max(np.where(valid, m, -np.inf)))
-        losses, ses = [], []
-        for q in delta_nodes:
-            d = max(q * m_max, 1e-30)
-            mm = np.log(np.clip(m, -0.5 * d, None) + d)
-            prod = ((mm - np.log(np.clip(pa, 0.0, None) + d)) * (mm - np.log(np.clip(pb, 0.0, None) + d)))[valid]
-            losses.append(float(np.mean(prod)))
-            ses.append(float(np.std(prod) / math.sqrt(max(1, prod.size))))
-        return p, pa, pb, sc, (float(np.mean(losses)), float(np.mean(ses)))
+        per_delta = np.array([decorrelated_loss_se(meas, pa, pb, valid, sc, q) for q in delta_nodes])
+        return p, pa, pb, sc, (float(per_delta[:, 0].mean()), float(per_delta[:, 1].mean()))
 
     if steps <= 0:
         return dict(params), [], None

@@ -97,13 +97,22 @@ def decorrelated_loss(measured: np.ndarray, model_a: np.ndarray, model_b: np.nda
     sigma_t and the albedo, and on the one-channel benchmark the plain loss at 1024 spp put
     a fit 19 % above the truth where this one put them level.
     """
+    return decorrelated_loss_se(measured, model_a, model_b, valid, scale, delta_rel)[0]
+
+
+def decorrelated_loss_se(measured: np.ndarray, model_a: np.ndarray, model_b: np.ndarray, valid: np.ndarray,
+                         scale: float, delta_rel: float) -> tuple[float, float]:
+    """`decorrelated_loss` and its standard error, std(r_A r_B) / sqrt(n) over the valid
+    pixels (taken as independent)."""
     m = measured / scale
     delta = max(delta_rel * float(np.max(np.where(valid, m, -np.inf))), 1e-30)
     n = max(1, int(valid.sum()))
     lm = np.log(np.clip(m, -0.5 * delta, None) + delta)
     ra = np.where(valid, lm - np.log(np.clip(model_a, 0.0, None) + delta), 0.0)
     rb = np.where(valid, lm - np.log(np.clip(model_b, 0.0, None) + delta), 0.0)
-    return float(np.sum(ra * rb) / n)
+    prod = (ra * rb)[valid]
+    se = float(np.std(prod) / math.sqrt(n)) if prod.size else 0.0
+    return float(np.sum(ra * rb) / n), se
 
 
 def profile_scale(measured: np.ndarray, model: np.ndarray, valid: np.ndarray, delta_rel: float,
