@@ -53,11 +53,13 @@
    lags the last iterate by half the window's drift (session 16: 1.3-2.9 % of sigma_t on
    the benchmark);
 5. Gauss-Newton polish (`_gn_polish`, `polish_steps` = 4): full, unshrunk Gauss-Newton steps
-   at `final_spp` (two 1024-spp renders per step and a new 1024-spp Jacobian), which walk
-   down the valley several % of sigma_t per step where the iterations crawled (benchmark,
-   session 16: from 2.38 to 1.98 in four steps; truth 2.0). It replaced the iterations' 512-spp
-   stage in the time budget. Near the optimum its steps scatter by ~3 % of sigma_t (the
-   gradient's noise at 2 x 1024 spp along the valley), which sets the fit's accuracy. An optional
+   at `final_spp` (two 1024-spp renders per step and a new matrix from the cross product of
+   two 512-spp Jacobians, `polish_cross`), which walk down the valley several % of sigma_t
+   per step where the iterations crawled (benchmark, session 16: from 2.38 to 1.98 in four
+   steps; truth 2.0). It replaced the iterations' 512-spp stage in the time budget. Near
+   the optimum its steps scatter by 3-5 % of sigma_t (the gradient's noise at 2 x 1024 spp
+   along the valley), so the result is the mean of the points after steps 2-4
+   (`polish_average_from`, `_polish_average`). An optional
    Levenberg-Marquardt polish (`lm_iterations`, off by default) on the log residuals at one
    fixed seed follows: with common random numbers the renders are not smooth in the
    parameters (free flights crossing the slab boundary flip), its finite-difference
@@ -74,9 +76,11 @@
    real errors: the log loss is not the variance-weighted fit the bound describes, and the
    residuals exceed the noise. The standard deviation of the averaged iterates (the stochastic
    optimiser's own spread, `FitResult.optimizer_spread`) is added in quadrature, and so is
-   the last polish step (`FitResult.drift`; without a polish, the iterates' drift): the fit
-   still moved that much at its end. Parameters whose last step exceeds their uncertainty
-   are reported as still drifting.
+   the last polish step (`FitResult.drift`; when the polish's points are averaged, their
+   mean step, with the mean's standard error; without a polish, the iterates' drift): the
+   fit still moved that much at its end. Parameters whose drift exceeds their uncertainty
+   (with averaged polish points: combined with the points' own scatter) are reported as
+   still drifting.
 
 The scale (measured = scale * rendered) is either profiled out per channel
 (`FitSettings.scale = "free"`, the paper's normalisation made cleaner) or taken from the
@@ -150,6 +154,8 @@ class FitSettings:
     adam_iterations: int = 10        # "adam+gn": Adam iterations before the Gauss-Newton steps
     polish_steps: int = 4            # full Gauss-Newton steps at final_spp after the iterations (0: none)
     polish_jacobian_every: int = 1   # polish steps between re-estimates of its Jacobian
+    polish_cross: bool = True        # polish matrix from two half-spp Jacobians' cross product (see _gn_polish)
+    polish_average_from: int = 2     # the result: mean of the points after polish steps >= this (1-based; 0: last point)
     uncertainty_spp: int = 512       # the Jacobian of the uncertainties
     decorrelated: bool = True
     #: solve additive parameters (stray-light offset and slope) exactly at every iteration
@@ -261,7 +267,7 @@ class FitResult:
     #: (`FitSettings.profile_additive`) rather than stepped by the optimiser
     solved: list[str] = field(default_factory=list)
     #: the Gauss-Newton polish after the iterations (`_gn_polish`): per step {loss, loss_new,
-    #: accepted, halvings, step}
+    #: accepted, halvings, step, point (when accepted)}
     polish: list[dict[str, Any]] = field(default_factory=list)
 
     @property
@@ -451,11 +457,39 @@ def _gn_columns(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequenc
     return A
 
 
+#: Smallest generalised eigenvalue of the cross-product matrix against the two Jacobians'
+#: mean's (see _bounded_cross).
+CROSS_FLOOR = 0.5
+
+
+def _bounded_cross(h_cross: np.ndarray, h_mean: np.ndarray, floor: float) -> np.ndarray:
+    """The cross-product Gauss-Newton matrix held between `floor` x and 1 x the matrix of the
+    two Jacobians' mean, in the generalised eigenvalues of one against the other.
+
+    Noise only adds to a Gram matrix, so the noise-free matrix lies below the mean's (the
+    cross product's generalised eigenvalues above 1 are noise). Below, the cross product's
+    weak directions are themselves noisy, and near zero its inverse turned noise into steps
+    that threw sigma_t from 3.45 to 1.8 (truth 3.0) on the fit tests' small session with
+    128-spp halves; `floor` keeps each step within 1 / `floor` x the mean matrix's step
+    (at 0.5 the first steps there ended 2.56-2.91 at three seeds, at 0.25 1.97-2.61, the
+    mean matrix's 3.05-3.08; on the benchmark the cross product's sigma_t step was 1.3x the
+    mean's, session 17).
+    """
+    lam_m, V = np.linalg.eigh(0.5 * (h_mean + h_mean.T))
+    if lam_m.size == 0 or not np.all(np.isfinite(lam_m)) or lam_m[-1] <= 0.0:
+        return h_cross
+    root = V * np.sqrt(np.clip(lam_m, 1e-12 * lam_m[-1], None))       # h_mean = root root^T
+    inv_root = np.linalg.inv(root)
+    lam, U = np.linalg.eigh(inv_root @ (0.5 * (h_cross + h_cross.T)) @ inv_root.T)
+    lam = np.clip(lam, floor, 1.0)
+    return root @ (U * lam) @ U.T @ root.T
+
+
 def _gn_inverse(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequence[Transform], z: np.ndarray,
                 problem: Problem, mean: np.ndarray, dl: float | Sequence[float], m: np.ndarray, profiled_scale: bool,
                 damping: float = 1e-3, eig_floor: float | None = None,
                 profiled_columns: Sequence[np.ndarray] = (), smooth_px: float = 0.0,
-                exact: Collection[str] = ()) -> np.ndarray:
+                exact: Collection[str] = (), jac_cross: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
     """Inverse of the Gauss-Newton matrix of the log loss mean(r^2) in the variables z.
 
     `profiled_columns`: d profiles / d p (N, W) of parameters solved at every iteration
@@ -471,8 +505,10 @@ def _gn_inverse(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequenc
     / n, whose expectation is the noise-free matrix, so the steps are that much shorter than
     Newton steps. The cross product was tried as the matrix (session 4, with a trust region
     capping the predicted decrease at the loss): its small eigenvalues are noise, and the
-    fit diverged both times (sigma_t 2 -> 11 and 18). The inflated matrix is kept: it makes
-    the steps short but safe.
+    fit diverged both times (sigma_t 2 -> 11 and 18). The inflated matrix is kept in the
+    iterations: it makes the steps short but safe. The polish after them uses the cross
+    product (`jac_cross`: the second Jacobian's columns B, matrix (A^T B + B^T A) / n), where
+    the smoothing and higher spp keep its noise small; see `_gn_polish`.
 
     `dl` (absolute delta) may be several values: the matrix is then the mean of theirs, the
     Gauss-Newton matrix of the loss averaged over delta. The fit draws delta at random per
@@ -496,9 +532,18 @@ def _gn_inverse(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequenc
     n = max(1, int(problem.valid.sum()))
     dls = [float(dl)] if np.isscalar(dl) else [float(x) for x in dl]  # type: ignore[arg-type]
     H = np.zeros((len(names), len(names)))
+    H_mean = np.zeros((len(names), len(names)))
     for d in dls:
         A = _gn_columns(jac, names, tr, z, problem, mean, d, m, profiled_scale, profiled_columns, smooth_px, exact)
-        H += 2.0 * (A.T @ A) / n / len(dls)
+        if jac_cross is None:
+            H += 2.0 * (A.T @ A) / n / len(dls)
+        else:
+            B = _gn_columns(jac_cross, names, tr, z, problem, mean, d, m, profiled_scale, profiled_columns,
+                            smooth_px, exact)
+            H += (A.T @ B + B.T @ A) / n / len(dls)
+            H_mean += 0.5 * ((A + B).T @ (A + B)) / n / len(dls)
+    if jac_cross is not None:
+        H = _bounded_cross(H, H_mean, CROSS_FLOOR)
     H = H + damping * np.diag(np.diag(H)) + 1e-12 * np.eye(len(names))
     # Eigenvalue floor: directions the data barely constrain (two-term HG with the
     # forward lobe's weight -> 1 leaves g_backward free; albedo -> 1) have eigenvalues near
@@ -588,12 +633,46 @@ def _lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], nam
     return p, losses
 
 
+def _polish_average(accepted: Sequence[Mapping[str, Any]], names: Sequence[str], tr: Sequence[Transform],
+                    start: int) -> tuple[dict[str, float], dict[str, float], dict[str, float],
+                                         dict[str, float]] | None:
+    """The mean of the points after the accepted polish steps `start`, `start` + 1, ...
+    (1-based; stepped parameters averaged in z, solved additive ones as they are), the mean
+    step between those points (x units: the drift left at the end), the points' standard
+    deviation and the mean's standard error (x units). None when fewer than two points
+    qualify (or `start` <= 0).
+
+    Why: near the optimum each full Gauss-Newton step lands at the optimum plus the
+    gradient's Monte Carlo noise (about 3-5 % of sigma_t on the benchmark at 2 x 1024 spp),
+    so successive points are nearly independent draws about it and their mean is closer.
+    The first step, from the iterations' end, is still a move and is left out by default.
+    """
+    if start <= 0:
+        return None
+    pts = [dict(e["point"]) for e in accepted[start - 1:] if e.get("point")]
+    if len(pts) < 2:
+        return None
+    keys = [k for k in pts[0] if all(k in q for q in pts)]
+    by_name = dict(zip(names, tr))
+    mean: dict[str, float] = {}
+    sd: dict[str, float] = {}
+    for k in keys:
+        xs = np.array([q[k] for q in pts], dtype=float)
+        t = by_name.get(k)
+        mean[k] = t.to_x(float(np.mean([t.to_z(float(x)) for x in xs]))) if t is not None else float(np.mean(xs))
+        if k in names:
+            sd[k] = float(np.std(xs, ddof=1))
+    drift = {k: float((pts[-1][k] - pts[0][k]) / (len(pts) - 1)) for k in keys if k in names}
+    return mean, drift, sd, {k: v / math.sqrt(len(pts)) for k, v in sd.items()}
+
+
 def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], names: Sequence[str],
                tr: Sequence[Transform], *, steps: int, spp: int, jacobian_spp: int, seed: int,
                delta_nodes: Sequence[float], reference_delta_rel: float, fixed_scale: float | None,
                solved: Sequence[str] = (), solved_columns: Mapping[str, np.ndarray] | None = None,
                smooth_px: float = 3.0, exact: Collection[str] = (), caps: np.ndarray | None = None,
-               scale_guess: float | None = None, jacobian_every: int = 1, gross: float = 1.0
+               scale_guess: float | None = None, jacobian_every: int = 1, gross: float = 1.0,
+               cross: bool = False
                ) -> tuple[dict[str, float], list[dict[str, Any]], tuple[np.ndarray, np.ndarray] | None]:
     """Full Gauss-Newton steps on the delta-averaged log loss at high samples per pixel, from
     the end of the stochastic iterations.
@@ -602,6 +681,16 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
     `_gn_inverse`, averaged over `delta_nodes`, relative deltas; re-estimated every
     `jacobian_every` steps) and the gradient 2/n A^T r from the mean log residual of two
     renders at `spp` with new seeds; the step -H^-1 g is capped per component at `caps` (z).
+    With `cross`, two independent Jacobians at `jacobian_spp` / 2 (the same cost) give the
+    matrix as their cross product (A1^T A2 + A2^T A1) / n, whose expectation lacks the
+    Monte Carlo noise's Gram matrix that inflates A^T A (their mean gives the gradient's
+    columns). The inflation is largest along the sigma_t / phase valley, where the true
+    curvature is smallest, so one Jacobian's steps fall short there: from the benchmark's
+    iteration end (sigma_t 2.39, truth 2.0), four steps ended at 2.08, 2.09 and 2.10 at three
+    seeds with one Jacobian and at 1.96, 2.00 and 2.01 with the cross product (session 17;
+    its first step goes most of the way, 2.39 -> 1.88-2.06). In the stochastic iterations
+    the cross product made the fit diverge (session 4, 256 spp, unsmoothed; `_gn_inverse`);
+    here the 3-px smoothing, the 512-spp halves, the caps and the acceptance test hold it.
     A step is halved (twice at most; then the polish stops) only when the loss without
     render noise (mean r_A r_B over the deltas) of the new point's renders rises by more
     than `gross` x the polish's starting loss plus 3 standard errors of the difference
@@ -619,8 +708,9 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
     down it (benchmark, session 16, from the fit's end at sigma_t 2.226: 2.157, 2.105,
     2.065 in three steps; truth 2.0).
 
-    Returns the parameters, per step {loss, loss_new, accepted, halvings, step (x units)}, and the
-    last pair of renders (A, B; with the solved additive terms) at the returned parameters.
+    Returns the parameters, per step {loss, loss_new, accepted, halvings, step (x units), and
+    when accepted, point: the stepped and solved parameters after it}, and the last pair of
+    renders (A, B; with the solved additive terms) at the returned parameters.
     """
     valid, meas, angles = problem.valid, problem.measured, problem.angles_deg
     n_v = max(1, int(valid.sum()))
@@ -651,7 +741,14 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
     for k in range(steps):
         z = np.array([t.to_z(p[n]) for n, t in zip(names, tr)])
         if k % jacobian_every == 0:
-            jac = _gn_jacobian(fm, problem, p, names, spp=jacobian_spp, seed=seed + 1000 + k)
+            if cross:
+                half = max(1, jacobian_spp // 2)
+                jac_a = _gn_jacobian(fm, problem, p, names, spp=half, seed=seed + 1000 + k)
+                jac_b = _gn_jacobian(fm, problem, p, names, spp=half, seed=seed + 5000 + k)
+                jac = {n: 0.5 * (jac_a[n] + jac_b[n]) for n in names}
+            else:
+                jac = _gn_jacobian(fm, problem, p, names, spp=jacobian_spp, seed=seed + 1000 + k)
+                jac_a, jac_b = jac, None
         m = meas / sc
         m_max = float(np.max(np.where(valid, m, -np.inf)))
         mean = 0.5 * (pa + pb)
@@ -662,8 +759,8 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
             mm = np.log(np.clip(m, -0.5 * d, None) + d)
             r = 0.5 * sum(np.where(valid, mm - np.log(np.clip(q, 0.0, None) + d), 0.0) for q in (pa, pb))
             g += 2.0 * (A.T @ r.ravel()) / n_v / len(dls)
-        h_inv = _gn_inverse(jac, names, tr, z, problem, mean, dls, m, fixed_scale is None,
-                            profiled_columns=cols_out, smooth_px=smooth_px, exact=exact)
+        h_inv = _gn_inverse(jac_a, names, tr, z, problem, mean, dls, m, fixed_scale is None,
+                            profiled_columns=cols_out, smooth_px=smooth_px, exact=exact, jac_cross=jac_b)
         dz = -(h_inv @ g)
         if caps is not None:
             dz = np.clip(dz, -caps, caps)
@@ -685,7 +782,8 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
             # loss plus 3 standard errors of the difference: the estimator scatters by about
             # the loss itself near the optimum, and can be negative there.
             if loss_n - loss <= gross * max(loss_start, 0.0) + 3.0 * math.hypot(se, se_n):
-                entry.update(accepted=True, step={n: float(p_new[n] - p[n]) for n in names})
+                entry.update(accepted=True, step={n: float(p_new[n] - p[n]) for n in names},
+                             point={n: float(v) for n, v in p_new.items() if n in names or n in solved})
                 p, pa, pb, sc, loss, se = p_new, pa_n, pb_n, sc_n, loss_n, se_n
                 scale_guess = sc
                 break
@@ -1131,13 +1229,20 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
                                    delta_nodes=gn_nodes or [d_ref], reference_delta_rel=d_ref,
                                    fixed_scale=fixed_scale, solved=solved, solved_columns=solved_cols,
                                    smooth_px=st.gn_smooth_px, exact=exact_columns, caps=caps, scale_guess=scale,
-                                   jacobian_every=st.polish_jacobian_every)
+                                   jacobian_every=st.polish_jacobian_every, cross=st.polish_cross)
     # After the polish, the drift is its last step: what the fit still moved by at the end
-    # (and `drifting` those parameters whose last step exceeds their uncertainty).
+    # (and `drifting` those parameters whose last step exceeds their uncertainty); when its
+    # later points are averaged, their mean step and the mean's standard error instead.
     accepted = [e for e in polish if e["accepted"]]
     polished = bool(accepted) and st.uncertainties
+    polish_se: dict[str, float] = {}
+    polish_sd: dict[str, float] = {}
     if accepted:
         drift = {n: float(accepted[-1]["step"][n]) for n in names if n in accepted[-1]["step"]}
+        averaged = _polish_average(accepted, names, tr, st.polish_average_from)
+        if averaged is not None:
+            mean_point, drift, polish_sd, polish_se = averaged
+            final = {**final, **mean_point}
     moving: list[str] = []
     lm_losses: list[float] = []
     if st.lm_iterations > 0:
@@ -1177,10 +1282,12 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             if len(xs) > 2 else np.zeros((len(names), len(names)))
         for i, n in enumerate(names):
             spread[n] = float(math.sqrt(max(it_cov[i, i], 0.0)))
-            unc[n] = math.hypot(unc[n], spread[n])
+            unc[n] = math.hypot(unc[n], spread[n], polish_se.get(n, 0.0))
             # Still moving when the fit stopped: the optimum is at least the drift away.
             if n in drift:
-                if polished and abs(drift[n]) > unc[n]:
+                # Averaged polish points scatter about the optimum: their mean step is a
+                # drift only when it stands out of that scatter, not just of the mean's error.
+                if polished and abs(drift[n]) > math.hypot(unc[n], polish_sd.get(n, 0.0)):
                     moving.append(n)
                 unc[n] = math.hypot(unc[n], drift[n])
         if polished:

@@ -101,9 +101,12 @@ def write_run(run_dir: Path, session_dir: str | os.PathLike[str], fits: Sequence
             # additive parameters solved exactly on every iteration's render, not stepped
             "solved_each_iteration": list(r.solved),
             # Gauss-Newton polish at the final spp after the iterations: per step the loss
-            # without render noise before / after, whether it was kept, and the step
+            # without render noise before / after, whether it was kept, the step and the point
+            # it reached (the result averages the points from FitSettings.polish_average_from)
             "polish": [{"loss": _num(e["loss"]), "loss_new": _num(e["loss_new"]), "accepted": bool(e["accepted"]),
-                        "halvings": int(e.get("halvings", 0)), "step": {k: _num(v) for k, v in e["step"].items()}} for e in r.polish],
+                        "halvings": int(e.get("halvings", 0)), "step": {k: _num(v) for k, v in e["step"].items()},
+                        **({"point": {k: _num(v) for k, v in e["point"].items()}} if e.get("point") else {})}
+                       for e in r.polish],
             "spp_schedule": [list(map(int, x)) for x in r.spp_schedule],
             "start": {k: float(v) for k, v in r.start.items()},
             "angles_deg": [float(a) for a in r.angles_deg],

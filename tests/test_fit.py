@@ -511,6 +511,81 @@ def test_exact_columns_are_not_smoothed():
     assert kept[1, 1] == pytest.approx(smooth[1, 1], rel=1e-9)
 
 
+def test_cross_product_matrix_drops_the_noise_gram_matrix():
+    """Two independent noisy Jacobians: one's A^T A is inflated by the noise's Gram matrix
+    (most where the true curvature is weakest), the cross product of the two is not."""
+    from types import SimpleNamespace
+
+    from estimate.fit import _gn_inverse
+    from estimate.transforms import Transform
+
+    rng = np.random.default_rng(7)
+    n, w = 4, 200
+    x = np.linspace(-3.0, 3.0, w)
+    prof = np.exp(-np.abs(x))[None, :] * np.ones((n, 1))
+    pb = SimpleNamespace(valid=np.ones((n, w), bool))
+    # Two nearly parallel columns: a weak direction, as along the sigma_t / phase valley.
+    true = {"a": prof, "b": prof * (1.0 + 0.05 * x)}
+    lin = [Transform("linear", 0.1, -10, 10)] * 2
+
+    def noisy():
+        return {k: v + 0.05 * prof * rng.standard_normal(v.shape) for k, v in true.items()}
+
+    def h(jac, **kw):
+        return np.linalg.inv(_gn_inverse(jac, ["a", "b"], lin, np.zeros(2), pb, prof, 1e-3, prof, False,
+                                         damping=0.0, eig_floor=1e-12, **kw))
+
+    exact = np.linalg.eigvalsh(h(true))
+    single = np.mean([np.linalg.eigvalsh(h(noisy())) for _ in range(20)], axis=0)
+    cross = np.mean([np.linalg.eigvalsh(h(noisy(), jac_cross=noisy())) for _ in range(20)], axis=0)
+    assert single[0] > 1.5 * exact[0]                       # the weak direction, inflated
+    assert cross[0] == pytest.approx(exact[0], rel=0.15)    # unbiased
+    assert cross[1] == pytest.approx(exact[1], rel=0.02)
+
+
+def test_bounded_cross_keeps_the_matrix_between_floor_and_mean():
+    """The cross-product matrix is held between `floor` x and 1 x the mean's matrix in
+    their generalised eigenvalues; inside those bounds it is left as it is."""
+    from estimate.fit import _bounded_cross
+
+    rng = np.random.default_rng(3)
+    q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    h_mean = q @ np.diag([4.0, 1.0, 0.01]) @ q.T
+    root = q @ np.diag(np.sqrt([4.0, 1.0, 0.01]))
+    for lam, want in (([0.8, 0.6, 0.7], [0.8, 0.6, 0.7]), ([1.7, -0.3, 0.05], [1.0, 0.5, 0.5])):
+        h_cross = root @ np.diag(lam) @ root.T
+        out = _bounded_cross(h_cross, h_mean, 0.5)
+        gen = np.linalg.eigvals(np.linalg.solve(h_mean, out)).real
+        assert sorted(gen) == pytest.approx(sorted(want), abs=1e-9)
+
+
+def test_polish_average_takes_the_later_points_in_z():
+    """The polish's result is the mean of the points after steps `start`..: the stepped
+    parameters averaged in their optimiser variables, solved additive ones as they are, the
+    mean step as the drift and the mean's standard error."""
+    from estimate.fit import _polish_average
+    from estimate.transforms import Transform
+
+    names = ["sigma_t", "phase.b1"]
+    tr = [Transform("log", 0.08), Transform("linear", 0.15, -200, 200)]
+    pts = [{"sigma_t": 2.4, "phase.b1": 2.0, "stray.offset": 0.0},
+           {"sigma_t": 1.9, "phase.b1": 3.1, "stray.offset": 1.0},
+           {"sigma_t": 2.1, "phase.b1": 2.9, "stray.offset": 3.0},
+           {"sigma_t": 2.0, "phase.b1": 3.0, "stray.offset": 2.0}]
+    acc = [{"accepted": True, "point": p} for p in pts]
+    mean, drift, sd, se = _polish_average(acc, names, tr, 2)
+    assert mean["sigma_t"] == pytest.approx(math.exp(np.mean(np.log([1.9, 2.1, 2.0]))))
+    assert mean["phase.b1"] == pytest.approx(3.0)
+    assert mean["stray.offset"] == pytest.approx(2.0)
+    assert drift == pytest.approx({"sigma_t": 0.05, "phase.b1": -0.05})
+    assert sd["sigma_t"] == pytest.approx(np.std([1.9, 2.1, 2.0], ddof=1))
+    assert se["sigma_t"] == pytest.approx(sd["sigma_t"] / math.sqrt(3))
+    assert "stray.offset" not in se and "stray.offset" not in drift
+    # Too few points after `start`, or averaging off: the last point stands.
+    assert _polish_average(acc[:2], names, tr, 2) is None
+    assert _polish_average(acc, names, tr, 0) is None
+
+
 def _polish_setup(problem):
     from estimate.forward import ForwardModel
     from estimate.transforms import transform_for
@@ -522,24 +597,28 @@ def _polish_setup(problem):
     return fm, names, tr, scale
 
 
-def test_gn_polish_walks_towards_the_truth_and_reports_its_steps(problem):
+@pytest.mark.parametrize("cross", [False, True])
+def test_gn_polish_walks_towards_the_truth_and_reports_its_steps(problem, cross):
     """From a start 15 % high in sigma_t, the polish's full Gauss-Newton steps at a fixed,
-    moderate spp bring sigma_t within a third of that and lower the loss without render noise."""
+    moderate spp bring sigma_t within a third of that and lower the loss without render
+    noise, with one Jacobian's matrix or two half-spp Jacobians' cross product."""
     from estimate.fit import _gn_polish
 
     fm, names, tr, scale = _polish_setup(problem)
     start = fm.default_parameters()
     start.update(TRUTH)
     start["sigma_t"] = 3.45
-    out, trace, renders = _gn_polish(fm, problem, start, names, tr, steps=3, spp=256, jacobian_spp=256, seed=5,
-                                     delta_nodes=[0.02, 0.1], reference_delta_rel=0.045, fixed_scale=scale)
+    out, trace, renders = _gn_polish(fm, problem, start, names, tr, steps=3, spp=256, jacobian_spp=512, seed=5,
+                                     delta_nodes=[0.02, 0.1], reference_delta_rel=0.045, fixed_scale=scale,
+                                     cross=cross)
     assert renders is not None and renders[0].shape == problem.measured.shape
     assert trace and trace[0]["accepted"]
     assert abs(out["sigma_t"] - 3.0) < 0.15, out
     kept = [e for e in trace if e["accepted"]]
     assert kept[-1]["loss_new"] < trace[0]["loss"]
-    # Each kept step is what the parameters moved by.
+    # Each kept step is what the parameters moved by, and its point is where it arrived.
     assert sum(e["step"]["sigma_t"] for e in kept) == pytest.approx(out["sigma_t"] - 3.45, abs=1e-9)
+    assert kept[-1]["point"]["sigma_t"] == out["sigma_t"]
 
 
 def test_gn_polish_undoes_a_step_that_makes_the_fit_grossly_worse(problem, monkeypatch):
