@@ -686,9 +686,10 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
     Monte Carlo noise's Gram matrix that inflates A^T A (their mean gives the gradient's
     columns). The inflation is largest along the sigma_t / phase valley, where the true
     curvature is smallest, so one Jacobian's steps fall short there: from the benchmark's
-    iteration end (sigma_t 2.39, truth 2.0), four steps ended at 2.08, 2.09 and 2.10 at three
-    seeds with one Jacobian and at 1.96, 2.00 and 2.01 with the cross product (session 17;
-    its first step goes most of the way, 2.39 -> 1.88-2.06). In the stochastic iterations
+    iteration end (sigma_t 2.39, truth 2.0), four steps ended at 2.01, 2.08 (two seeds), 2.09
+    and 2.10 (two more with 2048-spp gradient renders) with one Jacobian, and at 2.02, 1.97,
+    2.00, 1.96 and 2.01 with the (then unbounded) cross product (session 17; its first step
+    goes most of the way, 2.39 -> 1.88-2.19). In the stochastic iterations
     the cross product made the fit diverge (session 4, 256 spp, unsmoothed; `_gn_inverse`);
     here the 3-px smoothing, the 512-spp halves, the caps and the acceptance test hold it.
     A step is halved (twice at most; then the polish stops) only when the loss without
