@@ -74,7 +74,9 @@ def open_stage(opened, bench, model="SHOT-702", allowed=ALLOWED, twin_opts=None,
 
 @pytest.fixture(params=["SHOT-702", "GSC-01"])
 def make_stage(request, opened, bench_name):
-    return lambda allowed: open_stage(opened, bench_name, request.param, allowed)
+    # A reply timeout ten times the fault tests' 0.05 s: the twin answers at once, but under a
+    # loaded CI (renders beside the tests) its thread can be late; the shared suite tests motion.
+    return lambda allowed: open_stage(opened, bench_name, request.param, allowed, reply_timeout_s=0.5)
 
 
 @pytest.fixture
