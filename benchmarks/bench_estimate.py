@@ -73,7 +73,8 @@ def main() -> int:
                "spp_schedule": r.spp_schedule, "lm_losses": r.lm_losses, "parameters": r.parameters,
                "uncertainties": r.uncertainties, "loss": r.loss, "reduced_chi2": r.reduced_chi2,
                "start": r.start, "loss_curve": r.loss_curve, "gn_trace": r.gn_trace,
-               "drift": r.drift, "still_drifting": r.drifting, "polish": r.polish}
+               "drift": r.drift, "still_drifting": r.drifting, "polish": r.polish,
+               "stage_times_s": r.stage_times_s}
         if truth:
             fs = r.scale if args.scale == "calibrated" else None
             ev = loss_at(pb, args.model, truth, spp=r.settings["final_spp"], fixed_scale=fs)
@@ -96,6 +97,7 @@ def main() -> int:
             if k in out:
                 v = out[k]
                 print(f"{k:<24}{v:.4g}" if isinstance(v, float) else f"{k:<24}{v}")
+        print("stage wall times [s]", r.stage_times_s)
         print("parameters", {k: round(v, 4) for k, v in r.parameters.items()})
         print("uncertainties", {k: round(v, 4) for k, v in r.uncertainties.items()})
         for i, e in enumerate(r.polish):

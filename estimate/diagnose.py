@@ -937,7 +937,7 @@ def _final_fit_start(problem: Any, model: Any, lm: Evaluation, settings: FitSett
     seed = settings.seed + 99_991
     grid, tried = coarse_start(model, problem, start, spp=settings.start_spp, seed=seed, delta_rel=d_ref,
                                fixed=effect, scale=cal.scale)
-    l_grid = min(loss for _, loss in tried)
+    l_grid = next(loss for p, loss in tried if p == grid)   # at start_spp, as l_refit (same seed)
     l_refit = start_loss(model, problem, start, settings.start_spp, seed, d_ref, cal.scale)
     info = {"from": "refit" if l_refit <= l_grid else "coarse grid", "radiance_factor": k,
             "loss_refit": l_refit, "loss_grid": l_grid}

@@ -269,6 +269,9 @@ class FitResult:
     #: the Gauss-Newton polish after the iterations (`_gn_polish`): per step {loss, loss_new,
     #: accepted, halvings, step, point (when accepted)}
     polish: list[dict[str, Any]] = field(default_factory=list)
+    #: wall seconds per stage: start (coarse search), iterations, polish, evaluation,
+    #: uncertainties (their sum is about `time_s`)
+    stage_times_s: dict[str, float] = field(default_factory=dict)
 
     @property
     def free(self) -> list[str]:
@@ -1027,6 +1030,14 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     """
     st = settings or FitSettings()
     t0 = time.monotonic()
+    stage_times: dict[str, float] = {}
+    t_stage = t0
+
+    def stage_done(name: str) -> None:
+        nonlocal t_stage
+        now = time.monotonic()
+        stage_times[name] = stage_times.get(name, 0.0) + now - t_stage
+        t_stage = now
     phase = model_phase(model)
     fm = forward or ForwardModel(problem.geometry, problem.beam, phase=phase, extensions=extensions,
                                  profile_y_shape=problem.y_shapes())
@@ -1051,6 +1062,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         init, _ = coarse_start(fm, problem, b, spp=st.start_spp, seed=st.seed + 99_991, delta_rel=d_ref,
                                fixed=fixed, scale=fixed_scale)
     init = fm.validate(init)
+    stage_done("start")
     names = [n for n in fm.parameter_names if n not in fixed]
     peak = None
     radiance_valued = [n for n in names if fm.specs[n].unit.startswith("radiance")]
@@ -1222,6 +1234,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         x_end = _window_estimate(x_history[-n_avg:], trend)
         sol.update({n: float(x_end[names.index(n)]) for n in solved})
     final = params_of(z_final)
+    stage_done("iterations")
     polish: list[dict[str, Any]] = []
     if st.polish_steps > 0 and stepped:
         caps = 5.0 * adam.lr / st.lr_scale     # the iterations' step cap
@@ -1250,9 +1263,11 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         final, lm_losses = _lm_polish(fm, problem, final, stepped, tr, spp=st.lm_spp,
                                       seed=st.seed * 100_003 + 40_000, delta_rel=d_ref, iterations=st.lm_iterations,
                                       fixed_scale=fixed_scale)
+    stage_done("polish")
     ev = evaluate(fm, problem, final, spp=st.final_spp, seed=st.seed * 100_003 + 50_000, delta_rel=d_ref,
                   fixed_scale=fixed_scale, additive=solved)
     final = ev["parameters"]
+    stage_done("evaluation")
     n_valid = int(problem.valid.sum())
     dof = max(1, n_valid - len(names) - (1 if fixed_scale is None else 0))
     red = ev["chi2"] / dof
@@ -1294,6 +1309,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         if polished:
             drifting = moving
         covariance = _covariance(names, unc, sandwich_cov, it_cov)
+        stage_done("uncertainties")
     return FitResult(
         channel=problem.channel, model=phase, extensions=list(fm.extensions), parameters=final,
         uncertainties=unc, fixed=fixed, scale=ev["scale"], scale_uncertainty=s_unc, loss=ev["loss"],
@@ -1304,7 +1320,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         model_variance=ev["model_variance"], start=dict(init), settings=st.to_dict(), scale_mode=st.scale,
         scale_calibration=cal.to_dict() if cal is not None else None, fisher_uncertainties=fisher,
         optimizer_spread=spread, gn_trace=gn_trace, covariance=covariance, drift=drift, drifting=drifting,
-        solved=list(solved), polish=polish)
+        solved=list(solved), polish=polish, stage_times_s={k: round(v, 2) for k, v in stage_times.items()})
 
 
 def loss_at(problem: Problem, model: str, params: Mapping[str, float], *, extensions: Sequence[str] = (),

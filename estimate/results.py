@@ -96,6 +96,8 @@ def write_run(run_dir: Path, session_dir: str | os.PathLike[str], fits: Sequence
             "loss": float(r.loss), "loss_unbiased": _num(r.loss_unbiased), "delta_rel": float(r.delta_rel),
             "chi2": float(r.chi2), "dof": int(r.dof), "reduced_chi2": float(r.reduced_chi2),
             "iterations": int(r.iterations), "time_s": float(r.time_s), "stop_reason": r.stop_reason,
+            # wall seconds per stage: start (coarse search), iterations, polish, evaluation, uncertainties
+            "stage_times_s": {k: float(v) for k, v in r.stage_times_s.items()},
             # parameters still moving when the fit stopped (result biased towards the start)
             "still_drifting": list(r.drifting), "drift": {k: _num(v) for k, v in r.drift.items()},
             # additive parameters solved exactly on every iteration's render, not stepped

@@ -22,7 +22,7 @@ def session(tmp_path_factory):
 
 def test_json_shape_and_runs_never_overwritten(session, capsys):
     argv = ["estimate", str(session), "--channels", "g", "--columns", "32", "--max-iterations", "4",
-            "--spp-max", "128", "--json"]
+            "--spp-max", "128", "--polish-steps", "2", "--json"]
     assert main(argv) == 0
     out = json.loads(capsys.readouterr().out)
     (run,) = out["runs"]
@@ -42,6 +42,14 @@ def test_json_shape_and_runs_never_overwritten(session, capsys):
     assert cov["sigma_t"]["sigma_t"] == pytest.approx(ch["uncertainties"]["sigma_t"] ** 2)
     assert cov["sigma_t"]["albedo"] == pytest.approx(cov["albedo"]["sigma_t"])
     assert doc["format"] == "rig-estimate/1" and doc["channels"]["g"]["iterations"] == 4
+    # The budget flags: two polish steps; the final evaluation at 2 x --spp-max, and the
+    # uncertainties' Jacobian (512 by default) no finer than that.
+    fit = doc["settings"]["fit"]
+    assert len(doc["channels"]["g"]["polish"]) == 2 and fit["polish_steps"] == 2
+    assert fit["final_spp"] == 256 and fit["uncertainty_spp"] == 256
+    stages = doc["channels"]["g"]["stage_times_s"]
+    assert list(stages) == ["start", "iterations", "polish", "evaluation", "uncertainties"]
+    assert 0 < sum(stages.values()) <= doc["channels"]["g"]["time_s"] + 0.05   # rounded to 0.01 s each
     # Default: the calibrated scale (beam power x pixel area x the lens's collection solid angle).
     assert doc["settings"]["scale"] == "calibrated" and doc["settings"]["fit"]["scale"] == "calibrated"
     assert doc["channels"]["g"]["scale"] == pytest.approx(2e5)
@@ -60,6 +68,8 @@ def test_json_shape_and_runs_never_overwritten(session, capsys):
 @pytest.mark.parametrize("extra, message", [
     (["--channels", "r"], "a01_r (not captured)"),
     (["--channels", "x"], "unknown channel 'x'"),
+    (["--polish-steps", "-1"], "--polish-steps -1: use 0..20"),
+    (["--spp-max", "0"], "--spp-max 0: use a positive number"),
 ])
 def test_bad_input_one_line_exit_2(session, capsys, extra, message):
     assert main(["estimate", str(session), "--max-iterations", "1", *extra]) == 2

@@ -362,22 +362,28 @@ def test_coarse_start_searches_phase_and_material_jointly():
     """On a toy model where a forward shape is compensated by sigma_t (the profile depends
     on sigma_t (1 - g)), a sequential search from the middle shape stops at the wrong
     (sigma_t, g); the joint grid finds the true grid point. Fixed parameters stay."""
-    from estimate.start import ALBEDO_GRID, SIGMA_GRID, coarse_start
+    from estimate.start import ALBEDO_GRID, RESCORED, SIGMA_GRID, coarse_start
 
     x = np.linspace(0.0, 2.0, 40)
+
+    calls: list[int] = []
 
     class Toy:
         phase = "hg"
 
         def render_profiles(self, p, angles, *, spp, seed):
+            calls.append(spp)
             return (p["albedo"] * np.exp(-x * p["sigma_t"] * (1.0 - p["phase.g"])))[None, :]
 
     truth = {"sigma_t": SIGMA_GRID[7], "albedo": ALBEDO_GRID[2], "phase.g": 0.2}
     meas = Toy().render_profiles(truth, None, spp=0, seed=0)
     pb = _toy_problem(x, meas)
-    best, tried = coarse_start(Toy(), pb, {"phase.g": 0.5}, scale=1.0)   # type: ignore[arg-type]
+    calls.clear()
+    best, tried = coarse_start(Toy(), pb, {"phase.g": 0.5}, scale=1.0, spp=32)   # type: ignore[arg-type]
     assert len(tried) == 4 * len(SIGMA_GRID) * len(ALBEDO_GRID)
     assert best == pytest.approx(truth)
+    # every candidate screened at a quarter of the samples, the best few scored again
+    assert calls.count(8) == len(tried) and calls.count(32) == RESCORED and len(calls) == len(tried) + RESCORED
     best, tried = coarse_start(Toy(), pb, {"phase.g": 0.5}, scale=1.0, fixed={"phase.g": 0.5})   # type: ignore[arg-type]
     assert best["phase.g"] == 0.5 and len(tried) == len(SIGMA_GRID) * len(ALBEDO_GRID)
 

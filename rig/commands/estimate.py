@@ -36,7 +36,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--allow-partial", action="store_true", help="fit the stacks present when some are missing")
     p.add_argument("--max-iterations", type=int, default=None, help="optimiser iterations at most (80: 10 Adam, then Gauss-Newton)")
     p.add_argument("--spp-max", type=int, default=None, help="largest samples per pixel of the optimiser's iterations (256); with it set, the "
-                   "Gauss-Newton polish and the final evaluation use twice that (else 1024)")
+                   "Gauss-Newton polish and the final evaluation use twice that (else 1024) and the uncertainties at most that")
+    p.add_argument("--polish-steps", type=int, default=None,
+                   help="full Gauss-Newton steps at the final spp after the iterations (4; the result averages the "
+                        "points after steps 2-4); 0: none, fewer for a quicker look")
     p.add_argument("--seed", type=int, default=0, help="random seed (renders, delta draws)")
     p.add_argument("--scale", choices=("calibrated", "free"), default="calibrated",
                    help="measured/rendered intensity scale: from the calibrated beam power and the lens's "
@@ -64,6 +67,10 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--degree {args.degree}: use 0..12")
     if args.max_iterations is not None and args.max_iterations < 1:
         raise UsageError("--max-iterations must be >= 1")
+    if args.polish_steps is not None and not 0 <= args.polish_steps <= 20:
+        raise UsageError(f"--polish-steps {args.polish_steps}: use 0..20")
+    if args.spp_max is not None and args.spp_max < 1:
+        raise UsageError(f"--spp-max {args.spp_max}: use a positive number of samples per pixel")
     if args.diagnose and importlib.util.find_spec("estimate.diagnose") is None:
         raise UsageError("--diagnose needs estimate.diagnose, which this installation does not have")
     available = session_channels(session)
@@ -81,9 +88,14 @@ def run(args: argparse.Namespace) -> int:
     settings = FitSettings(seed=args.seed, scale=args.scale)
     if args.max_iterations is not None:
         settings.max_iterations = args.max_iterations
+    if args.polish_steps is not None:
+        settings.polish_steps = args.polish_steps
     if args.spp_max is not None:
         settings.spp_max = max(settings.spp_start, args.spp_max)
         settings.lm_spp = settings.final_spp = 2 * settings.spp_max
+        # A budget, not only the iterations': the uncertainties' Jacobian (512 spp by
+        # default) never uses more samples than the final evaluation.
+        settings.uncertainty_spp = min(settings.uncertainty_spp, settings.final_spp)
     out: dict[str, Any] = {"session": str(session), "runs": []}
     for m in models:
         phase = model_phase(m, args.degree)
