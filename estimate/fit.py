@@ -59,7 +59,10 @@
    steps; truth 2.0). It replaced the iterations' 512-spp stage in the time budget. Near
    the optimum its steps scatter by 3-5 % of sigma_t (the gradient's noise at 2 x 1024 spp
    along the valley), so the result is the mean of the points after steps 2-4
-   (`polish_average_from`, `_polish_average`). An optional
+   (`polish_average_from`, `_polish_average`). Each step's chi^2 against its own render
+   noise (`step_chi2`) tells a move from that scatter; while any of the last three is a
+   move (above the 1 % quantile, `polish_continue_p`) the polish goes on, up to
+   `polish_max_steps` (2 x `polish_steps`), and averages its last three points. An optional
    Levenberg-Marquardt polish (`lm_iterations`, off by default) on the log residuals at one
    fixed seed follows: with common random numbers the renders are not smooth in the
    parameters (free flights crossing the slab boundary flip), its finite-difference
@@ -101,6 +104,7 @@ from typing import Any
 
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
+from scipy.stats import chi2 as chi2_dist
 
 from estimate.errors import ModelParameterError
 from estimate.forward import ForwardModel
@@ -156,6 +160,8 @@ class FitSettings:
     polish_jacobian_every: int = 1   # polish steps between re-estimates of its Jacobian
     polish_cross: bool = True        # polish matrix from two half-spp Jacobians' cross product (see _gn_polish)
     polish_average_from: int = 2     # the result: mean of the points after polish steps >= this (1-based; 0: last point)
+    polish_max_steps: int | None = None   # polish steps in all while its last points still walk (None: 2 x polish_steps)
+    polish_continue_p: float = 0.01  # a step is still a move when its noise chi^2 exceeds this upper quantile
     uncertainty_spp: int = 512       # the Jacobian of the uncertainties
     decorrelated: bool = True
     #: solve additive parameters (stray-light offset and slope) exactly at every iteration
@@ -191,6 +197,9 @@ class FitSettings:
             if f.name == "time_limit_s":
                 if v is not None and not (_finite_number(v) and v > 0):
                     raise bad("a positive number of seconds or null")
+            elif f.name == "polish_max_steps":
+                if v is not None and not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
+                    raise bad("a whole number >= 0 or null")
             elif f.name == "delta_range":
                 if not (isinstance(v, list | tuple) and len(v) == 2 and all(_finite_number(x) and x > 0 for x in v)
                         and v[0] <= v[1]):
@@ -203,6 +212,10 @@ class FitSettings:
                 least = 0 if f.name in ("seed", "lm_iterations", "adam_iterations", "gn_delta_nodes", "polish_steps") else 1
                 if not (isinstance(v, int) and not isinstance(v, bool)) or v < least:
                     raise bad(f"a whole number >= {least}")
+            elif f.name == "polish_continue_p":
+                if not (_finite_number(v) and 0 < v < 1):
+                    raise bad("a probability between 0 and 1")
+                v = float(v)
             elif f.name == "gn_smooth_px":
                 if not (_finite_number(v) and v >= 0):
                     raise bad("a number of pixels >= 0 (0: no smoothing)")
@@ -669,13 +682,23 @@ def _polish_average(accepted: Sequence[Mapping[str, Any]], names: Sequence[str],
     return mean, drift, sd, {k: v / math.sqrt(len(pts)) for k, v in sd.items()}
 
 
+def _average_from(n_accepted: int, planned: int, average_from: int) -> int:
+    """The first polish point to average (1-based; 0: none): `average_from`, or, for a polish
+    that went on past its `planned` steps (still walking), as many of its last points as the
+    planned ones would have averaged."""
+    if average_from > 0 and n_accepted > planned:
+        return n_accepted - planned + average_from
+    return average_from
+
+
 def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], names: Sequence[str],
                tr: Sequence[Transform], *, steps: int, spp: int, jacobian_spp: int, seed: int,
                delta_nodes: Sequence[float], reference_delta_rel: float, fixed_scale: float | None,
                solved: Sequence[str] = (), solved_columns: Mapping[str, np.ndarray] | None = None,
                smooth_px: float = 3.0, exact: Collection[str] = (), caps: np.ndarray | None = None,
                scale_guess: float | None = None, jacobian_every: int = 1, gross: float = 1.0,
-               cross: bool = False
+               cross: bool = False, max_steps: int | None = None, chi2_continue: float = math.inf,
+               keep_last: int = 3
                ) -> tuple[dict[str, float], list[dict[str, Any]], tuple[np.ndarray, np.ndarray] | None]:
     """Full Gauss-Newton steps on the delta-averaged log loss at high samples per pixel, from
     the end of the stochastic iterations.
@@ -712,9 +735,20 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
     down it (benchmark, session 16, from the fit's end at sigma_t 2.226: 2.157, 2.105,
     2.065 in three steps; truth 2.0).
 
-    Returns the parameters, per step {loss, loss_new, accepted, halvings, step (x units), and
-    when accepted, point: the stepped and solved parameters after it}, and the last pair of
-    renders (A, B; with the solved additive terms) at the returned parameters.
+    Each step's size is tested against its own Monte Carlo noise: `step_chi2` = dz^T C^-1 dz
+    with C = H^-1 S H^-1 the covariance of the step from the gradient's render noise (S from
+    each pixel's two-render difference (r_A - r_B) / 2, pixels taken as independent). At the
+    optimum a step is that noise alone and its chi^2 is about the number of parameters; a
+    step well above it is still a move. While the last `keep_last` accepted steps are not
+    all below `chi2_continue`, the polish goes on past `steps`, up to `max_steps` in all, so
+    the points that `_polish_average` keeps have stopped walking (the benchmark at seed 3,
+    session 17: b2 -0.72 -> -0.56 -> -0.24 -> +0.40 in four steps, truth 1.0, and sigma_t 6 %
+    high from their mean).
+
+    Returns the parameters, per step {loss, loss_new, accepted, halvings, step (x units),
+    step_chi2 (of the full step, before caps and halvings), and when accepted, point: the
+    stepped and solved parameters after it}, and the last pair of renders (A, B; with the
+    solved additive terms) at the returned parameters.
     """
     valid, meas, angles = problem.valid, problem.measured, problem.angles_deg
     n_v = max(1, int(valid.sum()))
@@ -738,11 +772,16 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
 
     if steps <= 0:
         return dict(params), [], None
+    max_steps = steps if max_steps is None else max(steps, max_steps)
     p, pa, pb, sc, (loss, se) = state(params, 0)
     loss_start = loss
     trace: list[dict[str, Any]] = []
     jac: dict[str, np.ndarray] = {}
-    for k in range(steps):
+    for k in range(max_steps):
+        if k >= steps:
+            recent = [e for e in trace if e["accepted"]][-max(1, keep_last):]
+            if all(e["step_chi2"] <= chi2_continue for e in recent):
+                break
         z = np.array([t.to_z(p[n]) for n, t in zip(names, tr)])
         if k % jacobian_every == 0:
             if cross:
@@ -758,18 +797,24 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
         mean = 0.5 * (pa + pb)
         dls = [max(q * m_max, 1e-30) for q in delta_nodes]
         g = np.zeros(len(names))
+        # Per pixel, the gradient's share of the renders' noise: one draw of it from the two
+        # renders' difference (the same noise drives every delta node, so they add up first).
+        u = np.zeros((meas.size, len(names)))
         for d in dls:
             A = _gn_columns(jac, names, tr, z, problem, mean, d, m, fixed_scale is None, cols_out, smooth_px, exact)
             mm = np.log(np.clip(m, -0.5 * d, None) + d)
-            r = 0.5 * sum(np.where(valid, mm - np.log(np.clip(q, 0.0, None) + d), 0.0) for q in (pa, pb))
-            g += 2.0 * (A.T @ r.ravel()) / n_v / len(dls)
+            ra, rb = (np.where(valid, mm - np.log(np.clip(q, 0.0, None) + d), 0.0) for q in (pa, pb))
+            g += 2.0 * (A.T @ (0.5 * (ra + rb)).ravel()) / n_v / len(dls)
+            u += 2.0 * A * (0.5 * (ra - rb)).ravel()[:, None] / n_v / len(dls)
         h_inv = _gn_inverse(jac_a, names, tr, z, problem, mean, dls, m, fixed_scale is None,
                             profiled_columns=cols_out, smooth_px=smooth_px, exact=exact, jac_cross=jac_b)
         dz = -(h_inv @ g)
+        c_dz = h_inv @ (u.T @ u) @ h_inv.T
+        step_chi2 = float(dz @ np.linalg.pinv(c_dz, rcond=1e-10, hermitian=True) @ dz)
         if caps is not None:
             dz = np.clip(dz, -caps, caps)
         entry: dict[str, Any] = {"loss": loss, "loss_new": float("nan"), "accepted": False, "halvings": 0,
-                                 "step": {}}
+                                 "step": {}, "step_chi2": step_chi2}
         trace.append(entry)
         for halving in range(3):
             z_new = np.array([t.clamp_z(float(zz + d_)) for t, zz, d_ in zip(tr, z, dz)])
@@ -1243,7 +1288,12 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
                                    delta_nodes=gn_nodes or [d_ref], reference_delta_rel=d_ref,
                                    fixed_scale=fixed_scale, solved=solved, solved_columns=solved_cols,
                                    smooth_px=st.gn_smooth_px, exact=exact_columns, caps=caps, scale_guess=scale,
-                                   jacobian_every=st.polish_jacobian_every, cross=st.polish_cross)
+                                   jacobian_every=st.polish_jacobian_every, cross=st.polish_cross,
+                                   max_steps=2 * st.polish_steps if st.polish_max_steps is None
+                                   else st.polish_max_steps,
+                                   chi2_continue=float(chi2_dist.isf(st.polish_continue_p, len(stepped))),
+                                   keep_last=max(1, st.polish_steps - st.polish_average_from + 1)
+                                   if st.polish_average_from > 0 else 1)
     # After the polish, the drift is its last step: what the fit still moved by at the end
     # (and `drifting` those parameters whose last step exceeds their uncertainty); when its
     # later points are averaged, their mean step and the mean's standard error instead.
@@ -1253,7 +1303,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     polish_sd: dict[str, float] = {}
     if accepted:
         drift = {n: float(accepted[-1]["step"][n]) for n in names if n in accepted[-1]["step"]}
-        averaged = _polish_average(accepted, names, tr, st.polish_average_from)
+        averaged = _polish_average(accepted, names, tr,
+                                   _average_from(len(accepted), st.polish_steps, st.polish_average_from))
         if averaged is not None:
             mean_point, drift, polish_sd, polish_se = averaged
             final = {**final, **mean_point}

@@ -104,9 +104,12 @@ def write_run(run_dir: Path, session_dir: str | os.PathLike[str], fits: Sequence
             "solved_each_iteration": list(r.solved),
             # Gauss-Newton polish at the final spp after the iterations: per step the loss
             # without render noise before / after, whether it was kept, the step and the point
-            # it reached (the result averages the points from FitSettings.polish_average_from)
+            # it reached, and the step's chi^2 against its own render noise (about the number
+            # of parameters when it is noise alone; the polish goes on past its planned steps
+            # while one of its last points is larger; the result averages the last points)
             "polish": [{"loss": _num(e["loss"]), "loss_new": _num(e["loss_new"]), "accepted": bool(e["accepted"]),
                         "halvings": int(e.get("halvings", 0)), "step": {k: _num(v) for k, v in e["step"].items()},
+                        "step_chi2": _num(e.get("step_chi2", float("nan"))),
                         **({"point": {k: _num(v) for k, v in e["point"].items()}} if e.get("point") else {})}
                        for e in r.polish],
             "spp_schedule": [list(map(int, x)) for x in r.spp_schedule],

@@ -13,7 +13,6 @@ import argparse
 import json
 from pathlib import Path
 
-
 from rig import api
 
 
@@ -32,7 +31,7 @@ def main() -> None:
     a.out.mkdir(parents=True, exist_ok=False)
     sim: bool | Path = cheap_world(a.out) if a.quick else True
     angles, filters = (4, "g") if a.quick else (10, "rgb")
-    fit_args = ["--max-iterations", "4", "--spp-max", "128"] if a.quick else []
+    fit_args = ["--max-iterations", "4", "--spp-max", "128", "--polish-steps", "1"] if a.quick else []
 
     cal = api.calibrate_beam(a.out / "calibration", filters=filters, sim=sim)
     print(f"rotation zero {cal['rotation_zero_deg']:.3f} deg, beam centre {cal['center_px']}")

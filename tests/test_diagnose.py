@@ -349,7 +349,9 @@ def test_final_fit_settings_come_from_the_fit_run():
 @pytest.mark.parametrize("key, value", [("max_iterations", "80"), ("max_iterations", 0), ("gn_step", "big"),
                                         ("gn_step", float("nan")), ("decorrelated", "yes"), ("seed", 1.5),
                                         ("delta_range", [0.1]), ("delta_range", [1e-2, -1.0]),
-                                        ("time_limit_s", -5), ("optimizer", 3), ("spp_max", True)])
+                                        ("time_limit_s", -5), ("optimizer", 3), ("spp_max", True),
+                                        ("polish_max_steps", -1), ("polish_max_steps", 2.5),
+                                        ("polish_continue_p", 1.5)])
 def test_hand_edited_fit_settings_are_refused_in_one_line_naming_the_key(key, value):
     recorded = {"fit": {**FitSettings().to_dict(), key: value}}
     with pytest.raises(ModelParameterError) as e:

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy.stats import chi2 as chi2_dist
 from synth_session import make_session
 
 from estimate.errors import DataError
@@ -625,6 +626,38 @@ def test_gn_polish_walks_towards_the_truth_and_reports_its_steps(problem, cross)
     # Each kept step is what the parameters moved by, and its point is where it arrived.
     assert sum(e["step"]["sigma_t"] for e in kept) == pytest.approx(out["sigma_t"] - 3.45, abs=1e-9)
     assert kept[-1]["point"]["sigma_t"] == out["sigma_t"]
+
+
+def test_polish_step_chi2_separates_a_move_from_noise_and_a_walk_goes_on(problem):
+    """A step's chi^2 against its own render noise: far above the parameter count when the
+    polish starts 15 % off in sigma_t, about that count (the noise alone) at the truth. A
+    polish still walking goes on past its planned steps; one at the noise floor does not."""
+    from estimate.fit import _gn_polish
+
+    fm, names, tr, scale = _polish_setup(problem)
+    kw = {"spp": 256, "jacobian_spp": 512, "delta_nodes": [0.02, 0.1], "reference_delta_rel": 0.045,
+          "fixed_scale": scale, "cross": True, "chi2_continue": float(chi2_dist.isf(0.01, len(names))),
+          "keep_last": 1, "max_steps": 3}
+    off = {**fm.default_parameters(), **TRUTH, "sigma_t": 3.45}
+    _, walk, _ = _gn_polish(fm, problem, off, names, tr, steps=1, seed=5, **kw)
+    assert walk[0]["step_chi2"] > 10 * len(names)
+    assert len(walk) > 1                      # went on: its only planned step was a move
+    at = {**fm.default_parameters(), **TRUTH}
+    chi2s = []
+    for seed in (11, 12, 13):
+        _, tr_at, _ = _gn_polish(fm, problem, at, names, tr, steps=1, seed=seed, **kw)
+        chi2s.append(tr_at[0]["step_chi2"])
+        assert len(tr_at) == 1                # noise alone: stopped as planned
+    assert 0.2 * len(names) < np.mean(chi2s) < 4 * len(names)
+
+
+def test_an_extended_polish_averages_as_many_last_points_as_planned():
+    from estimate.fit import _average_from
+
+    assert _average_from(4, 4, 2) == 2          # as planned: points 2, 3, 4
+    assert _average_from(3, 4, 2) == 2          # stopped early (a step undone)
+    assert _average_from(7, 4, 2) == 5          # went on: points 5, 6, 7
+    assert _average_from(8, 4, 0) == 0          # the last point alone
 
 
 def test_gn_polish_undoes_a_step_that_makes_the_fit_grossly_worse(problem, monkeypatch):

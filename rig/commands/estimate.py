@@ -38,8 +38,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--spp-max", type=int, default=None, help="largest samples per pixel of the optimiser's iterations (256); with it set, the "
                    "Gauss-Newton polish and the final evaluation use twice that (else 1024) and the uncertainties at most that")
     p.add_argument("--polish-steps", type=int, default=None,
-                   help="full Gauss-Newton steps at the final spp after the iterations (4; the result averages the "
-                        "points after steps 2-4); 0: none, fewer for a quicker look")
+                   help="full Gauss-Newton steps at the final spp after the iterations (4, up to twice that while the "
+                        "last ones still walk; the result averages the last three points); 0: none, fewer for a "
+                        "quicker look")
     p.add_argument("--seed", type=int, default=0, help="random seed (renders, delta draws)")
     p.add_argument("--scale", choices=("calibrated", "free"), default="calibrated",
                    help="measured/rendered intensity scale: from the calibrated beam power and the lens's "
