@@ -42,10 +42,11 @@ def test_json_shape_and_runs_never_overwritten(session, capsys):
     assert cov["sigma_t"]["sigma_t"] == pytest.approx(ch["uncertainties"]["sigma_t"] ** 2)
     assert cov["sigma_t"]["albedo"] == pytest.approx(cov["albedo"]["sigma_t"])
     assert doc["format"] == "rig-estimate/1" and doc["channels"]["g"]["iterations"] == 4
-    # The budget flags: two polish steps; the final evaluation at 2 x --spp-max, and the
-    # uncertainties' Jacobian (512 by default) no finer than that.
+    # The budget flags: two polish steps (four at most, while the last ones still walk); the
+    # final evaluation at 2 x --spp-max, and the uncertainties' Jacobian (512 by default) no
+    # finer than that.
     fit = doc["settings"]["fit"]
-    assert len(doc["channels"]["g"]["polish"]) == 2 and fit["polish_steps"] == 2
+    assert 2 <= len(doc["channels"]["g"]["polish"]) <= 4 and fit["polish_steps"] == 2
     assert fit["final_spp"] == 256 and fit["uncertainty_spp"] == 256
     stages = doc["channels"]["g"]["stage_times_s"]
     assert list(stages) == ["start", "iterations", "polish", "evaluation", "uncertainties"]
