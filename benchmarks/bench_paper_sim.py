@@ -42,8 +42,9 @@ SCALE = "calibrated"  # intensity scale of the fits (--scale); as rig estimate's
 #: Part of the fit cache's name, changed with the fit's recipe (joint coarse grid since session 3;
 #: smoothed Gauss-Newton matrix and signal/noise-shrunk steps since session 14; the matrix of
 #: the delta-averaged loss and kept-path gradients since session 15; iterations to 256 spp and
-#: a 1024-spp Gauss-Newton polish since session 16).
-RECIPE = "jointgrid-smoothgn-davg-polish"
+#: a 1024-spp Gauss-Newton polish since session 16; its cross-product matrix and averaged
+#: points since session 17; the screened coarse grid and the polish's noise test since 18).
+RECIPE = "jointgrid-smoothgn-davg-polish-cross-chi2"
 
 WORLD_TEMPLATE = """\
 # Paper section 4 simulation case: poly-disperse Mie, mean diameter {d} um, sigma_t {s} /mm.
