@@ -280,7 +280,7 @@ class FitResult:
     #: (`FitSettings.profile_additive`) rather than stepped by the optimiser
     solved: list[str] = field(default_factory=list)
     #: the Gauss-Newton polish after the iterations (`_gn_polish`): per step {loss, loss_new,
-    #: accepted, halvings, step, point (when accepted)}
+    #: accepted, halvings, step, step_chi2, point (when accepted)}
     polish: list[dict[str, Any]] = field(default_factory=list)
     #: wall seconds per stage: start (coarse search), iterations, polish, evaluation,
     #: uncertainties (their sum is about `time_s`)
@@ -749,7 +749,9 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
     quantile (15.1) the off-grid session's polish read steps of 15-30 as moves, went on to 8
     steps and wandered up its flat valley (points 2.35 -> 2.58, truth 2.4, result 5.7 %
     high, where the planned four steps' mean was 0.6 % low); the fit uses the 0.1 % quantile
-    (20.5).
+    (20.5). There, too, that session's steps 4-6 had chi^2 21-39 and the polish went on to 8
+    steps (2.7 % high; four steps' mean 3.0 % low): on its flat valley the steps scatter more
+    than this noise model says.
 
     Returns the parameters, per step {loss, loss_new, accepted, halvings, step (x units),
     step_chi2 (of the full step, before caps and halvings), and when accepted, point: the
