@@ -106,10 +106,12 @@ def write_run(run_dir: Path, session_dir: str | os.PathLike[str], fits: Sequence
             # without render noise before / after, whether it was kept, the step and the point
             # it reached, and the step's chi^2 against its own render noise (about the number
             # of parameters when it is noise alone; the polish goes on past its planned steps
-            # while one of its last points is larger; the result averages the last points)
+            # while one of its last points is larger; the result averages the last points),
+            # and the point's own Monte Carlo standard deviation from that noise (noise_sd)
             "polish": [{"loss": _num(e["loss"]), "loss_new": _num(e["loss_new"]), "accepted": bool(e["accepted"]),
                         "halvings": int(e.get("halvings", 0)), "step": {k: _num(v) for k, v in e["step"].items()},
                         "step_chi2": _num(e.get("step_chi2", float("nan"))),
+                        **({"noise_sd": {k: _num(v) for k, v in e["noise_sd"].items()}} if e.get("noise_sd") else {}),
                         **({"point": {k: _num(v) for k, v in e["point"].items()}} if e.get("point") else {})}
                        for e in r.polish],
             "spp_schedule": [list(map(int, x)) for x in r.spp_schedule],

@@ -588,6 +588,12 @@ def test_polish_average_takes_the_later_points_in_z():
     assert sd["sigma_t"] == pytest.approx(np.std([1.9, 2.1, 2.0], ddof=1))
     assert se["sigma_t"] == pytest.approx(sd["sigma_t"] / math.sqrt(3))
     assert "stray.offset" not in se and "stray.offset" not in drift
+    # With the steps' noise model: the standard error is the larger of the sample one and
+    # the model's (rms of the points' noise / sqrt(3)).
+    noisy = [{**e, "noise_sd": {"sigma_t": 0.3, "phase.b1": 0.01}} for e in acc]
+    _, _, _, se_m = _polish_average(noisy, names, tr, 2)
+    assert se_m["sigma_t"] == pytest.approx(0.3 / math.sqrt(3))
+    assert se_m["phase.b1"] == pytest.approx(se["phase.b1"])
     # Too few points after `start`, or averaging off: the last point stands.
     assert _polish_average(acc[:2], names, tr, 2) is None
     assert _polish_average(acc, names, tr, 0) is None
