@@ -93,13 +93,15 @@ def coarse_start(fm: ForwardModel, problem: Problem, base: Mapping[str, float], 
                 candidates.append(p)
     screen_spp = max(1, int(spp) // 4)
     losses = [start_loss(fm, problem, p, screen_spp, seed, delta_rel, scale) for p in candidates]
+
+    def rank(i: int) -> tuple[bool, float]:
+        # A NaN loss (nothing valid) sorts last, behind every finite one.
+        return (not np.isfinite(losses[i]), losses[i])
+
+    pool = list(range(len(candidates)))
     if screen_spp < spp:
-        # A NaN screen loss (nothing valid) sorts last and is never rescored ahead of a finite one.
-        order = sorted(range(len(candidates)), key=lambda i: (not np.isfinite(losses[i]), losses[i]))
-        for i in order[:RESCORED]:
+        pool = sorted(pool, key=rank)[:RESCORED]
+        for i in pool:
             losses[i] = start_loss(fm, problem, candidates[i], spp, seed, delta_rel, scale)
-        pool = order[:RESCORED]
-    else:
-        pool = list(range(len(candidates)))
-    best = min(pool, key=lambda i: (not np.isfinite(losses[i]), losses[i]))
+    best = min(pool, key=rank)
     return dict(candidates[best]), list(zip(candidates, losses))
