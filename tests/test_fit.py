@@ -657,13 +657,49 @@ def test_polish_step_chi2_separates_a_move_from_noise_and_a_walk_goes_on(problem
     assert 0.2 * len(names) < np.mean(chi2s) < 4 * len(names)
 
 
+def test_a_settled_polish_step_pairs_one_new_jacobian_with_the_last(problem, monkeypatch):
+    """After a step at the noise floor the polish renders one new half-spp Jacobian and
+    pairs it with the previous step's second one (a different seed); after a move, or with
+    pairing off, it renders two."""
+    import estimate.fit as fit_mod
+
+    fm, names, tr, scale = _polish_setup(problem)
+    seeds: list[int] = []
+    real = fit_mod._gn_jacobian
+
+    def counted(*a, **kw):
+        seeds.append(kw["seed"])
+        return real(*a, **kw)
+
+    monkeypatch.setattr(fit_mod, "_gn_jacobian", counted)
+    kw = {"steps": 3, "spp": 64, "jacobian_spp": 128, "delta_nodes": [0.045], "reference_delta_rel": 0.045,
+          "fixed_scale": scale, "cross": True, "seed": 7}
+    at = {**fm.default_parameters(), **TRUTH}
+    # Every step settled (an infinite threshold): 2 Jacobians, then 1 per step.
+    _, trace, _ = fit_mod._gn_polish(fm, problem, at, names, tr, chi2_continue=math.inf, pair_settled=True, **kw)
+    assert all(e["accepted"] for e in trace)
+    assert [e["jacobians"] for e in trace] == [2, 1, 1]
+    assert len(seeds) == 4 and len(set(seeds)) == 4          # independent halves throughout
+    # No step settled (a zero threshold) or pairing off: two new ones for every step.
+    for chi2_continue, pair in ((0.0, True), (math.inf, False)):
+        seeds.clear()
+        _, trace, _ = fit_mod._gn_polish(fm, problem, at, names, tr, chi2_continue=chi2_continue,
+                                         pair_settled=pair, max_steps=3, **kw)
+        assert [e["jacobians"] for e in trace] == [2, 2, 2] and len(seeds) == 6
+
+
 def test_an_extended_polish_averages_as_many_last_points_as_planned():
-    from estimate.fit import _average_from
+    from estimate.fit import _average_from, _averaged_count
 
     assert _average_from(4, 4, 2) == 2          # as planned: points 2, 3, 4
     assert _average_from(3, 4, 2) == 2          # stopped early (a step undone)
     assert _average_from(7, 4, 2) == 5          # went on: points 5, 6, 7
     assert _average_from(8, 4, 0) == 0          # the last point alone
+    # the noise test watches as many last steps as the result averages
+    assert _averaged_count(4, 2) == 3 and _averaged_count(4, 0) == 1 and _averaged_count(4, 9) == 1
+    for planned, start in ((4, 1), (4, 2), (6, 3)):
+        n = planned + 3
+        assert n - _average_from(n, planned, start) + 1 == _averaged_count(planned, start)
 
 
 def test_gn_polish_undoes_a_step_that_makes_the_fit_grossly_worse(problem, monkeypatch):
