@@ -162,7 +162,7 @@ class FitSettings:
     polish_average_from: int = 2     # the result: mean of the points after polish steps >= this (1-based; 0: last point)
     polish_max_steps: int | None = None   # polish steps in all while its last points still walk (None: 2 x polish_steps)
     polish_continue_p: float = 0.001  # a step is still a move when its noise chi^2 exceeds this upper quantile
-    polish_pair_settled: bool = True  # after a settled step, one new Jacobian paired with the last one (see _gn_polish)
+    polish_settled_spp: int = 4      # after a noise-sized polish step: renders at this x final_spp, last Jacobians kept (1: off)
     uncertainty_spp: int = 512       # the Jacobian of the uncertainties
     decorrelated: bool = True
     #: solve additive parameters (stray-light offset and slope) exactly at every iteration
@@ -665,34 +665,46 @@ def _polish_average(accepted: Sequence[Mapping[str, Any]], names: Sequence[str],
     The first step, from the iterations' end, is still a move and is left out by default.
 
     The standard error is the larger of the points' sample one and the one their steps'
-    noise model gives (each entry's `noise_sd`, when present: root mean square over the
-    points / sqrt(count)). Three points' sample standard deviation is itself uncertain by
-    about half: on the session-18 benchmark the points agreed by chance (2.046, 2.091, 2.074;
-    standard error 0.013) and the reported uncertainty was 2.7x under the error.
+    noise model gives (each entry's `noise_sd`, when present). Three points' sample standard
+    deviation is itself uncertain by about half: on the session-18 benchmark the points
+    agreed by chance (2.046, 2.091, 2.074; standard error 0.013) and the reported
+    uncertainty was 2.7x under the error.
+
+    When every point has its `noise_sd`, each parameter's mean weighs the points by
+    1 / noise_sd^2 (a settled step's point, from renders at several times the spp, counts
+    for as much more), its model standard error is 1 / sqrt(sum of the weights) and its
+    sample one the weighted scatter's; with equal noise these are the plain ones.
     """
     if start <= 0:
         return None
-    pts = [dict(e["point"]) for e in accepted[start - 1:] if e.get("point")]
+    kept = [e for e in accepted[start - 1:] if e.get("point")]
+    pts = [dict(e["point"]) for e in kept]
     if len(pts) < 2:
         return None
     keys = [k for k in pts[0] if all(k in q for q in pts)]
+    noise = [e.get("noise_sd") or {} for e in kept]
     by_name = dict(zip(names, tr))
     mean: dict[str, float] = {}
     sd: dict[str, float] = {}
+    se: dict[str, float] = {}
+    n = len(pts)
     for k in keys:
         xs = np.array([q[k] for q in pts], dtype=float)
+        nsd = np.array([q.get(k, math.nan) for q in noise], dtype=float)
+        modelled = bool(np.all(np.isfinite(nsd) & (nsd > 0)))
+        w = 1.0 / nsd ** 2 if modelled else np.ones(n)
+        w = w / w.sum()
         t = by_name.get(k)
-        mean[k] = t.to_x(float(np.mean([t.to_z(float(x)) for x in xs]))) if t is not None else float(np.mean(xs))
+        mean[k] = t.to_x(float(np.sum(w * [t.to_z(float(x)) for x in xs]))) if t is not None \
+            else float(np.sum(w * xs))
         if k in names:
             sd[k] = float(np.std(xs, ddof=1))
-    drift = {k: float((pts[-1][k] - pts[0][k]) / (len(pts) - 1)) for k in keys if k in names}
-    se = {k: v / math.sqrt(len(pts)) for k, v in sd.items()}
-    noise = [e["noise_sd"] for e in accepted[start - 1:] if e.get("point") and e.get("noise_sd")]
-    if len(noise) == len(pts):
-        for k, sample_se in list(se.items()):
-            if all(k in q for q in noise):
-                model_se = math.sqrt(float(np.mean([q[k] ** 2 for q in noise])) / len(pts))
-                se[k] = max(sample_se, model_se)
+            # weighted sample standard error (plain sd / sqrt(n) for equal weights)
+            mx = float(np.sum(w * xs))
+            se[k] = math.sqrt(max(float(np.sum(w * (xs - mx) ** 2)) * n / (n - 1), 0.0) * float(np.sum(w ** 2)))
+            if modelled:
+                se[k] = max(se[k], 1.0 / math.sqrt(float(np.sum(1.0 / nsd ** 2))))
+    drift = {k: float((pts[-1][k] - pts[0][k]) / (n - 1)) for k in keys if k in names}
     return mean, drift, sd, se
 
 
@@ -720,7 +732,7 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
                smooth_px: float = 3.0, exact: Collection[str] = (), caps: np.ndarray | None = None,
                scale_guess: float | None = None, jacobian_every: int = 1, gross: float = 1.0,
                cross: bool = False, max_steps: int | None = None, chi2_continue: float = math.inf,
-               keep_last: int = 3, pair_settled: bool = False
+               keep_last: int = 3, settled_spp_factor: int = 1
                ) -> tuple[dict[str, float], list[dict[str, Any]], tuple[np.ndarray, np.ndarray] | None]:
     """Full Gauss-Newton steps on the delta-averaged log loss at high samples per pixel, from
     the end of the stochastic iterations.
@@ -775,31 +787,34 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
     steps (2.7 % high; four steps' mean 3.0 % low): on its flat valley the steps scatter more
     than this noise model says.
 
-    With `cross` and `pair_settled`, a step that follows a settled one (accepted, its chi^2 at
-    most `chi2_continue`: the point moved by no more than its noise) renders one new half-spp
-    Jacobian and pairs it with the previous step's second one instead of rendering two: the
-    pair is still independent (other seeds), so the cross product keeps its expectation, and
-    the previous point lies within the noise of this one. The Jacobians are ~80 % of a step's
-    renders (two 1024-spp renders against 2 x 10 at 512 spp for exp3), so such a step costs
-    ~40 % less. While the polish still moves, both are new (the previous point is far).
+    Settled steps (`settled_spp_factor` > 1): after a step whose chi^2 is at most
+    `chi2_continue` (the point moved by no more than its noise), the new point's renders are
+    taken at `settled_spp_factor` x `spp`, and the next step keeps the last Jacobians instead
+    of rendering new ones. Near the optimum a point's scatter is the gradient's render noise
+    taken through H^-1 (`noise_sd`), while a matrix error only scales the remaining distance,
+    which is then within the noise; yet the Jacobians were ~80 % of a step's renders (for exp3
+    2 x 10 at 512 spp against two gradient renders at 1024). A settled step at 4x the spp costs
+    ~30 % less than a new-matrix step, and its point scatters half as much. A step that turns
+    out larger than its (now smaller) noise is a move again: the next step renders new
+    Jacobians at `spp`.
 
     Returns the parameters, per step {loss, loss_new, accepted, halvings, step (x units),
     step_chi2 (of the full step, before caps and halvings), jacobians (new Jacobians
-    rendered for it), and when accepted, point: the stepped and solved parameters after
-    it}, and the last pair of renders (A, B; with the solved additive terms) at the returned
-    parameters.
+    rendered for it), spp (of its gradient's renders), and when accepted, point: the stepped
+    and solved parameters after it, and noise_sd}, and the last pair of renders (A, B; with
+    the solved additive terms) at the returned parameters.
     """
     valid, meas, angles = problem.valid, problem.measured, problem.angles_deg
     n_v = max(1, int(valid.sum()))
     cols_out = list((solved_columns or {}).values())
 
-    def state(p_in: Mapping[str, float], k: int
+    def state(p_in: Mapping[str, float], k: int, spp_k: int
               ) -> tuple[dict[str, float], np.ndarray, np.ndarray, float, tuple[float, float]]:
-        """Renders A, B at `p_in` (seeds of step k), the solved values and scale, and the loss
-        without render noise with its standard error."""
+        """Renders A, B at `p_in` (seeds of step k, `spp_k` each), the solved values and scale,
+        and the loss without render noise with its standard error."""
         p = dict(p_in)
-        pa = fm.render_profiles(p, angles, spp=spp, seed=seed + 2 * k)
-        pb = fm.render_profiles(p, angles, spp=spp, seed=seed + 2 * k + 1)
+        pa = fm.render_profiles(p, angles, spp=spp_k, seed=seed + 2 * k)
+        pb = fm.render_profiles(p, angles, spp=spp_k, seed=seed + 2 * k + 1)
         if solved:
             shift = _solve_additive(fm, problem, p, solved, 0.5 * (pa + pb), reference_delta_rel, fixed_scale,
                                     scale_guess=scale_guess, columns=solved_columns)
@@ -812,7 +827,8 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
     if steps <= 0:
         return dict(params), [], None
     max_steps = steps if max_steps is None else max(steps, max_steps)
-    p, pa, pb, sc, (loss, se) = state(params, 0)
+    spp_now = spp
+    p, pa, pb, sc, (loss, se) = state(params, 0, spp_now)
     loss_start = loss
     trace: list[dict[str, Any]] = []
     jac: dict[str, np.ndarray] = {}
@@ -824,17 +840,14 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
                 break
         z = np.array([t.to_z(p[n]) for n, t in zip(names, tr)])
         new_jacobians = 0
-        if k % jacobian_every == 0:
+        settled = (settled_spp_factor > 1 and bool(jac) and bool(trace) and trace[-1]["accepted"]
+                   and trace[-1]["step_chi2"] <= chi2_continue)
+        if k % jacobian_every == 0 and not settled:
             if cross:
                 half = max(1, jacobian_spp // 2)
-                settled = (pair_settled and jac_b is not None and bool(trace) and trace[-1]["accepted"]
-                           and trace[-1]["step_chi2"] <= chi2_continue)
-                if settled:
-                    jac_a = jac_b
-                else:
-                    jac_a = _gn_jacobian(fm, problem, p, names, spp=half, seed=seed + 1000 + k)
+                jac_a = _gn_jacobian(fm, problem, p, names, spp=half, seed=seed + 1000 + k)
                 jac_b = _gn_jacobian(fm, problem, p, names, spp=half, seed=seed + 5000 + k)
-                new_jacobians = 1 if settled else 2
+                new_jacobians = 2
                 jac = {n: 0.5 * (jac_a[n] + jac_b[n]) for n in names}
             else:
                 jac = _gn_jacobian(fm, problem, p, names, spp=jacobian_spp, seed=seed + 1000 + k)
@@ -862,7 +875,7 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
         if caps is not None:
             dz = np.clip(dz, -caps, caps)
         entry: dict[str, Any] = {"loss": loss, "loss_new": float("nan"), "accepted": False, "halvings": 0,
-                                 "step": {}, "step_chi2": step_chi2, "jacobians": new_jacobians}
+                                 "step": {}, "step_chi2": step_chi2, "jacobians": new_jacobians, "spp": spp_now}
         trace.append(entry)
         for halving in range(3):
             z_new = np.array([t.clamp_z(float(zz + d_)) for t, zz, d_ in zip(tr, z, dz)])
@@ -873,7 +886,10 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
                 p_try = fm.validate(p_try)
             except ModelParameterError:
                 continue
-            p_new, pa_n, pb_n, sc_n, (loss_n, se_n) = state(p_try, k + 1)
+            # The new point's renders: at the settled spp when this step is noise-sized (the
+            # next one will be a settled step), else at `spp`.
+            spp_new = spp * settled_spp_factor if step_chi2 <= chi2_continue else spp
+            p_new, pa_n, pb_n, sc_n, (loss_n, se_n) = state(p_try, k + 1, spp_new)
             entry.update(loss_new=loss_n, halvings=halving)
             # Undone (halved, twice at most) only when the rise exceeds the polish's starting
             # loss plus 3 standard errors of the difference: the estimator scatters by about
@@ -887,7 +903,7 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
                              point={n: float(v) for n, v in p_new.items() if n in names or n in solved},
                              noise_sd={n: float(sd * abs(t.dx_dz(float(zz))))
                                        for n, t, sd, zz in zip(names, tr, sd_z, z_new)})
-                p, pa, pb, sc, loss, se = p_new, pa_n, pb_n, sc_n, loss_n, se_n
+                p, pa, pb, sc, loss, se, spp_now = p_new, pa_n, pb_n, sc_n, loss_n, se_n, spp_new
                 scale_guess = sc
                 break
         if not entry["accepted"]:
@@ -1347,7 +1363,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
                                    else st.polish_max_steps,
                                    chi2_continue=float(chi2_dist.isf(st.polish_continue_p, len(stepped))),
                                    keep_last=_averaged_count(st.polish_steps, st.polish_average_from),
-                                   pair_settled=st.polish_pair_settled)
+                                   settled_spp_factor=st.polish_settled_spp)
     # After the polish, the drift is its last step: what the fit still moved by at the end
     # (and `drifting` those parameters whose last step exceeds their uncertainty); when its
     # later points are averaged, their mean step and the mean's standard error instead.

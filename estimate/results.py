@@ -108,12 +108,12 @@ def write_run(run_dir: Path, session_dir: str | os.PathLike[str], fits: Sequence
             # of parameters when it is noise alone; the polish goes on past its planned steps
             # while one of its last points is larger; the result averages the last points),
             # and the point's own Monte Carlo standard deviation from that noise (noise_sd);
-            # jacobians: new Jacobians rendered for the step (1 after a settled step: paired
-            # with the previous step's)
+            # jacobians: new Jacobians rendered for the step (0 after a noise-sized step: the
+            # last ones kept), spp: its gradient renders' samples per pixel
             "polish": [{"loss": _num(e["loss"]), "loss_new": _num(e["loss_new"]), "accepted": bool(e["accepted"]),
                         "halvings": int(e.get("halvings", 0)), "step": {k: _num(v) for k, v in e["step"].items()},
                         "step_chi2": _num(e.get("step_chi2", float("nan"))),
-                        **({"jacobians": int(e["jacobians"])} if "jacobians" in e else {}),
+                        **({"jacobians": int(e["jacobians"]), "spp": int(e["spp"])} if "jacobians" in e else {}),
                         **({"noise_sd": {k: _num(v) for k, v in e["noise_sd"].items()}} if e.get("noise_sd") else {}),
                         **({"point": {k: _num(v) for k, v in e["point"].items()}} if e.get("point") else {})}
                        for e in r.polish],

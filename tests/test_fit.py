@@ -594,6 +594,14 @@ def test_polish_average_takes_the_later_points_in_z():
     _, _, _, se_m = _polish_average(noisy, names, tr, 2)
     assert se_m["sigma_t"] == pytest.approx(0.3 / math.sqrt(3))
     assert se_m["phase.b1"] == pytest.approx(se["phase.b1"])
+    # Unequal noise: each parameter weighted by 1 / noise_sd^2, the model error 1 / sqrt(sum).
+    unequal = [{**e, "noise_sd": {"sigma_t": sdv, "phase.b1": 0.1}} for e, sdv in zip(acc, (0.1, 0.2, 0.1, 0.1))]
+    mean_w, _, sd_w, se_w = _polish_average(unequal, names, tr, 2)
+    w = np.array([1 / 0.2 ** 2, 1 / 0.1 ** 2, 1 / 0.1 ** 2])
+    assert mean_w["sigma_t"] == pytest.approx(math.exp(np.sum(w * np.log([1.9, 2.1, 2.0])) / w.sum()))
+    assert mean_w["phase.b1"] == pytest.approx(3.0)           # equal noise: the plain mean
+    assert se_w["sigma_t"] == pytest.approx(1 / math.sqrt(w.sum()))
+    assert sd_w["sigma_t"] == pytest.approx(sd["sigma_t"])
     # Too few points after `start`, or averaging off: the last point stands.
     assert _polish_average(acc[:2], names, tr, 2) is None
     assert _polish_average(acc, names, tr, 0) is None
@@ -657,35 +665,38 @@ def test_polish_step_chi2_separates_a_move_from_noise_and_a_walk_goes_on(problem
     assert 0.2 * len(names) < np.mean(chi2s) < 4 * len(names)
 
 
-def test_a_settled_polish_step_pairs_one_new_jacobian_with_the_last(problem, monkeypatch):
-    """After a step at the noise floor the polish renders one new half-spp Jacobian and
-    pairs it with the previous step's second one (a different seed); after a move, or with
-    pairing off, it renders two."""
+def test_a_settled_polish_step_keeps_the_matrix_and_renders_more_samples(problem, monkeypatch):
+    """After a noise-sized step the polish renders the new point at `settled_spp_factor` x the
+    spp and its next step keeps the last Jacobians; after a move, or with the factor 1, each
+    step renders two new ones at the plain spp. A settled point's noise is smaller."""
     import estimate.fit as fit_mod
 
     fm, names, tr, scale = _polish_setup(problem)
-    seeds: list[int] = []
+    calls: list[int] = []
     real = fit_mod._gn_jacobian
 
     def counted(*a, **kw):
-        seeds.append(kw["seed"])
+        calls.append(kw["seed"])
         return real(*a, **kw)
 
     monkeypatch.setattr(fit_mod, "_gn_jacobian", counted)
     kw = {"steps": 3, "spp": 64, "jacobian_spp": 128, "delta_nodes": [0.045], "reference_delta_rel": 0.045,
           "fixed_scale": scale, "cross": True, "seed": 7}
     at = {**fm.default_parameters(), **TRUTH}
-    # Every step settled (an infinite threshold): 2 Jacobians, then 1 per step.
-    _, trace, _ = fit_mod._gn_polish(fm, problem, at, names, tr, chi2_continue=math.inf, pair_settled=True, **kw)
+    # Every step noise-sized (an infinite threshold): new Jacobians once, then 4x the spp.
+    _, trace, _ = fit_mod._gn_polish(fm, problem, at, names, tr, chi2_continue=math.inf, settled_spp_factor=4, **kw)
     assert all(e["accepted"] for e in trace)
-    assert [e["jacobians"] for e in trace] == [2, 1, 1]
-    assert len(seeds) == 4 and len(set(seeds)) == 4          # independent halves throughout
-    # No step settled (a zero threshold) or pairing off: two new ones for every step.
-    for chi2_continue, pair in ((0.0, True), (math.inf, False)):
-        seeds.clear()
+    assert [e["jacobians"] for e in trace] == [2, 0, 0] and len(calls) == 2
+    assert [e["spp"] for e in trace] == [64, 256, 256]
+    first, later = trace[0]["noise_sd"]["sigma_t"], np.mean([e["noise_sd"]["sigma_t"] for e in trace[1:]])
+    assert later < 0.8 * first                                 # 4x the samples: about half the noise
+    # No step settled (a zero threshold) or the factor 1: two new Jacobians at 64 spp each step.
+    for chi2_continue, factor in ((0.0, 4), (math.inf, 1)):
+        calls.clear()
         _, trace, _ = fit_mod._gn_polish(fm, problem, at, names, tr, chi2_continue=chi2_continue,
-                                         pair_settled=pair, max_steps=3, **kw)
-        assert [e["jacobians"] for e in trace] == [2, 2, 2] and len(seeds) == 6
+                                         settled_spp_factor=factor, max_steps=3, **kw)
+        assert [e["jacobians"] for e in trace] == [2, 2, 2] and len(calls) == 6
+        assert [e["spp"] for e in trace] == [64, 64, 64]
 
 
 def test_an_extended_polish_averages_as_many_last_points_as_planned():
