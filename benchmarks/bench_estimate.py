@@ -104,6 +104,7 @@ def main() -> int:
             print(f"polish step {i + 1}: {'kept' if e['accepted'] else 'undone'}"
                   f"{' after ' + str(e['halvings']) + ' halving(s)' if e['halvings'] else ''}, loss without render "
                   f"noise {e['loss']:.3g} -> {e['loss_new']:.3g}, step chi2 {e.get('step_chi2', float('nan')):.1f}, "
+                  f"{e.get('spp', '?')} spp, {e.get('jacobians', '?')} new Jacobian(s), "
                   f"sigma_t step {e['step'].get('sigma_t', 0.0):+.4f}"
                   + (f", at {e['point']['sigma_t']:.4f}" if e.get("point") and "sigma_t" in e["point"] else ""))
         print("drift (mean step of the averaged polish points, else the last polish step, else over the last "

@@ -62,7 +62,11 @@
    (`polish_average_from`, `_polish_average`). Each step's chi^2 against its own render
    noise (`step_chi2`) tells a move from that scatter; while any of the last three is a
    move (above the 0.1 % quantile, `polish_continue_p`) the polish goes on, up to
-   `polish_max_steps` (2 x `polish_steps`), and averages its last three points. An optional
+   `polish_max_steps` (2 x `polish_steps`), and averages its last three points. After a
+   noise-sized step the next one keeps the matrix and renders its gradient at
+   `polish_settled_spp` (4) x the spp: there the points' scatter is the gradient's noise,
+   not the matrix's, and the Jacobians were ~80 % of a step's cost; the average weighs each
+   point by its own noise (session 19). An optional
    Levenberg-Marquardt polish (`lm_iterations`, off by default) on the log residuals at one
    fixed seed follows: with common random numbers the renders are not smooth in the
    parameters (free flights crossing the slab boundary flip), its finite-difference
@@ -795,8 +799,12 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
     which is then within the noise; yet the Jacobians were ~80 % of a step's renders (for exp3
     2 x 10 at 512 spp against two gradient renders at 1024). A settled step at 4x the spp costs
     ~30 % less than a new-matrix step, and its point scatters half as much. A step that turns
-    out larger than its (now smaller) noise is a move again: the next step renders new
-    Jacobians at `spp`.
+    out a move is followed by new Jacobians at `spp`. "Noise-sized" is judged on the scale of
+    `spp` (chi^2 x spp / the step's spp): the first settled step is expected to exceed its
+    own, 4x smaller noise, since it starts from a point that carries the coarser steps'
+    scatter; read as a move, it sent the benchmark's polish back and forth between the two
+    kinds of step up to its 8 steps. Whether the polish goes on past `steps` is judged on
+    each step's own noise, so it goes on until the settled steps are noise-sized too.
 
     Returns the parameters, per step {loss, loss_new, accepted, halvings, step (x units),
     step_chi2 (of the full step, before caps and halvings), jacobians (new Jacobians
@@ -840,8 +848,10 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
                 break
         z = np.array([t.to_z(p[n]) for n, t in zip(names, tr)])
         new_jacobians = 0
+        # Settled: the last step was noise-sized on the scale of `spp` (a step at the settled
+        # spp is measured against its smaller noise: its chi^2 x spp / its spp).
         settled = (settled_spp_factor > 1 and bool(jac) and bool(trace) and trace[-1]["accepted"]
-                   and trace[-1]["step_chi2"] <= chi2_continue)
+                   and trace[-1]["step_chi2"] * spp / trace[-1]["spp"] <= chi2_continue)
         if k % jacobian_every == 0 and not settled:
             if cross:
                 half = max(1, jacobian_spp // 2)
@@ -888,7 +898,7 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
                 continue
             # The new point's renders: at the settled spp when this step is noise-sized (the
             # next one will be a settled step), else at `spp`.
-            spp_new = spp * settled_spp_factor if step_chi2 <= chi2_continue else spp
+            spp_new = spp * settled_spp_factor if step_chi2 * spp / spp_now <= chi2_continue else spp
             p_new, pa_n, pb_n, sc_n, (loss_n, se_n) = state(p_try, k + 1, spp_new)
             entry.update(loss_new=loss_n, halvings=halving)
             # Undone (halved, twice at most) only when the rise exceeds the polish's starting
