@@ -36,12 +36,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--allow-partial", action="store_true", help="fit the stacks present when some are missing")
     p.add_argument("--max-iterations", type=int, default=None, help="optimiser iterations at most (80: 10 Adam, then Gauss-Newton)")
     p.add_argument("--spp-max", type=int, default=None, help="largest samples per pixel of the optimiser's iterations (256); with it set, the "
-                   "Gauss-Newton polish and the final evaluation use twice that (else 1024; the polish's settled steps 4x that) "
-                   "and the uncertainties at most that")
+                   "Gauss-Newton polish and the final evaluation use twice that (else 1024) and the uncertainties at most that")
     p.add_argument("--polish-steps", type=int, default=None,
                    help="full Gauss-Newton steps at the final spp after the iterations (4, up to twice that while the "
-                        "last ones still walk; after a noise-sized step the next keeps the matrix and renders at 4x "
-                        "the spp; the result weighs the last three points by their noise); 0: none, fewer for a "
+                        "last ones still walk; the result averages the last three points); 0: none, fewer for a "
                         "quicker look")
     p.add_argument("--seed", type=int, default=0, help="random seed (renders, delta draws)")
     p.add_argument("--scale", choices=("calibrated", "free"), default="calibrated",
