@@ -698,12 +698,11 @@ def _polish_average(accepted: Sequence[Mapping[str, Any]], names: Sequence[str],
         w = 1.0 / nsd ** 2 if modelled else np.ones(n)
         w = w / w.sum()
         t = by_name.get(k)
-        mean[k] = t.to_x(float(np.sum(w * [t.to_z(float(x)) for x in xs]))) if t is not None \
-            else float(np.sum(w * xs))
+        mx = float(np.sum(w * xs))
+        mean[k] = t.to_x(float(np.sum(w * [t.to_z(float(x)) for x in xs]))) if t is not None else mx
         if k in names:
             sd[k] = float(np.std(xs, ddof=1))
             # weighted sample standard error (plain sd / sqrt(n) for equal weights)
-            mx = float(np.sum(w * xs))
             se[k] = math.sqrt(max(float(np.sum(w * (xs - mx) ** 2)) * n / (n - 1), 0.0) * float(np.sum(w ** 2)))
             if modelled:
                 se[k] = max(se[k], 1.0 / math.sqrt(float(np.sum(1.0 / nsd ** 2))))
