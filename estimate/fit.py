@@ -834,6 +834,11 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
         per_delta = np.array([decorrelated_loss_se(meas, pa, pb, valid, sc, q) for q in delta_nodes])
         return p, pa, pb, sc, (float(per_delta[:, 0].mean()), float(per_delta[:, 1].mean()))
 
+    def noise_sized(chi2: float, spp_step: int) -> bool:
+        """A step no larger than its noise on the scale of `spp` (a settled step's chi^2 is
+        measured against its own, spp_step / spp times smaller noise)."""
+        return chi2 * spp / spp_step <= chi2_continue
+
     if steps <= 0:
         return dict(params), [], None
     max_steps = steps if max_steps is None else max(steps, max_steps)
@@ -850,10 +855,8 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
                 break
         z = np.array([t.to_z(p[n]) for n, t in zip(names, tr)])
         new_jacobians = 0
-        # Settled: the last step was noise-sized on the scale of `spp` (a step at the settled
-        # spp is measured against its smaller noise: its chi^2 x spp / its spp).
         settled = (settled_spp_factor > 1 and bool(jac) and bool(trace) and trace[-1]["accepted"]
-                   and trace[-1]["step_chi2"] * spp / trace[-1]["spp"] <= chi2_continue)
+                   and noise_sized(trace[-1]["step_chi2"], trace[-1]["spp"]))
         if k % jacobian_every == 0 and not settled:
             if cross:
                 half = max(1, jacobian_spp // 2)
@@ -900,7 +903,7 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
                 continue
             # The new point's renders: at the settled spp when this step is noise-sized (the
             # next one will be a settled step), else at `spp`.
-            spp_new = spp * settled_spp_factor if step_chi2 * spp / spp_now <= chi2_continue else spp
+            spp_new = spp * settled_spp_factor if noise_sized(step_chi2, spp_now) else spp
             p_new, pa_n, pb_n, sc_n, (loss_n, se_n) = state(p_try, k + 1, spp_new)
             entry.update(loss_new=loss_n, halvings=halving)
             # Undone (halved, twice at most) only when the rise exceeds the polish's starting
