@@ -28,6 +28,22 @@ FAST = {"max_iterations": 30, "spp_start": 128, "spp_max": 256, "final_spp": 512
         "lm_spp": 512, "lm_iterations": 4, "polish_steps": 1}
 
 
+def _gn_matrix(jac: dict, prof: np.ndarray, delta: float | list[float] = 1e-3, fit_scale: bool = False,
+               names: list[str] | None = None, **kw) -> np.ndarray:
+    """The Gauss-Newton matrix (the inverse of `_gn_inverse`, undamped) of a fake row problem
+    whose profiles are `prof` (N, W), every pixel valid, parameters linear in z."""
+    from types import SimpleNamespace
+
+    from estimate.fit import _gn_inverse
+    from estimate.transforms import Transform
+
+    names = names or sorted(jac)
+    pb = SimpleNamespace(valid=np.ones(prof.shape, bool))
+    lin = [Transform("linear", 0.1, -10, 10)] * len(names)
+    return np.linalg.inv(_gn_inverse(jac, names, lin, np.zeros(len(names)), pb, prof, delta, prof, fit_scale,
+                                     damping=0.0, eig_floor=1e-12, **kw))
+
+
 @pytest.fixture(scope="module")
 def problem(tmp_path_factory):
     s = make_session(tmp_path_factory.mktemp("f") / "s", {"g": TRUTH}, angles=[30, 60, 120, 150], spp=1024,
@@ -76,24 +92,15 @@ def test_gn_matrix_with_solved_columns_is_the_schur_complement():
     """Projecting a solved (additive) parameter's column out of the Gauss-Newton matrix gives
     the curvature of the loss with that parameter re-solved at every step: the Schur
     complement of the full matrix."""
-    from types import SimpleNamespace
-
-    from estimate.fit import _gn_inverse
-    from estimate.transforms import Transform
-
     n, w = 3, 40
     x = np.linspace(-1.0, 1.0, w)
     prof = np.tile(np.exp(-4.0 * x ** 2), (n, 1)) * np.array([[1.0], [0.7], [1.3]])
-    pb = SimpleNamespace(valid=np.ones((n, w), bool))
     ones = np.ones_like(prof)
     jac = {"a": prof, "b": ones + 0.3 * prof * x, "c": ones}
-    lin = Transform("linear", 0.1, -10, 10)
-    full = np.linalg.inv(_gn_inverse(jac, ["a", "b", "c"], [lin] * 3, np.zeros(3), pb, prof, 0.01, prof, False,
-                                     damping=0.0, eig_floor=1e-12))
+    full = _gn_matrix(jac, prof, 0.01)
     schur = full[:2, :2] - np.outer(full[:2, 2], full[2, :2]) / full[2, 2]
-    solved = _gn_inverse(jac, ["a", "b"], [lin] * 2, np.zeros(2), pb, prof, 0.01, prof, False, damping=0.0,
-                         eig_floor=1e-12, profiled_columns=[ones])
-    assert np.linalg.inv(solved) == pytest.approx(schur, rel=1e-6)
+    solved = _gn_matrix(jac, prof, 0.01, names=["a", "b"], profiled_columns=[ones])
+    assert solved == pytest.approx(schur, rel=1e-6)
     assert not np.allclose(schur, full[:2, :2], rtol=0.05)
 
 
@@ -101,21 +108,13 @@ def test_gn_matrix_over_several_deltas_is_the_mean_of_their_matrices():
     """The delta-averaged Gauss-Newton matrix (the fit's randomly drawn delta averaged out) is
     the mean of the single-delta matrices, with the profiled scale projected out per delta;
     small and large deltas weight the dim tails differently, so the matrices differ."""
-    from types import SimpleNamespace
-
-    from estimate.fit import _gn_inverse
-    from estimate.transforms import Transform
-
     n, w = 2, 60
     x = np.linspace(-3.0, 3.0, w)
     prof = np.tile(np.exp(-2.0 * x ** 2) + 1e-3, (n, 1))
-    pb = SimpleNamespace(valid=np.ones((n, w), bool))
     jac = {"a": prof * x ** 2, "b": prof * np.abs(x)}
-    lin = Transform("linear", 0.1, -10, 10)
 
     def h(dl):
-        return np.linalg.inv(_gn_inverse(jac, ["a", "b"], [lin] * 2, np.zeros(2), pb, prof, dl, prof, True,
-                                         damping=0.0, eig_floor=1e-12))
+        return _gn_matrix(jac, prof, dl, fit_scale=True)
 
     small, large = h(0.002), h(0.1)
     assert not np.allclose(small, large, rtol=0.5)
@@ -448,26 +447,18 @@ def test_smoothing_removes_most_of_the_noise_gram_matrix():
     noise's own Gram matrix, most along the weakly determined direction; smoothing the
     log-space columns along the row (they are smooth, the noise is per pixel) brings its
     generalised eigenvalues against the noise-free matrix back towards 1."""
-    from types import SimpleNamespace
-
     from scipy.linalg import eigh
-
-    from estimate.fit import _gn_inverse
-    from estimate.transforms import Transform
 
     rng = np.random.default_rng(3)
     n, w = 4, 200
     x = np.linspace(-3.0, 3.0, w)
     prof = np.exp(-np.abs(x))[None, :] * np.linspace(0.8, 1.2, n)[:, None]
-    pb = SimpleNamespace(valid=np.ones((n, w), bool))
     # two nearly parallel columns: a valley
     jac = {"a": prof * (1.0 + 0.1 * x), "b": prof * (1.0 + 0.12 * x + 0.02 * x ** 2)}
     noisy = {k: v + 0.1 * prof * rng.standard_normal(v.shape) for k, v in jac.items()}
-    lin = [Transform("linear", 0.1, -10, 10)] * 2
 
     def gram(j: dict, s: float) -> np.ndarray:
-        return np.linalg.inv(_gn_inverse(j, ["a", "b"], lin, np.zeros(2), pb, prof, 1e-3, prof, False,
-                                         damping=0.0, eig_floor=1e-12, smooth_px=s))
+        return _gn_matrix(j, prof, smooth_px=s)
 
     exact = gram(jac, 0.0)
     raw = eigh(gram(noisy, 0.0), exact, eigvals_only=True)
@@ -495,22 +486,14 @@ def test_snr_step_keeps_measured_directions_and_shrinks_noisy_ones():
 def test_exact_columns_are_not_smoothed():
     """Image-space parameters (the lens blur's) have exact, possibly sharp Jacobian columns:
     the Gauss-Newton matrix takes them as they are."""
-    from types import SimpleNamespace
-
-    from estimate.fit import _gn_inverse
-    from estimate.transforms import Transform
-
     n, w = 2, 120
     x = np.linspace(-3.0, 3.0, w)
     prof = np.exp(-np.abs(x))[None, :] * np.ones((n, 1))
-    pb = SimpleNamespace(valid=np.ones((n, w), bool))
     sharp = prof * (np.abs(x) < 0.1)                  # a 2-pixel feature
     jac = {"a": sharp, "b": prof}
-    lin = [Transform("linear", 0.1, -10, 10)] * 2
 
     def h(**kw):
-        return np.linalg.inv(_gn_inverse(jac, ["a", "b"], lin, np.zeros(2), pb, prof, 1e-3, prof, False,
-                                         damping=0.0, eig_floor=1e-12, **kw))
+        return _gn_matrix(jac, prof, **kw)
 
     raw, smooth, kept = h(), h(smooth_px=3.0), h(smooth_px=3.0, exact={"a"})
     assert kept[0, 0] == pytest.approx(raw[0, 0], rel=1e-9)
@@ -521,26 +504,18 @@ def test_exact_columns_are_not_smoothed():
 def test_cross_product_matrix_drops_the_noise_gram_matrix():
     """Two independent noisy Jacobians: one's A^T A is inflated by the noise's Gram matrix
     (most where the true curvature is weakest), the cross product of the two is not."""
-    from types import SimpleNamespace
-
-    from estimate.fit import _gn_inverse
-    from estimate.transforms import Transform
-
     rng = np.random.default_rng(7)
     n, w = 4, 200
     x = np.linspace(-3.0, 3.0, w)
     prof = np.exp(-np.abs(x))[None, :] * np.ones((n, 1))
-    pb = SimpleNamespace(valid=np.ones((n, w), bool))
     # Two nearly parallel columns: a weak direction, as along the sigma_t / phase valley.
     true = {"a": prof, "b": prof * (1.0 + 0.05 * x)}
-    lin = [Transform("linear", 0.1, -10, 10)] * 2
 
     def noisy():
         return {k: v + 0.05 * prof * rng.standard_normal(v.shape) for k, v in true.items()}
 
     def h(jac, **kw):
-        return np.linalg.inv(_gn_inverse(jac, ["a", "b"], lin, np.zeros(2), pb, prof, 1e-3, prof, False,
-                                         damping=0.0, eig_floor=1e-12, **kw))
+        return _gn_matrix(jac, prof, **kw)
 
     exact = np.linalg.eigvalsh(h(true))
     single = np.mean([np.linalg.eigvalsh(h(noisy())) for _ in range(20)], axis=0)
