@@ -75,7 +75,10 @@
    scale, loss at the reference delta, chi^2 with var_meas + s^2 var_model;
 7. uncertainties: the sandwich covariance of the log-loss estimator
    (`sandwich_uncertainties`: Gauss-Newton curvature of the log loss, the sensor and render
-   noise propagated through it, times the log-space reduced chi^2 when > 1), never below
+   noise propagated through it, times the log-space reduced chi^2 when > 1; the curvature
+   from the cross products of independent Jacobians, one at the final point and the
+   polish's last ones, since one Monte Carlo Jacobian's own noise fakes curvature along the
+   sigma_t / phase valley and narrowed sigma_t's interval up to 20x there), never below
    the linear Fisher bound (`fisher_uncertainties`: F = J^T W J with J the Jacobian of
    s * I_model, W = 1 / (var_meas + s^2 var_model), times the reduced chi^2 when > 1; kept
    in `FitResult.fisher_uncertainties`). The Fisher bound alone was 4-25x smaller than the
@@ -166,7 +169,7 @@ class FitSettings:
     polish_max_steps: int | None = None   # polish steps in all while its last points still walk (None: 2 x polish_steps)
     polish_continue_p: float = 0.001  # a step is still a move when its noise chi^2 exceeds this upper quantile
     polish_settled_spp: int = 1      # > 1: after a noise-sized polish step, renders at this x final_spp, last Jacobians kept
-    uncertainty_spp: int = 512       # the Jacobian of the uncertainties
+    uncertainty_spp: int = 512       # each of the uncertainties' two Jacobians
     decorrelated: bool = True
     #: solve additive parameters (stray-light offset and slope) exactly at every iteration
     #: instead of stepping them (decorrelated mode only; see fit_channel)
@@ -734,7 +737,8 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
                smooth_px: float = 3.0, exact: Collection[str] = (), caps: np.ndarray | None = None,
                scale_guess: float | None = None, jacobian_every: int = 1, gross: float = 1.0,
                cross: bool = False, max_steps: int | None = None, chi2_continue: float = math.inf,
-               keep_last: int = 3, settled_spp_factor: int = 1
+               keep_last: int = 3, settled_spp_factor: int = 1,
+               jacobians_out: list[tuple[int, list[dict[str, np.ndarray]]]] | None = None
                ) -> tuple[dict[str, float], list[dict[str, Any]], tuple[np.ndarray, np.ndarray] | None]:
     """Full Gauss-Newton steps on the delta-averaged log loss at high samples per pixel, from
     the end of the stochastic iterations.
@@ -812,7 +816,9 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
     step_chi2 (of the full step, before caps and halvings), jacobians (new Jacobians
     rendered for it), spp (of its gradient's renders), and when accepted, point: the stepped
     and solved parameters after it, and noise_sd}, and the last pair of renders (A, B; with
-    the solved additive terms) at the returned parameters.
+    the solved additive terms) at the returned parameters. `jacobians_out` receives (step,
+    [the Jacobians rendered for it]) per step that rendered any (the uncertainties reuse
+    the last ones: `sandwich_uncertainties`).
     """
     valid, meas, angles = problem.valid, problem.measured, problem.angles_deg
     n_v = max(1, int(valid.sum()))
@@ -868,6 +874,8 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
                 jac = _gn_jacobian(fm, problem, p, names, spp=jacobian_spp, seed=seed + 1000 + k)
                 jac_a, jac_b = jac, None
                 new_jacobians = 1
+            if jacobians_out is not None:
+                jacobians_out.append((k, [jac_a] if jac_b is None else [jac_a, jac_b]))
         m = meas / sc
         m_max = float(np.max(np.where(valid, m, -np.inf)))
         mean = 0.5 * (pa + pb)
@@ -1004,14 +1012,36 @@ def fisher_uncertainties(fm: ForwardModel, problem: Problem, params: Mapping[str
     return {n: float(sd[i]) for i, n in enumerate(names)}, (float(sd[-1]) * (1.0 if fit_scale else float("nan")))
 
 
+#: Smallest generalised eigenvalue of the uncertainties' cross-product curvature against the
+#: matrix of the two Jacobians' mean (`sandwich_uncertainties`, `_bounded_cross`).
+UNCERTAINTY_CROSS_FLOOR = 0.1
+
+
 def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names: Sequence[str], scale: float,
                            profiles: np.ndarray, model_variance: np.ndarray, jac: Mapping[str, np.ndarray],
                            *, delta_rel: float, fit_scale: bool, render_variance_factor: float = 2.0,
-                           covariance_out: dict[str, dict[str, float]] | None = None
+                           covariance_out: dict[str, dict[str, float]] | None = None,
+                           jac_more: Sequence[Mapping[str, np.ndarray]] = (),
+                           cross_floor: float = UNCERTAINTY_CROSS_FLOOR
                            ) -> tuple[dict[str, float], float, float]:
     """1-sigma uncertainties of the log-loss estimator (sandwich), its scale's, and the
     log-space reduced chi^2. With `covariance_out`, the full covariance of `names` (the
     uniformly inflated sandwich, before the diagonal choice below) is written into it.
+
+    With `jac_more`, further Jacobians with independent render noise (at the same point or
+    one within the fit's noise of it), the curvature is the mean of the pairs' cross
+    products (A_i^T A_j + A_j^T A_i) / 2, held between `cross_floor` x and 1 x the matrix of
+    the Jacobians' mean (`_bounded_cross`), and so is the meat (A_i^T S A_j, S the
+    residuals' noise variance). One Monte Carlo Jacobian's A^T A carries the noise's own
+    Gram matrix, which dominates where the true curvature is weakest, along the sigma_t /
+    phase valley. On the paper simulation's d 0.5 um / sigma_t 6 fit (session 20) a
+    512-spp Jacobian's two weakest eigenvalues were 5x those of a 4096-spp one, and two
+    4096-spp Jacobians' cross product put them at 0.13 and 0.19 of their mean's; the
+    single 512-spp Jacobian gave sigma_t a sandwich of 0.013-0.014 /mm, the 4096-spp pair
+    0.24, four 512-spp ones 0.26. The fit was 0.71 /mm off, and a fit with sigma_t held at
+    the truth reached the same loss. Where a direction's cross-product eigenvalue falls
+    below the floor the Jacobians' noise does not resolve its curvature, and the interval
+    there is the floor's: about 1 / sqrt(floor) x what the Jacobians' mean alone would give.
 
     The fit minimises sum r^2 with r = log(m/s + delta) - log(I + delta), so its covariance
     is H^-1 (A^T S A) H^-1 with A = dr/d(theta, log s), H = A^T A (Gauss-Newton curvature
@@ -1037,12 +1067,22 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
     r = np.where(valid, np.log(mm + dl) - np.log(ip + dl), 0.0)
     var_r = (problem.variance / scale ** 2) / (mm + dl) ** 2 + render_variance_factor * model_variance / (ip + dl) ** 2
     var_r = np.where(valid & np.isfinite(var_r), var_r, 0.0)
-    cols = [np.where(valid, -jac[n] / (ip + dl), 0.0).ravel() for n in names]
-    if fit_scale:
-        cols.append(np.where(valid, -m / (mm + dl), 0.0).ravel())
-    A = np.stack(cols, axis=1)
-    H = A.T @ A
-    meat = A.T @ (A * var_r.ravel()[:, None])
+
+    def columns(j: Mapping[str, np.ndarray]) -> np.ndarray:
+        cols = [np.where(valid, -j[n] / (ip + dl), 0.0).ravel() for n in names]
+        if fit_scale:
+            cols.append(np.where(valid, -m / (mm + dl), 0.0).ravel())
+        return np.where(np.isfinite(a := np.stack(cols, axis=1)), a, 0.0)
+
+    S = var_r.ravel()[:, None]
+    As = [columns(j) for j in (jac, *jac_more)]
+    A = np.mean(As, axis=0)
+    H, meat = A.T @ A, A.T @ (A * S)
+    if len(As) > 1:
+        pairs = [(a, b) for i, a in enumerate(As) for b in As[i + 1:]]
+        h_cross = sum(a.T @ b + b.T @ a for a, b in pairs) / (2 * len(pairs))
+        m_cross = sum(a.T @ (b * S) + b.T @ (a * S) for a, b in pairs) / (2 * len(pairs))
+        H, meat = _bounded_cross(h_cross, H, cross_floor), _bounded_cross(m_cross, meat, cross_floor)
     n = int(valid.sum())
     dof = max(1, n - A.shape[1])
     c2 = float(np.sum(np.where(var_r > 0, r * r / np.where(var_r > 0, var_r, 1.0), 0.0)))
@@ -1366,6 +1406,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     final = params_of(z_final)
     stage_done("iterations")
     polish: list[dict[str, Any]] = []
+    polish_jacobians: list[tuple[int, list[dict[str, np.ndarray]]]] = []
     if st.polish_steps > 0 and stepped:
         caps = 5.0 * adam.lr / st.lr_scale     # the iterations' step cap
         final, polish, _ = _gn_polish(fm, problem, final, stepped, tr, steps=st.polish_steps, spp=st.final_spp,
@@ -1378,7 +1419,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
                                    else st.polish_max_steps,
                                    chi2_continue=float(chi2_dist.isf(st.polish_continue_p, len(stepped))),
                                    keep_last=_averaged_count(st.polish_steps, st.polish_average_from),
-                                   settled_spp_factor=st.polish_settled_spp)
+                                   settled_spp_factor=st.polish_settled_spp, jacobians_out=polish_jacobians)
     # After the polish, the drift is its last step: what the fit still moved by at the end
     # (and `drifting` those parameters whose last step exceeds their uncertainty); when its
     # later points are averaged, their mean step and the mean's standard error instead.
@@ -1386,13 +1427,16 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     polished = bool(accepted) and st.uncertainties
     polish_se: dict[str, float] = {}
     polish_sd: dict[str, float] = {}
+    # the polish's last Jacobians that the uncertainties reuse: as many steps' as points averaged
+    n_polish_avg = 1 if polish_jacobians else 0
     if accepted:
         drift = {n: float(accepted[-1]["step"][n]) for n in names if n in accepted[-1]["step"]}
-        averaged = _polish_average(accepted, names, tr,
-                                   _average_from(len(accepted), st.polish_steps, st.polish_average_from))
+        first = _average_from(len(accepted), st.polish_steps, st.polish_average_from)
+        averaged = _polish_average(accepted, names, tr, first)
         if averaged is not None:
             mean_point, drift, polish_sd, polish_se = averaged
             final = {**final, **mean_point}
+            n_polish_avg = max(1, len(accepted) - first + 1)
     moving: list[str] = []
     lm_losses: list[float] = []
     if st.lm_iterations > 0:
@@ -1413,16 +1457,30 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     spread: dict[str, float] = {}
     s_unc = float("nan")
     if st.uncertainties:
-        jac = _jacobian_columns(fm, problem, final, names, spp=st.uncertainty_spp, seed=st.seed * 100_003 + 60_000)
+        # The sandwich's curvature from the cross products of Jacobians with independent
+        # render noise (see sandwich_uncertainties): one at the final point, with the secant
+        # steps of the polish's (at the default steps, the finite differences of the phase
+        # coefficients are 10x noisier), and the polish's last ones, as many steps' as points
+        # were averaged (near the final point, within its noise; their solved additive
+        # columns, which carry no render noise, from the final point's), or a second one.
+        def unc_jacobian(seed: int) -> dict[str, np.ndarray]:
+            return fm.jacobian(final, problem.angles_deg, list(names), spp=st.uncertainty_spp, seed=seed,
+                               steps=secant_steps(fm, final, stepped))
+
+        jac = unc_jacobian(st.seed * 100_003 + 60_000)
+        more = [{**jac, **j} for _, js in polish_jacobians[-n_polish_avg:] for j in js] if n_polish_avg else []
+        if not more:
+            more = [unc_jacobian(st.seed * 100_003 + 65_000)]
         fisher, _ = fisher_uncertainties(fm, problem, final, names, ev["scale"], ev["model_variance"],
                                          ev["profiles"], spp=st.uncertainty_spp, seed=0, inflate=red,
-                                         fit_scale=fixed_scale is None, jac=jac)
+                                         fit_scale=fixed_scale is None,
+                                         jac={n: np.mean([j[n] for j in (jac, *more)], axis=0) for n in names})
         sandwich_cov: dict[str, dict[str, float]] = {}
         unc, s_unc, _ = sandwich_uncertainties(problem, final, names, ev["scale"], ev["profiles"],
                                                ev["model_variance"], jac, delta_rel=d_ref,
                                                fit_scale=fixed_scale is None,
                                                render_variance_factor=2.0 * st.final_spp / max(1, st.lm_spp),
-                                               covariance_out=sandwich_cov)
+                                               covariance_out=sandwich_cov, jac_more=more)
         # never below the ideal linear-chi^2 bound
         unc = {k: max(v, fisher.get(k, 0.0)) for k, v in unc.items()}
         # The stochastic optimiser's own spread: the standard deviation of the averaged

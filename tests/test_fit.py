@@ -173,6 +173,34 @@ def test_sandwich_uncertainties_match_scatter():
     assert np.all(np.abs(mean_pred / spread - 1.0) < 0.35), (mean_pred, spread)
 
 
+
+def test_sandwich_curvature_from_cross_products_of_noisy_jacobians():
+    """Along a weak direction one Monte Carlo Jacobian's A^T A is inflated by its noise's
+    Gram matrix, so its sandwich is too narrow there; the cross products of independent
+    Jacobians (`jac_more`) give the noise-free Jacobian's interval."""
+    rng = np.random.default_rng(5)
+    n, w = 4, 200
+    x = np.linspace(-3.0, 3.0, w)
+    prof = np.exp(-np.abs(x))[None, :] * np.ones((n, 1))
+    s, var = 100.0, 0.01 * 100.0 * prof + 1e-3
+    pb = Problem(np.zeros(n), x, s * prof + rng.normal(0.0, np.sqrt(var)), var, None, None, "t", None)  # type: ignore[arg-type]
+    true = {"a": prof, "b": prof * (1.0 + 0.05 * x)}     # nearly parallel: a valley
+
+    def noisy():
+        return {k: v + 0.05 * prof * rng.standard_normal(v.shape) for k, v in true.items()}
+
+    def sd_b(jac, more=()):
+        return sandwich_uncertainties(pb, {}, ["a", "b"], s, prof, np.zeros_like(prof), jac, delta_rel=0.01,
+                                      fit_scale=False, jac_more=more)[0]["b"]
+
+    exact = sd_b(true)
+    single = np.mean([sd_b(noisy()) for _ in range(20)])
+    pair = np.mean([sd_b(noisy(), [noisy()]) for _ in range(20)])
+    four = np.mean([sd_b(noisy(), [noisy(), noisy(), noisy()]) for _ in range(20)])
+    assert single < 0.8 * exact
+    assert pair == pytest.approx(exact, rel=0.1) and four == pytest.approx(exact, rel=0.1)
+
+
 def test_recovers_sigma_t_and_albedo(problem):
     est = []
     for seed in (0,):
