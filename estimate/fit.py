@@ -169,7 +169,7 @@ class FitSettings:
     polish_max_steps: int | None = None   # polish steps in all while its last points still walk (None: 2 x polish_steps)
     polish_continue_p: float = 0.001  # a step is still a move when its noise chi^2 exceeds this upper quantile
     polish_settled_spp: int = 1      # > 1: after a noise-sized polish step, renders at this x final_spp, last Jacobians kept
-    uncertainty_spp: int = 512       # each of the uncertainties' two Jacobians
+    uncertainty_spp: int = 512       # the uncertainties' Jacobian at the final point (two without a polish)
     decorrelated: bool = True
     #: solve additive parameters (stray-light offset and slope) exactly at every iteration
     #: instead of stepping them (decorrelated mode only; see fit_channel)
@@ -1013,7 +1013,7 @@ def fisher_uncertainties(fm: ForwardModel, problem: Problem, params: Mapping[str
 
 
 #: Smallest generalised eigenvalue of the uncertainties' cross-product curvature against the
-#: matrix of the two Jacobians' mean (`sandwich_uncertainties`, `_bounded_cross`).
+#: matrix of the Jacobians' mean (`sandwich_uncertainties`, `_bounded_cross`).
 UNCERTAINTY_CROSS_FLOOR = 0.1
 
 
