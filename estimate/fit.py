@@ -738,7 +738,7 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
                scale_guess: float | None = None, jacobian_every: int = 1, gross: float = 1.0,
                cross: bool = False, max_steps: int | None = None, chi2_continue: float = math.inf,
                keep_last: int = 3, settled_spp_factor: int = 1,
-               jacobians_out: list[tuple[int, list[dict[str, np.ndarray]]]] | None = None
+               jacobians_out: list[list[dict[str, np.ndarray]]] | None = None
                ) -> tuple[dict[str, float], list[dict[str, Any]], tuple[np.ndarray, np.ndarray] | None]:
     """Full Gauss-Newton steps on the delta-averaged log loss at high samples per pixel, from
     the end of the stochastic iterations.
@@ -816,9 +816,9 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
     step_chi2 (of the full step, before caps and halvings), jacobians (new Jacobians
     rendered for it), spp (of its gradient's renders), and when accepted, point: the stepped
     and solved parameters after it, and noise_sd}, and the last pair of renders (A, B; with
-    the solved additive terms) at the returned parameters. `jacobians_out` receives (step,
-    [the Jacobians rendered for it]) per step that rendered any (the uncertainties reuse
-    the last ones: `sandwich_uncertainties`).
+    the solved additive terms) at the returned parameters. `jacobians_out` receives the
+    Jacobians rendered for each step that rendered any (the uncertainties reuse the last
+    ones: `sandwich_uncertainties`).
     """
     valid, meas, angles = problem.valid, problem.measured, problem.angles_deg
     n_v = max(1, int(valid.sum()))
@@ -875,7 +875,7 @@ def _gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
                 jac_a, jac_b = jac, None
                 new_jacobians = 1
             if jacobians_out is not None:
-                jacobians_out.append((k, [jac_a] if jac_b is None else [jac_a, jac_b]))
+                jacobians_out.append([jac_a] if jac_b is None else [jac_a, jac_b])
         m = meas / sc
         m_max = float(np.max(np.where(valid, m, -np.inf)))
         mean = 0.5 * (pa + pb)
@@ -1406,7 +1406,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     final = params_of(z_final)
     stage_done("iterations")
     polish: list[dict[str, Any]] = []
-    polish_jacobians: list[tuple[int, list[dict[str, np.ndarray]]]] = []
+    polish_jacobians: list[list[dict[str, np.ndarray]]] = []
     if st.polish_steps > 0 and stepped:
         caps = 5.0 * adam.lr / st.lr_scale     # the iterations' step cap
         final, polish, _ = _gn_polish(fm, problem, final, stepped, tr, steps=st.polish_steps, spp=st.final_spp,
@@ -1463,14 +1463,10 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         # coefficients are 10x noisier), and the polish's last ones, as many steps' as points
         # were averaged (near the final point, within its noise; their solved additive
         # columns, which carry no render noise, from the final point's), or a second one.
-        def unc_jacobian(seed: int) -> dict[str, np.ndarray]:
-            return fm.jacobian(final, problem.angles_deg, list(names), spp=st.uncertainty_spp, seed=seed,
-                               steps=secant_steps(fm, final, stepped))
-
-        jac = unc_jacobian(st.seed * 100_003 + 60_000)
-        more = [{**jac, **j} for _, js in polish_jacobians[-n_polish_avg:] for j in js] if n_polish_avg else []
+        jac = _gn_jacobian(fm, problem, final, names, spp=st.uncertainty_spp, seed=st.seed * 100_003 + 60_000)
+        more = [{**jac, **j} for js in polish_jacobians[-n_polish_avg:] for j in js] if n_polish_avg else []
         if not more:
-            more = [unc_jacobian(st.seed * 100_003 + 65_000)]
+            more = [_gn_jacobian(fm, problem, final, names, spp=st.uncertainty_spp, seed=st.seed * 100_003 + 65_000)]
         fisher, _ = fisher_uncertainties(fm, problem, final, names, ev["scale"], ev["model_variance"],
                                          ev["profiles"], spp=st.uncertainty_spp, seed=0, inflate=red,
                                          fit_scale=fixed_scale is None,
