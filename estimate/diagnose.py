@@ -51,7 +51,14 @@ from scipy import ndimage, stats
 
 from estimate.errors import DataError, EstimateError, ModelParameterError
 from estimate.extensions import EXTENSIONS
-from estimate.fit import FitResult, FitSettings, fit_channel, secant_steps
+from estimate.fit import (
+    UNCERTAINTY_CROSS_FLOOR,
+    FitResult,
+    FitSettings,
+    bounded_cross,
+    fit_channel,
+    secant_steps,
+)
 from estimate.loss import ScaleCalibration, calibrated_scale, reference_delta
 from estimate.residuals import (
     ALPHA,
@@ -125,6 +132,9 @@ MAGNITUDE_SIGMA = 1.0
 BIC_STRONG = 10.0
 #: Every HOLDOUT_EVERY-th light angle (sorted) is held out when confirming.
 HOLDOUT_EVERY = 4
+#: The refit's second Jacobian, for its uncertainties' cross-product curvature, is rendered
+#: at the refit's seed plus this (render noise independent of the refit's own).
+UNCERTAINTY_SEED_OFFSET = 7919
 #: At most this many candidates are refitted per round.
 MAX_CONFIRM = 2
 #: At most this many effects are added.
@@ -384,6 +394,32 @@ class RefitResult:
     covariance: dict[tuple[str, str], float] = field(default_factory=dict)
 
 
+def _refit_columns(jac: Mapping[str, np.ndarray], f: np.ndarray, s: float, sig: np.ndarray) -> np.ndarray:
+    """d residual / d (free parameters, scale) of the refit's chi^2, one column each."""
+    cols = [np.ravel(-s * jac[n] / sig) for n in jac] + [np.ravel(-f / sig)]
+    return np.nan_to_num(np.stack(cols, axis=1), nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def _cross_covariance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Gauss-Newton covariance (unit noise) from two Jacobians with independent render noise.
+
+    The curvature is their cross product (A^T B + B^T A) / 2, held between
+    `UNCERTAINTY_CROSS_FLOOR` x and 1 x the matrix of their mean (`bounded_cross`), with the
+    columns normalised first: parameters in their own units span many decades (a
+    stray-light offset in e-/s against an albedo). A column that is zero in both (a halo's
+    width while its fraction is 0) constrains nothing: its variance is NaN (unknown), not 0.
+    The last column is the scale's; only the free parameters' block is returned.
+    """
+    mean = 0.5 * (a + b)
+    cn = np.linalg.norm(mean, axis=0)
+    live = cn > 1e-300 * max(1.0, float(np.max(cn, initial=0.0)))
+    an, bn, mn = (x[:, live] / cn[live] for x in (a, b, mean))
+    h = bounded_cross(0.5 * (an.T @ bn + bn.T @ an), mn.T @ mn, UNCERTAINTY_CROSS_FLOOR)
+    cov = np.full((a.shape[1], a.shape[1]), np.nan)
+    cov[np.ix_(live, live)] = np.linalg.pinv(h) / np.outer(cn[live], cn[live])
+    return cov[:-1, :-1]
+
+
 def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[str], *,
           angle_idx: Sequence[int] | None = None, spp: int = 256, seed: int = 2000, iterations: int = 12,
           model_variance: np.ndarray | None = None, noise_scale: np.ndarray | None = None) -> RefitResult:
@@ -391,7 +427,9 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
 
     `noise_scale` (f per angle of the whole problem, `estimate.residuals.noise_floor`)
     scales each angle's variance by f^2. Uncertainties: Gauss-Newton covariance at the
-    optimum, inflated by the (adjusted) reduced chi^2 when it exceeds 1.
+    optimum, its curvature from two Jacobians with independent render noise
+    (`_cross_covariance`: this seed's and seed + `UNCERTAINTY_SEED_OFFSET`'s, one render and
+    one Jacobian more), inflated by the (adjusted) reduced chi^2 when it exceeds 1.
     """
     idx = list(range(len(problem.angles_deg))) if angle_idx is None else list(angle_idx)
     angles = [float(problem.angles_deg[i]) for i in idx]
@@ -424,9 +462,8 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
         # with common random numbers a render is not a smooth function of sigma_t or the
         # phase (a free flight crossing the slab boundary flips), and small-step columns
         # differed between seeds by up to 2x, so LM saw no descent towards the optimum.
-        jac = model.jacobian(theta, angles, free, spp=spp, seed=seed, steps=secant_steps(model, theta, free))
-        cols = [np.ravel(-s * jac[n] / sig) for n in free] + [np.ravel(-f / sig)]
-        A = np.nan_to_num(np.stack(cols, axis=1), nan=0.0, posinf=0.0, neginf=0.0)
+        A = _refit_columns(model.jacobian(theta, angles, free, spp=spp, seed=seed,
+                                          steps=secant_steps(model, theta, free)), f, s, sig)
         g = A.T @ r.ravel()
         H = A.T @ A
         d = np.maximum(np.diag(H), 1e-300)
@@ -457,19 +494,20 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
             break
     unc: dict[str, float] = {}
     if A is not None:
-        jac = model.jacobian(theta, angles, free, spp=spp, seed=seed, steps=secant_steps(model, theta, free))
-        cols = [np.ravel(-s * jac[n] / sig) for n in free] + [np.ravel(-f / sig)]
-        A = np.nan_to_num(np.stack(cols, axis=1), nan=0.0, posinf=0.0, neginf=0.0)
+        # The curvature from two Jacobians with independent render noise (this seed's and
+        # another's): one Monte Carlo Jacobian's A^T A carries the noise's own Gram matrix,
+        # which dominates the weakly constrained directions and narrows their intervals
+        # (estimate.fit.sandwich_uncertainties). The refit itself stays at one seed.
+        steps = secant_steps(model, theta, free)
+        seed_b = seed + UNCERTAINTY_SEED_OFFSET
+        f_b = model.render_profiles(theta, angles, spp=spp, seed=seed_b)
+        As = [_refit_columns(model.jacobian(theta, angles, free, spp=spp, seed=sd, steps=steps), ff, s, sig)
+              for sd, ff in ((seed, f), (seed_b, f_b))]
         n_obs = int(np.sum(np.isfinite(sig)))
         red = chi2 / max(1, n_obs - len(free) - 1)
-        # Columns normalised before the pseudo-inverse: parameters in their own units span
-        # many decades (a stray-light offset in e-/s against an albedo).
-        cn = np.maximum(np.linalg.norm(A, axis=0), 1e-300)
-        # A parameter whose column is zero (a halo's width while its fraction is 0) is not
-        # constrained at all: its variance comes out NaN (unknown), not 0.
-        with np.errstate(invalid="ignore", divide="ignore"):
-            cov = np.linalg.pinv((A / cn).T @ (A / cn)) / np.outer(cn, cn) * max(1.0, red)
-        unc = {n: float(math.sqrt(max(cov[j, j], 0.0))) for j, n in enumerate(free)}
+        cov = _cross_covariance(As[0], As[1]) * max(1.0, red)
+        unc = {n: float(math.sqrt(cov[j, j])) if np.isfinite(cov[j, j]) else float("nan")
+               for j, n in enumerate(free)}
         covd = {(a, b): float(cov[i, j]) for i, a in enumerate(free) for j, b in enumerate(free)}
         return RefitResult(theta, s, unc, chi2, it, covd)
     return RefitResult(theta, s, unc, chi2, it)

@@ -481,11 +481,11 @@ def _gn_columns(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequenc
 
 
 #: Smallest generalised eigenvalue of the cross-product matrix against the two Jacobians'
-#: mean's (see _bounded_cross).
+#: mean's (see bounded_cross).
 CROSS_FLOOR = 0.5
 
 
-def _bounded_cross(h_cross: np.ndarray, h_mean: np.ndarray, floor: float) -> np.ndarray:
+def bounded_cross(h_cross: np.ndarray, h_mean: np.ndarray, floor: float) -> np.ndarray:
     """The cross-product Gauss-Newton matrix held between `floor` x and 1 x the matrix of the
     two Jacobians' mean, in the generalised eigenvalues of one against the other.
 
@@ -566,7 +566,7 @@ def _gn_inverse(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequenc
             H += (A.T @ B + B.T @ A) / n / len(dls)
             H_mean += 0.5 * ((A + B).T @ (A + B)) / n / len(dls)
     if jac_cross is not None:
-        H = _bounded_cross(H, H_mean, CROSS_FLOOR)
+        H = bounded_cross(H, H_mean, CROSS_FLOOR)
     H = H + damping * np.diag(np.diag(H)) + 1e-12 * np.eye(len(names))
     # Eigenvalue floor: directions the data barely constrain (two-term HG with the
     # forward lobe's weight -> 1 leaves g_backward free; albedo -> 1) have eigenvalues near
@@ -1013,7 +1013,7 @@ def fisher_uncertainties(fm: ForwardModel, problem: Problem, params: Mapping[str
 
 
 #: Smallest generalised eigenvalue of the uncertainties' cross-product curvature against the
-#: matrix of the Jacobians' mean (`sandwich_uncertainties`, `_bounded_cross`).
+#: matrix of the Jacobians' mean (`sandwich_uncertainties`, `bounded_cross`).
 UNCERTAINTY_CROSS_FLOOR = 0.1
 
 
@@ -1031,7 +1031,7 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
     With `jac_more`, further Jacobians with independent render noise (at the same point or
     one within the fit's noise of it), the curvature is the mean of the pairs' cross
     products (A_i^T A_j + A_j^T A_i) / 2, held between `cross_floor` x and 1 x the matrix of
-    the Jacobians' mean (`_bounded_cross`), and so is the meat (A_i^T S A_j, S the
+    the Jacobians' mean (`bounded_cross`), and so is the meat (A_i^T S A_j, S the
     residuals' noise variance). One Monte Carlo Jacobian's A^T A carries the noise's own
     Gram matrix, which dominates where the true curvature is weakest, along the sigma_t /
     phase valley. On the paper simulation's d 0.5 um / sigma_t 6 fit (session 20) a
@@ -1082,7 +1082,7 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
         pairs = [(a, b) for i, a in enumerate(As) for b in As[i + 1:]]
         h_cross = sum(a.T @ b + b.T @ a for a, b in pairs) / (2 * len(pairs))
         m_cross = sum(a.T @ (b * S) + b.T @ (a * S) for a, b in pairs) / (2 * len(pairs))
-        H, meat = _bounded_cross(h_cross, H, cross_floor), _bounded_cross(m_cross, meat, cross_floor)
+        H, meat = bounded_cross(h_cross, H, cross_floor), bounded_cross(m_cross, meat, cross_floor)
     n = int(valid.sum())
     dof = max(1, n - A.shape[1])
     c2 = float(np.sum(np.where(var_r > 0, r * r / np.where(var_r > 0, var_r, 1.0), 0.0)))

@@ -24,6 +24,7 @@ from estimate.beam import BeamProfile
 from estimate.diagnose import (
     BaseFit,
     RefitResult,
+    _cross_covariance,
     _magnitude_lr_z,
     _run_fit_settings,
     _smoothed_variance,
@@ -565,3 +566,31 @@ def test_final_fit_under_a_calibrated_scale_starts_from_the_refit_carried_to_tha
     assert start["stray_light.offset"] == pytest.approx(0.01)  # the refit's stray light, carried over
     assert info["from"] == "coarse grid" and info["loss_grid"] < info["loss_refit"]
     assert start["albedo"] in (0.85, 0.95) and start["sigma_t"] == pytest.approx(2.0, rel=0.01)
+
+
+def test_refit_covariance_from_two_noisy_jacobians_is_not_narrowed_by_their_noise():
+    """Along a valley one noisy Jacobian's A^T A carries its noise's Gram matrix, so the
+    refit's interval there comes out too narrow; the bounded cross product of two
+    independent Jacobians gives the noise-free interval. A column that is zero in both (a
+    halo's width at fraction 0) has an unknown (NaN) variance."""
+    rng = np.random.default_rng(11)
+    x = np.linspace(-3.0, 3.0, 400)
+    prof = np.exp(-np.abs(x))
+    # columns: two nearly parallel parameters (a valley), a dead one, the scale
+    true = np.stack([prof, prof * (1.0 + 0.05 * x), np.zeros_like(x), 0.5 * prof], axis=1)
+
+    def noisy() -> np.ndarray:
+        a = true + 0.05 * prof[:, None] * rng.standard_normal(true.shape)
+        a[:, 2] = 0.0
+        return a
+
+    def sd(cov: np.ndarray) -> float:
+        return float(np.sqrt(cov[1, 1]))
+
+    exact = sd(_cross_covariance(true, true))
+    one = np.mean([sd(_cross_covariance(a, a)) for a in (noisy() for _ in range(20))])
+    two = np.mean([sd(_cross_covariance(noisy(), noisy())) for _ in range(20)])
+    assert one < 0.8 * exact
+    assert two == pytest.approx(exact, rel=0.15)
+    cov = _cross_covariance(noisy(), noisy())
+    assert cov.shape == (3, 3) and np.isnan(cov[2, 2]) and np.all(np.isfinite(cov[:2, :2]))

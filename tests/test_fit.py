@@ -556,7 +556,7 @@ def test_cross_product_matrix_drops_the_noise_gram_matrix():
 def test_bounded_cross_keeps_the_matrix_between_floor_and_mean():
     """The cross-product matrix is held between `floor` x and 1 x the mean's matrix in
     their generalised eigenvalues; inside those bounds it is left as it is."""
-    from estimate.fit import _bounded_cross
+    from estimate.fit import bounded_cross
 
     rng = np.random.default_rng(3)
     q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
@@ -564,7 +564,7 @@ def test_bounded_cross_keeps_the_matrix_between_floor_and_mean():
     root = q @ np.diag(np.sqrt([4.0, 1.0, 0.01]))
     for lam, want in (([0.8, 0.6, 0.7], [0.8, 0.6, 0.7]), ([1.7, -0.3, 0.05], [1.0, 0.5, 0.5])):
         h_cross = root @ np.diag(lam) @ root.T
-        out = _bounded_cross(h_cross, h_mean, 0.5)
+        out = bounded_cross(h_cross, h_mean, 0.5)
         gen = np.linalg.eigvals(np.linalg.solve(h_mean, out)).real
         assert sorted(gen) == pytest.approx(sorted(want), abs=1e-9)
 
