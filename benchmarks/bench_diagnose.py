@@ -95,7 +95,7 @@ TRUE = {"sigma_t": 2.0, "albedo": 0.9, "phase.g": 0.5}
 #: spp of the synthetic base fit.
 BASE_SPP = 1024
 #: Cache version of the synthetic cases (bumped when the recipe or the diagnosis changes).
-SYNTHETIC_VERSION = "v6"
+SYNTHETIC_VERSION = "v7"
 
 
 def synthetic_recording(case: dict[str, Any], excess: float = 0.0) -> tuple[Any, Callable[..., Any], dict[str, float]]:
@@ -287,7 +287,29 @@ def truth_at_floor(work: Path, channel: str, spp: int, truth: dict[str, float]) 
 
 
 # ---------------------------------------------------------------------------- scoring
-def score(case: dict[str, Any], res: dict[str, Any]) -> dict[str, Any]:
+def magnitude_z(case: dict[str, Any], res: dict[str, Any]) -> dict[str, float]:
+    """(fitted - true) / reported uncertainty of each named concealed effect's magnitude
+    parameters (`estimate.diagnose.MAGNITUDE_PARAMETERS`; a parameter the case leaves out is
+    at its neutral value). Synthetic cases only: their truth is in the forward model's units."""
+    from estimate.diagnose import MAGNITUDE_PARAMETERS
+    from estimate.extensions import EXTENSIONS
+
+    out: dict[str, float] = {}
+    for name, fitted in (res.get("confirmed_effects") or {}).items():
+        if name not in case["effects"]:
+            continue
+        neutral = {p.name: p.neutral for p in EXTENSIONS[name].parameters}
+        for full in MAGNITUDE_PARAMETERS[name]:
+            short = full.split(".", 1)[1]
+            v = fitted.get(full) or {}
+            unc = v.get("uncertainty")
+            if unc is None or not math.isfinite(unc) or unc <= 0:
+                continue
+            out[full] = (v["value"] - case["effects"][name].get(short, neutral[short])) / unc
+    return out
+
+
+def score(case: dict[str, Any], res: dict[str, Any], source: str = "synthetic") -> dict[str, Any]:
     named = list((res.get("confirmed_effects") or {}).keys())
     cands = [c["name"] for c in res.get("candidates") or []]
     truth = res["truth"]
@@ -312,6 +334,7 @@ def score(case: dict[str, Any], res: dict[str, Any]) -> dict[str, Any]:
             "reduced_chi2_adjusted_before": adj_b, "reduced_chi2_adjusted_after": adj_a, "noise_floor": floor,
             "truth_reduced_chi2_adjusted": res.get("truth_reduced_chi2_adjusted"),
             "material_error": err, "detectability": res.get("detectability"),
+            "magnitude_z": magnitude_z(case, res) if source == "synthetic" else {},
             "time_s": res.get("diagnose_wall_s", res.get("time_s"))}
 
 
@@ -348,6 +371,12 @@ def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tup
                                                        for r in singles + pairs])) if singles + pairs else None,
         "max_channel_time_s": max((r["time_s"] or 0.0) for r in rows) if rows else None,
     }
+    zs = [z for r in rows for z in (r.get("magnitude_z") or {}).values()]
+    if zs:
+        # Do the named effects' magnitude uncertainties cover the truth? (68 % / 95 % expected)
+        summary["magnitude_z"] = {"n": len(zs), "rms": float(np.sqrt(np.mean(np.square(zs)))),
+                                  "within_1sigma": float(np.mean(np.abs(zs) <= 1)),
+                                  "within_2sigma": float(np.mean(np.abs(zs) <= 2))}
     lines = [f"Diagnosis proof suite ({source} recordings, {ran}/{total} cases run)", "",
              ("| case | concealed | significant (by) | screened first | named (confirmed) | ok | noise floor f | "
               "red. chi2 HDR before -> after | red. chi2 at floor before -> after (truth) | "
@@ -384,6 +413,13 @@ def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tup
               (f"| ... or <= the truth's own value there, where that is above 1.2 | "
                f"{100 * summary['after_reduced_chi2_le_truth_or_1.2']:.0f} % of named cases |"),
               f"| one channel's diagnosis <= 300 s | max {summary['max_channel_time_s'] or 0:.0f} s |"]
+    if zs:
+        mz = summary["magnitude_z"]
+        lines += ["", ("Named effects' magnitudes against the truth, z = (fitted - true) / reported uncertainty "
+                  f"({mz['n']} parameters): RMS z {mz['rms']:.2f}, |z| <= 1 in {100 * mz['within_1sigma']:.0f} % "
+                  f"(68 % expected), |z| <= 2 in {100 * mz['within_2sigma']:.0f} % (95 %)"), "",
+                  "| case | parameter | z |", "|---|---|---|"]
+        lines += [f"| {r['id']} | {k} | {z:+.2f} |" for r in rows for k, z in (r.get("magnitude_z") or {}).items()]
     return "\n".join(lines), summary
 
 
@@ -448,7 +484,7 @@ def main() -> int:
                 continue
             res["case_wall_s"] = time.perf_counter() - tc
             f.write_text(json.dumps(res, default=float))
-        row = score(case, res)
+        row = score(case, res, args.source)
         rows.append(row)
         print(f"{case['id']}: named {row['named'] or 'none'} (screen first {row['screen_first']}), "
               f"red. chi2 {row['reduced_chi2_before']:.2f} -> {row['reduced_chi2_after']:.2f} (HDR), "
