@@ -4,7 +4,7 @@
 This script makes --draws synthetic sessions of the same truth (exp3, sigma_t 2 /mm, albedo 0.9,
 10 angles; tests/synth_session.py), each with its own noise seed (sensor noise and the frozen
 Monte Carlo noise of the 32768-spp truth renders), fits each once with `rig estimate`'s defaults
-(fit seed = draw seed), and compares the spread of the estimates with the reported 1-sigma
+(the calibrated scale; fit seed = draw seed), and compares the spread of the estimates with the reported 1-sigma
 uncertainties, per parameter and for the derived sigma_a, sigma_s' and g:
 
 - z = (estimate - truth) / uncertainty per draw; the fraction with |z| <= 1 (68 % expected) and
@@ -64,7 +64,7 @@ def fit_draw(seed: int) -> dict:
         session = make_session(tmp / "s", {CHANNEL: TRUTH}, angles=ANGLES, spp=TRUTH_SPP, width=320,
                                scale=SCALE, seed=seed)
         t0 = time.monotonic()
-        r = fit_channel(load_problem(session, CHANNEL), MODEL, settings=FitSettings(seed=seed))
+        r = fit_channel(load_problem(session, CHANNEL), MODEL, settings=FitSettings(seed=seed, scale="calibrated"))
         wall = time.monotonic() - t0
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
