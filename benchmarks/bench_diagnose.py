@@ -309,6 +309,20 @@ def magnitude_z(case: dict[str, Any], res: dict[str, Any]) -> dict[str, float]:
     return out
 
 
+def material_z(res: dict[str, Any]) -> dict[str, float]:
+    """(after - true) / reported uncertainty of sigma_t and the albedo, when an effect was named
+    (the refit's or the final fit's material parameters and uncertainties)."""
+    if not res.get("confirmed_effects"):
+        return {}
+    unc = res.get("material_uncertainty_after") or {}
+    out: dict[str, float] = {}
+    for k in ("sigma_t", "albedo"):
+        u = unc.get(k)
+        if u is not None and math.isfinite(u) and u > 0:
+            out[k] = (res["material_after"][k] - res["truth"][k]) / u
+    return out
+
+
 def score(case: dict[str, Any], res: dict[str, Any], source: str = "synthetic") -> dict[str, Any]:
     named = list((res.get("confirmed_effects") or {}).keys())
     cands = [c["name"] for c in res.get("candidates") or []]
@@ -335,6 +349,7 @@ def score(case: dict[str, Any], res: dict[str, Any], source: str = "synthetic") 
             "truth_reduced_chi2_adjusted": res.get("truth_reduced_chi2_adjusted"),
             "material_error": err, "detectability": res.get("detectability"),
             "magnitude_z": magnitude_z(case, res) if source == "synthetic" else {},
+            "material_z": material_z(res),
             "time_s": res.get("diagnose_wall_s", res.get("time_s"))}
 
 
@@ -371,12 +386,14 @@ def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tup
                                                        for r in singles + pairs])) if singles + pairs else None,
         "max_channel_time_s": max((r["time_s"] or 0.0) for r in rows) if rows else None,
     }
+    # Do the reported uncertainties cover the truth? (68 % / 95 % expected)
+    for key in ("magnitude_z", "material_z"):
+        zk = [z for r in rows for z in (r.get(key) or {}).values()]
+        if zk:
+            summary[key] = {"n": len(zk), "rms": float(np.sqrt(np.mean(np.square(zk)))),
+                            "within_1sigma": float(np.mean(np.abs(zk) <= 1)),
+                            "within_2sigma": float(np.mean(np.abs(zk) <= 2))}
     zs = [z for r in rows for z in (r.get("magnitude_z") or {}).values()]
-    if zs:
-        # Do the named effects' magnitude uncertainties cover the truth? (68 % / 95 % expected)
-        summary["magnitude_z"] = {"n": len(zs), "rms": float(np.sqrt(np.mean(np.square(zs)))),
-                                  "within_1sigma": float(np.mean(np.abs(zs) <= 1)),
-                                  "within_2sigma": float(np.mean(np.abs(zs) <= 2))}
     lines = [f"Diagnosis proof suite ({source} recordings, {ran}/{total} cases run)", "",
              ("| case | concealed | significant (by) | screened first | named (confirmed) | ok | noise floor f | "
               "red. chi2 HDR before -> after | red. chi2 at floor before -> after (truth) | "
@@ -420,6 +437,12 @@ def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tup
                   f"(68 % expected), |z| <= 2 in {100 * mz['within_2sigma']:.0f} % (95 %)"), "",
                   "| case | parameter | z |", "|---|---|---|"]
         lines += [f"| {r['id']} | {k} | {z:+.2f} |" for r in rows for k, z in (r.get("magnitude_z") or {}).items()]
+    if "material_z" in summary:
+        mz = summary["material_z"]
+        lines += ["", (f"sigma_t and albedo after the refit of a named effect against the truth ({mz['n']} values): "
+                       f"RMS z {mz['rms']:.2f}, |z| <= 1 in {100 * mz['within_1sigma']:.0f} %, |z| <= 2 in "
+                       f"{100 * mz['within_2sigma']:.0f} %: "
+                       + ", ".join(f"{r['id']} {k} {z:+.2f}" for r in rows for k, z in (r.get("material_z") or {}).items()))]
     return "\n".join(lines), summary
 
 
