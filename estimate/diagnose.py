@@ -1462,6 +1462,12 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                       + ")", file=out)
             elif ff:
                 print(f"  ({ff['reason']})", file=out)
+            if not ff.get("kept"):
+                spp = (doc.get("settings") or {}).get("spp")
+                print("  (sigma_t, albedo and the phase after are the Levenberg-Marquardt refit's: "
+                      + (f"{spp}-spp " if spp else "") + "renders at fixed seeds, whose render noise biases "
+                      "them beyond their uncertainties (albedo 0.02-0.07 low at 512 spp on the synthetic proof "
+                      "suite); the estimator's final fit, without --quick, does not share this bias)", file=out)
     if doc.get("refit_run"):
         print(f"refit written as estimate run {doc['refit_run']}", file=out)
     print(f"diagnosis written to diagnoses/{doc['run_id']}/diagnosis.yaml", file=out)

@@ -539,6 +539,13 @@ def test_named_effects_are_ranked_by_the_chi2_each_carries_in_the_final_model():
     text = summary_text({"channels": {"g": doc}, "run_id": "x", "refit_run": None})
     assert ("named by the chi2 each carries in the final fit (set to absent alone): refractive_boundary 2400, "
             "lens_blur 172; the rounds added them as lens_blur, refractive_boundary") in text
+    # Without the estimator's final fit the material "after" is the fixed-seed LM refit's, and
+    # the summary says that its render noise biases it; with the final fit kept it does not.
+    assert "the Levenberg-Marquardt refit's" in text and "without --quick" in text
+    doc.update(final_fit={"kept": True, "iterations": 3, "time_s": 1.0},
+               refit_lm={"reduced_chi2_adjusted": 1.0, "material": {"sigma_t": 2.0, "albedo": 0.9}})
+    text = summary_text({"channels": {"g": doc}, "run_id": "x", "refit_run": None})
+    assert "final model fitted by the estimator" in text and "without --quick" not in text
 
 
 def test_final_fit_under_a_calibrated_scale_starts_from_the_refit_carried_to_that_scale():
