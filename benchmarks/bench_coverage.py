@@ -69,9 +69,13 @@ def fit_draw(seed: int) -> dict:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     derived = r.derived()
+    # Parts of the interval (fit_channel adds, in quadrature to the larger of the sandwich and the
+    # Fisher bound, the iterates' spread, the polish points' standard error and any drift): which
+    # one sets the width where the coverage is off.
     return {"seed": seed, "wall_s": wall, "parameters": r.parameters, "uncertainties": r.uncertainties,
             "derived": {k: derived[k] for k in DERIVED}, "polish_steps": len(r.polish),
-            "reduced_chi2": r.reduced_chi2}
+            "reduced_chi2": r.reduced_chi2, "parts": {"fisher": r.fisher_uncertainties,
+                                                      "optimizer_spread": r.optimizer_spread, "drift": r.drift}}
 
 
 def summarise(draws: list[dict]) -> dict[str, dict[str, float]]:
