@@ -37,6 +37,7 @@ LONG = [
     ("bench_crash", "SIGKILL at random moments + --resume (issue 5)"),
     ("bench_faults", "injected device faults (issue 5)"),
     ("sim_render", "the simulated bench's render cost and noise"),
+    ("bench_coverage", "reported uncertainties against eight independent noise draws (issue 6)"),
     ("bench_paper_sim", "the paper's simulation experiment, exp3 and two-term HG (issue 6)"),
     ("bench_diagnose", "diagnosis proof suite on concealed effects (issue 7)"),
     ("bench_profile_blur", "profile-row lens blur against the bench's 2D blur (issue 7; after bench_diagnose)"),
