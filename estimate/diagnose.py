@@ -457,6 +457,7 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
     lam = 1e-3
     it = 0
     A = None
+    a_at: dict[str, float] = {}  # the point of the loop's last Jacobian
     for it in range(1, iterations + 1):
         # Secant steps (estimate.fit.secant_steps), not the parameters' small default steps:
         # with common random numbers a render is not a smooth function of sigma_t or the
@@ -464,6 +465,7 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
         # differed between seeds by up to 2x, so LM saw no descent towards the optimum.
         A = _refit_columns(model.jacobian(theta, angles, free, spp=spp, seed=seed,
                                           steps=secant_steps(model, theta, free)), f, s, sig)
+        a_at = dict(theta)
         g = A.T @ r.ravel()
         H = A.T @ A
         d = np.maximum(np.diag(H), 1e-300)
@@ -501,12 +503,15 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
         steps = secant_steps(model, theta, free)
         seed_b = seed + UNCERTAINTY_SEED_OFFSET
         f_b = model.render_profiles(theta, angles, spp=spp, seed=seed_b)
-        As = [_refit_columns(model.jacobian(theta, angles, free, spp=spp, seed=sd, steps=steps), ff, s, sig)
-              for sd, ff in ((seed, f), (seed_b, f_b))]
+        # The loop's last Jacobian is this seed's at the final point unless a step moved it since.
+        a_own = A if a_at == theta else _refit_columns(
+            model.jacobian(theta, angles, free, spp=spp, seed=seed, steps=steps), f, s, sig)
+        As = [a_own, _refit_columns(model.jacobian(theta, angles, free, spp=spp, seed=seed_b, steps=steps),
+                                    f_b, s, sig)]
         n_obs = int(np.sum(np.isfinite(sig)))
         red = chi2 / max(1, n_obs - len(free) - 1)
         cov = _cross_covariance(As[0], As[1]) * max(1.0, red)
-        unc = {n: float(math.sqrt(cov[j, j])) if np.isfinite(cov[j, j]) else float("nan")
+        unc = {n: float(math.sqrt(max(cov[j, j], 0.0))) if np.isfinite(cov[j, j]) else float("nan")
                for j, n in enumerate(free)}
         covd = {(a, b): float(cov[i, j]) for i, a in enumerate(free) for j, b in enumerate(free)}
         return RefitResult(theta, s, unc, chi2, it, covd)
