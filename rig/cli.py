@@ -11,11 +11,11 @@ import argparse
 import importlib
 import pkgutil
 import sys
-from typing import Sequence
+from collections.abc import Sequence
 
 import rig
 import rig.commands
-from rig.errors import UsageError
+from rig.errors import EXIT_INTERRUPTED, UsageError
 
 
 class ArgumentsError(UsageError):
@@ -52,7 +52,29 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     return (UsageError, CaptureError, EstimateError, DeviceError)
 
 
+def forget_interrupt_in_exec() -> None:
+    """Undo CPython's "died of Ctrl-C" mark after an interrupt we have handled.
+
+    CPython 3.11-3.13 mark the interpreter when a KeyboardInterrupt leaves code run by
+    ``exec``/``eval`` of a *string*, even if an outer ``except`` catches it; at exit the
+    marked interpreter, when run as ``python -m rig.cli``, kills itself with SIGINT, so
+    a caller sees signal 2 instead of :data:`~rig.errors.EXIT_INTERRUPTED`. Dataclasses
+    build their methods with ``exec``, so a Ctrl-C that lands while a module is first
+    imported mid-run (the forward model is imported on the simulated rig's first
+    render) leaves that mark. Those versions also clear the mark at the start of every
+    string ``exec``; one that completes leaves it cleared.
+    """
+    exec("None", {})  # noqa: S102  # a constant string: the point is the exec itself
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    code = _main(argv)
+    if code == EXIT_INTERRUPTED:
+        forget_interrupt_in_exec()
+    return code
+
+
+def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
@@ -65,7 +87,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("rig: interrupted; everything completed so far is saved", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     except _user_errors() as e:
         print(f"rig {args.command}: error: {e}", file=sys.stderr)
         return 3 if isinstance(e, DeviceError) else 2

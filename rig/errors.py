@@ -1,4 +1,7 @@
-"""Errors of the command-line layer."""
+"""Errors and exit statuses of the command-line layer."""
+
+#: Exit status of a run stopped by Ctrl-C or SIGTERM (128 + SIGINT, as shells report it).
+EXIT_INTERRUPTED = 130
 
 
 class UsageError(ValueError):

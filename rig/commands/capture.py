@@ -34,6 +34,8 @@ from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
+from rig.errors import EXIT_INTERRUPTED
+
 #: Where sessions go when no ``--out`` is given (one time-stamped directory each).
 DEFAULT_SESSIONS_DIR = Path("sessions")
 #: Rows read around the profile row by default (the KAF-0261E reads 512; a band
@@ -478,7 +480,7 @@ def _run_checked(args: argparse.Namespace, req: _Request) -> int:
         # RuntimeError inside a render of the simulated bench): the signal decides, not the type
         if isinstance(e, KeyboardInterrupt) or (_SIGNALS and isinstance(e, Exception)):
             print(f"rig capture: interrupted; {where}", file=err)
-            return 130
+            return EXIT_INTERRUPTED
         if isinstance(e, (DeviceError, CaptureError)):
             notes = "".join(f" ({' '.join(n.split())})" for n in getattr(e, "__notes__", []))
             print(f"rig capture: error: {' '.join(str(e).split())}{notes}; {where}", file=err)
