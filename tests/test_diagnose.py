@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -31,10 +32,12 @@ from estimate.diagnose import (
     diagnose_channel,
     evaluate,
     refine_channel,
+    refit,
     render_stack,
     screen_candidates,
 )
 from estimate.errors import ModelParameterError
+from estimate.extensions.base import ParameterSpec
 from estimate.fit import FitSettings
 from estimate.forward import ForwardModel
 from estimate.geometry import RigGeometry
@@ -319,6 +322,8 @@ def test_final_fit_by_the_estimator_replaces_the_refit_of_a_confirmed_effect():
                          repeats=3, iterations=8)
     assert d.confirmed == ["stray_light"]
     lm = d.after
+    # what the LM refit reports is the decorrelated step from its fixed-seed optimum
+    assert d.fixed_seed_after and d.fixed_seed_after != lm.parameters
     st = FitSettings(seed=2, scale="free", max_iterations=14, spp_start=64, spp_max=128, final_spp=256, window=3,
                      polish_steps=1)
     fr = refine_channel(pb, d, make_model, st, spp=128, repeats=3)
@@ -331,6 +336,7 @@ def test_final_fit_by_the_estimator_replaces_the_refit_of_a_confirmed_effect():
     doc = d.as_dict()
     assert doc["material_after"]["sigma_t"] == fr.parameters["sigma_t"]
     assert doc["refit_lm"]["material"]["sigma_t"] == lm.parameters["sigma_t"]
+    assert doc["material_fixed_seed_after"] == {k: d.fixed_seed_after[k] for k in d.material_names}
     assert doc["material_uncertainty_after"]["sigma_t"] == fr.uncertainties["sigma_t"]
     assert doc["confirmed_effects"]["stray_light"]["stray_light.offset"]["value"] == d.after.parameters[
         "stray_light.offset"]
@@ -539,9 +545,13 @@ def test_named_effects_are_ranked_by_the_chi2_each_carries_in_the_final_model():
     text = summary_text({"channels": {"g": doc}, "run_id": "x", "refit_run": None})
     assert ("named by the chi2 each carries in the final fit (set to absent alone): refractive_boundary 2400, "
             "lens_blur 172; the rounds added them as lens_blur, refractive_boundary") in text
-    # Without the estimator's final fit the material "after" is the fixed-seed LM refit's, and
-    # the summary says that its render noise biases it; with the final fit kept it does not.
-    assert "the Levenberg-Marquardt refit's" in text and "without --quick" in text
+    # Without the estimator's final fit the material "after" is the decorrelated step from the
+    # fixed-seed LM refit, whose optimum the summary gives; with the final fit kept it does not.
+    assert "the Levenberg-Marquardt refit's" in text and "decorrelated" not in text  # none made here
+    doc.update(material_fixed_seed_after={"sigma_t": 1.93, "albedo": 0.851, "phase.g": 0.49})
+    text = summary_text({"channels": {"g": doc}, "run_id": "x", "refit_run": None})
+    assert "decorrelated chi^2 of two render seeds" in text and "sigma_t 1.93, albedo 0.851)" in text
+    assert "without --quick" in text
     doc.update(final_fit={"kept": True, "iterations": 3, "time_s": 1.0},
                refit_lm={"reduced_chi2_adjusted": 1.0, "material": {"sigma_t": 2.0, "albedo": 0.9}})
     text = summary_text({"channels": {"g": doc}, "run_id": "x", "refit_run": None})
@@ -601,3 +611,64 @@ def test_refit_covariance_from_two_noisy_jacobians_is_not_narrowed_by_their_nois
     assert two == pytest.approx(exact, rel=0.15)
     cov = _cross_covariance(noisy(), noisy())
     assert cov.shape == (3, 3) and np.isnan(cov[2, 2]) and np.all(np.isfinite(cov[:2, :2]))
+
+
+class _NoisyWidth:
+    """A profile exp(-|x| / w) (1 + c x / 4) rendered with Monte Carlo noise whose size
+    grows with the width w (common random numbers per seed): a fixed-seed chi^2 then
+    prefers narrower profiles, as the slab's renders prefer quieter (lower) albedos."""
+
+    x = np.linspace(-4.0, 4.0, 200)
+    specs: ClassVar[dict[str, ParameterSpec]] = {
+        "toy.w": ParameterSpec("w", 1.0, 0.2, 5.0, "mm", "fd", 0.01, "width"),
+        "toy.c": ParameterSpec("c", 0.0, -1.0, 1.0, "", "fd", 0.01, "tilt")}
+    parameter_names: ClassVar[list[str]] = list(specs)
+
+    def validate(self, p):
+        return {k: float(p.get(k, v.neutral)) for k, v in self.specs.items()}
+
+    def mean(self, th):
+        return np.exp(-np.abs(self.x) / th["toy.w"]) * (1.0 + th["toy.c"] * self.x / 4.0)
+
+    def render_profiles(self, th, angles, *, spp, seed):
+        eps = np.random.default_rng(seed).standard_normal((len(angles), self.x.size))
+        return self.mean(th) * (1.0 + 0.3 * th["toy.w"] * eps / math.sqrt(spp / 64))
+
+    def jacobian(self, th, angles, free, *, spp, seed, steps):
+        out = {}
+        for n in free:
+            hi, lo = dict(th), dict(th)
+            hi[n] += steps[n]
+            lo[n] -= steps[n]
+            out[n] = (self.render_profiles(hi, angles, spp=spp, seed=seed)
+                      - self.render_profiles(lo, angles, spp=spp, seed=seed)) / (2 * steps[n])
+        return out
+
+
+def test_decorrelated_step_removes_the_fixed_seed_refits_render_noise_bias():
+    """Twelve recordings of w = 1, each refitted at its own seed: the LM's fixed-seed
+    optimum sits several of its standard errors narrow; one Gauss-Newton step on the two
+    seeds' decorrelated chi^2 lands within 2.5 of the truth. The scale (the noise grows
+    with it too) follows."""
+    toy = _NoisyWidth()
+    truth = {"toy.w": 1.0, "toy.c": 0.2}
+    angles = [10.0, 20.0, 30.0]
+    rng = np.random.default_rng(3)
+    mean = np.tile(toy.mean(truth), (3, 1))
+    lm, dec, scales = [], [], []
+    for k in range(12):
+        rec = Recording(np.array(angles), toy.x, mean + rng.normal(0.0, 0.01, mean.shape), np.full(mean.shape, 1e-4),
+                  None, None)
+        r = refit(toy, rec, truth, ["toy.w", "toy.c"], spp=64, seed=100 + k, iterations=20,
+                  model_variance=(0.3 * mean) ** 2, decorrelate=True)
+        lm.append(r.parameters["toy.w"])
+        dec.append(r.decorrelated["toy.w"])
+        scales.append((r.scale, r.decorrelated_scale))
+    se = np.std(dec) / math.sqrt(len(dec))
+    assert np.mean(lm) < 1.0 - 6 * se
+    assert abs(np.mean(dec) - 1.0) < 2.5 * se
+    s_lm, s_dec = np.mean(scales, axis=0)
+    assert abs(s_dec - 1.0) < 0.5 * abs(s_lm - 1.0)
+    # without the option the result is the LM's alone
+    r = refit(toy, rec, truth, ["toy.w", "toy.c"], spp=64, seed=100, iterations=20, model_variance=(0.3 * mean) ** 2)
+    assert r.decorrelated is None
