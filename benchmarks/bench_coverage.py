@@ -75,7 +75,9 @@ def fit_draw(seed: int) -> dict:
     return {"seed": seed, "wall_s": wall, "parameters": r.parameters, "uncertainties": r.uncertainties,
             "derived": {k: derived[k] for k in DERIVED}, "polish_steps": len(r.polish),
             "reduced_chi2": r.reduced_chi2, "parts": {"fisher": r.fisher_uncertainties,
-                                                      "optimizer_spread": r.optimizer_spread, "drift": r.drift}}
+                                                      "sandwich": r.sandwich_uncertainties,
+                                                      "optimizer_spread": r.optimizer_spread,
+                                                      "polish_se": r.polish_se, "drift": r.drift}}
 
 
 def summarise(draws: list[dict]) -> dict[str, dict[str, float]]:

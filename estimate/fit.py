@@ -269,6 +269,10 @@ class FitResult:
     scale_calibration: dict[str, Any] | None = None   # ScaleCalibration.to_dict() when calibrated
     fisher_uncertainties: dict[str, float] = field(default_factory=dict)   # before the sandwich
     optimizer_spread: dict[str, float] = field(default_factory=dict)       # sd of the iterates about their mean or trend
+    #: the parts of `uncertainties` (1 sigma, parameter units): the sandwich alone (before the
+    #: Fisher bound's floor) and the averaged polish points' standard error
+    sandwich_uncertainties: dict[str, float] = field(default_factory=dict)
+    polish_se: dict[str, float] = field(default_factory=dict)
     #: the loss without its Monte Carlo variance term (estimate.loss.decorrelated_loss), final spp
     loss_unbiased: float = float("nan")
     #: covariance of the free parameters {a: {b: cov}}, its diagonal = uncertainties^2
@@ -1454,6 +1458,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     unc: dict[str, float] = {n: float("nan") for n in names}
     covariance: dict[str, dict[str, float]] = {}
     fisher: dict[str, float] = {}
+    sandwich: dict[str, float] = {}
     spread: dict[str, float] = {}
     s_unc = float("nan")
     if st.uncertainties:
@@ -1477,6 +1482,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
                                                fit_scale=fixed_scale is None,
                                                render_variance_factor=2.0 * st.final_spp / max(1, st.lm_spp),
                                                covariance_out=sandwich_cov, jac_more=more)
+        sandwich = dict(unc)
         # never below the ideal linear-chi^2 bound
         unc = {k: max(v, fisher.get(k, 0.0)) for k, v in unc.items()}
         # The stochastic optimiser's own spread: the standard deviation of the averaged
@@ -1509,7 +1515,9 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         angles_deg=[float(a) for a in problem.angles_deg], fitted=ev["profiles"], lm_losses=lm_losses,
         model_variance=ev["model_variance"], start=dict(init), settings=st.to_dict(), scale_mode=st.scale,
         scale_calibration=cal.to_dict() if cal is not None else None, fisher_uncertainties=fisher,
-        optimizer_spread=spread, gn_trace=gn_trace, covariance=covariance, drift=drift, drifting=drifting,
+        optimizer_spread=spread, sandwich_uncertainties=sandwich,
+        polish_se={k: float(v) for k, v in polish_se.items() if k in names}, gn_trace=gn_trace,
+        covariance=covariance, drift=drift, drifting=drifting,
         solved=list(solved), polish=polish, stage_times_s={k: round(v, 2) for k, v in stage_times.items()})
 
 
