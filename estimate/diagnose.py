@@ -28,7 +28,10 @@
    with Gauss-Newton uncertainties of every parameter; then (`refine_channel`, in
    `run_diagnosis` unless `refine=False`) fitted once more by the estimator itself with the
    base run's settings, so that the material parameters before and after come from the same
-   estimator. The Levenberg-Marquardt refit stays in the report (`refit_lm`).
+   estimator. The Levenberg-Marquardt refit stays in the report (`refit_lm`); its point is the
+   one Gauss-Newton step on the decorrelated chi^2 of two render seeds from its fixed-seed
+   optimum (`_decorrelated_step`), whose render-noise bias that step removes; the optimum
+   itself is reported as `material_fixed_seed_after`.
 
 The refit is a Levenberg-Marquardt loop on the forward model's `jacobian` (finite
 differences with common random numbers and the large secant steps of
