@@ -55,14 +55,16 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 def forget_interrupt_in_exec() -> None:
     """Undo CPython's "died of Ctrl-C" mark after an interrupt we have handled.
 
-    CPython 3.11-3.13 mark the interpreter when a KeyboardInterrupt leaves code run by
-    ``exec``/``eval`` of a *string*, even if an outer ``except`` catches it; at exit the
+    CPython 3.11 (the version this project runs) marks the interpreter when a
+    KeyboardInterrupt leaves code run by ``exec``/``eval`` of a *string*, even if an outer
+    ``except`` catches it; at exit the
     marked interpreter, when run as ``python -m rig.cli``, kills itself with SIGINT, so
     a caller sees signal 2 instead of :data:`~rig.errors.EXIT_INTERRUPTED`. Dataclasses
     build their methods with ``exec``, so a Ctrl-C that lands while a module is first
     imported mid-run (the forward model is imported on the simulated rig's first
-    render) leaves that mark. Those versions also clear the mark at the start of every
-    string ``exec``; one that completes leaves it cleared.
+    render) leaves that mark. 3.11 also clears the mark at the start of every string
+    ``exec``; one that completes leaves it cleared. (CPython gh-128130, 2025, moved that
+    clearing to the start of the main run; on versions with it this does nothing.)
     """
     exec("None", {})  # noqa: S102  # a constant string: the point is the exec itself
 
