@@ -116,9 +116,11 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--draws", type=int, default=8, help="number of noise draws (seeds 0 .. draws-1)")
     ap.add_argument("--fresh", action="store_true", help="forget the draws already in the result file")
+    ap.add_argument("--out", type=Path, default=RESULT, help=f"result file (default {RESULT.relative_to(ROOT)})")
     args = ap.parse_args()
     rev = _git_rev()
-    state = {"draws": []} if args.fresh or not RESULT.exists() else json.loads(RESULT.read_text())
+    out: Path = args.out
+    state = {"draws": []} if args.fresh or not out.exists() else json.loads(out.read_text())
     done = {d["seed"] for d in state["draws"]}
     for seed in range(args.draws):
         if seed in done:
@@ -131,15 +133,15 @@ def main() -> int:
               f"({err:+.1%}), albedo {d['parameters']['albedo']:.4f} +- {d['uncertainties']['albedo']:.4f}, "
               f"{d['wall_s']:.0f} s", flush=True)
         state["summary"] = summarise(state["draws"])
-        RESULT.write_text(json.dumps(state, indent=1, default=float))
+        out.write_text(json.dumps(state, indent=1, default=float))
     state["summary"] = summarise(state["draws"])
-    RESULT.write_text(json.dumps(state, indent=1, default=float))
+    out.write_text(json.dumps(state, indent=1, default=float))
     print(f"{'quantity':<16}{'n':>3}{'truth':>9}{'mean err':>10}{'rms err':>10}{'rms unc':>10}{'rms z':>7}"
           f"{'|z|<=1':>8}{'|z|<=2':>8}")
     for name, s in state["summary"].items():
         print(f"{name:<16}{s['n']:>3}{s['truth']:>9.4g}{s['mean_error']:>10.4g}{s['rms_error']:>10.4g}"
               f"{s['rms_uncertainty']:>10.4g}{s['rms_z']:>7.2f}{s['within_1sigma']:>8.0%}{s['within_2sigma']:>8.0%}")
-    print(f"wrote {RESULT}")
+    print(f"wrote {out}")
     return 0
 
 

@@ -600,6 +600,37 @@ def test_bounded_cross_keeps_the_matrix_between_floor_and_mean():
         assert sorted(gen) == pytest.approx(sorted(want), abs=1e-9)
 
 
+def test_averaged_polish_points_mean_step_within_their_scatter_is_not_added_twice():
+    """Three polish points drawn about the optimum with standard deviation 1: their mean's
+    standard error (0.58) already holds their scatter, and their mean step (the drift,
+    standard deviation 0.71) is that scatter again unless it stands out of it. Over many
+    draws, adding it anyway widened the interval by about a third; only a drift beyond the
+    points' scatter is added and flagged. Without averaged points the drift is added."""
+    from estimate.fit import _combined_uncertainties
+
+    rng = np.random.default_rng(3)
+    widths, plain, flagged = [], [], 0
+    for _ in range(400):
+        pts = rng.normal(0.0, 1.0, 3)
+        drift = {"x": float((pts[-1] - pts[0]) / 2)}
+        sd = {"x": float(np.std(pts, ddof=1))}
+        se = {"x": 1.0 / math.sqrt(3)}     # the points' noise model
+        unc, moving = _combined_uncertainties({"x": 0.0}, {}, se, drift, sd, polished=True)
+        widths.append(unc["x"])
+        plain.append(math.hypot(se["x"], drift["x"]))
+        flagged += bool(moving)
+    assert np.mean(widths) == pytest.approx(1.0 / math.sqrt(3), rel=0.05)
+    assert np.mean(plain) > 1.15 * np.mean(widths)
+    assert flagged < 0.1 * 400
+    # A walk: the points still move by 3 per step, far beyond their scatter.
+    unc, moving = _combined_uncertainties({"x": 0.1}, {"x": 0.05}, {"x": 0.5}, {"x": 3.0}, {"x": 1.0},
+                                          polished=True)
+    assert moving == ["x"] and unc["x"] == pytest.approx(math.hypot(0.1, 0.05, 0.5, 3.0))
+    # One polish point or none: the last move is the only measure of the distance left.
+    unc, moving = _combined_uncertainties({"x": 0.1}, {"x": 0.05}, {}, {"x": 0.2}, {}, polished=False)
+    assert moving == [] and unc["x"] == pytest.approx(math.hypot(0.1, 0.05, 0.2))
+
+
 def test_polish_average_takes_the_later_points_in_z():
     """The polish's result is the mean of the points after steps `start`..: the stepped
     parameters averaged in their optimiser variables, solved additive ones as they are, the
