@@ -1081,20 +1081,19 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
             cols.append(np.where(valid, -m / (mm + dl), 0.0).ravel())
         return np.where(np.isfinite(a := np.stack(cols, axis=1)), a, 0.0)
 
-    S = var_r.ravel()[:, None]
-    R = (r.ravel() ** 2)[:, None]
     As = [columns(j) for j in (jac, *jac_more)]
     A = np.mean(As, axis=0)
-    H, meat, meat_r = A.T @ A, A.T @ (A * S), A.T @ (A * R)
-    if len(As) > 1:
-        pairs = [(a, b) for i, a in enumerate(As) for b in As[i + 1:]]
+    pairs = [(a, b) for i, a in enumerate(As) for b in As[i + 1:]]
 
-        def cross(w: np.ndarray) -> np.ndarray:
-            return sum(a.T @ (b * w) + b.T @ (a * w) for a, b in pairs) / (2 * len(pairs))
+    def gram(w: np.ndarray) -> np.ndarray:
+        """A^T diag(w) A: with several Jacobians, their pairs' cross products bounded by the mean's."""
+        mean_gram = A.T @ (A * w[:, None])
+        if not pairs:
+            return mean_gram
+        cross = sum(a.T @ (b * w[:, None]) + b.T @ (a * w[:, None]) for a, b in pairs) / (2 * len(pairs))
+        return bounded_cross(cross, mean_gram, cross_floor)
 
-        H = bounded_cross(cross(np.ones_like(S)), H, cross_floor)
-        meat = bounded_cross(cross(S), meat, cross_floor)
-        meat_r = bounded_cross(cross(R), meat_r, cross_floor)
+    H, meat = gram(np.ones(A.shape[0])), gram(var_r.ravel())
     n = int(valid.sum())
     dof = max(1, n - A.shape[1])
     c2 = float(np.sum(np.where(var_r > 0, r * r / np.where(var_r > 0, var_r, 1.0), 0.0)))
@@ -1107,7 +1106,7 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
     if covariance_out is not None:
         covariance_out.update({a: {b: float(cov[i, j]) for j, b in enumerate(names)} for i, a in enumerate(names)})
     if red > 1.0:
-        robust = Hi @ meat_r @ Hi
+        robust = Hi @ gram(r.ravel() ** 2) @ Hi
         modelled = Hi @ meat @ Hi
         # never below the noise-only sandwich, never above the uniformly inflated one
         d = np.clip(np.diag(robust), np.diag(modelled), np.diag(cov))
