@@ -54,14 +54,8 @@ from scipy import ndimage, stats
 
 from estimate.errors import DataError, EstimateError, ModelParameterError
 from estimate.extensions import EXTENSIONS
-from estimate.fit import (
-    UNCERTAINTY_CROSS_FLOOR,
-    FitResult,
-    FitSettings,
-    bounded_cross,
-    fit_channel,
-    secant_steps,
-)
+from estimate.fit import FitResult, FitSettings, fit_channel
+from estimate.gauss_newton import bounded_cross, secant_steps
 from estimate.loss import ScaleCalibration, calibrated_scale, reference_delta
 from estimate.residuals import (
     ALPHA,
@@ -75,6 +69,7 @@ from estimate.residuals import (
 )
 from estimate.screening import CandidateScore, candidate_columns, score_test, screen
 from estimate.start import coarse_start, start_loss
+from estimate.uncertainties import UNCERTAINTY_CROSS_FLOOR
 
 __all__ = [
     "BIC_STRONG",

@@ -30,17 +30,17 @@ FAST = {"max_iterations": 30, "spp_start": 128, "spp_max": 256, "final_spp": 512
 
 def _gn_matrix(jac: dict, prof: np.ndarray, delta: float | list[float] = 1e-3, fit_scale: bool = False,
                names: list[str] | None = None, **kw) -> np.ndarray:
-    """The Gauss-Newton matrix (the inverse of `_gn_inverse`, undamped) of a fake row problem
+    """The Gauss-Newton matrix (the inverse of `gn_inverse`, undamped) of a fake row problem
     whose profiles are `prof` (N, W), every pixel valid, parameters linear in z."""
     from types import SimpleNamespace
 
-    from estimate.fit import _gn_inverse
+    from estimate.gauss_newton import gn_inverse
     from estimate.transforms import Transform
 
     names = names or sorted(jac)
     pb = SimpleNamespace(valid=np.ones(prof.shape, bool))
     lin = [Transform("linear", 0.1, -10, 10)] * len(names)
-    return np.linalg.inv(_gn_inverse(jac, names, lin, np.zeros(len(names)), pb, prof, delta, prof, fit_scale,
+    return np.linalg.inv(gn_inverse(jac, names, lin, np.zeros(len(names)), pb, prof, delta, prof, fit_scale,
                                      damping=0.0, eig_floor=1e-12, **kw))
 
 
@@ -315,9 +315,9 @@ def _toy_problem(x, meas):
 
 
 def test_gauss_newton_step_solves_the_linearised_log_fit():
-    """`_gn_direction` with the exact Jacobian: one step = the linear least-squares step of the
+    """`gn_direction` with the exact Jacobian: one step = the linear least-squares step of the
     log residuals; repeated full steps on I = a exp(-b x) converge to the truth."""
-    from estimate.fit import _gn_direction
+    from estimate.gauss_newton import gn_direction
     from estimate.transforms import Transform
 
     x = np.linspace(0.0, 3.0, 50)
@@ -333,7 +333,7 @@ def test_gauss_newton_step_solves_the_linearised_log_fit():
         r = np.log(meas + dl) - np.log(prof + dl)
         A = np.stack([(-jac["a"] / (prof + dl)).ravel() * theta[0], (-jac["b"] / (prof + dl)).ravel()], axis=1)
         g = 2.0 * A.T @ r.ravel() / r.size
-        dz = _gn_direction(jac, ["a", "b"], tr, z, pb, prof, dl, meas, False, g, damping=0.0)
+        dz = gn_direction(jac, ["a", "b"], tr, z, pb, prof, dl, meas, False, g, damping=0.0)
         if step == 0:
             assert np.allclose(dz, -np.linalg.lstsq(A, r.ravel(), rcond=None)[0], rtol=1e-8)
         z = z + dz
@@ -344,7 +344,7 @@ def test_gauss_newton_step_solves_the_linearised_log_fit():
 def test_gauss_newton_with_profiled_scale_matches_the_joint_step():
     """With the scale profiled out, the step equals the parameters' part of the joint
     least-squares step over (parameters, log scale) at the optimal scale (a_s^T r = 0)."""
-    from estimate.fit import _gn_direction
+    from estimate.gauss_newton import gn_direction
     from estimate.transforms import Transform
 
     rng = np.random.default_rng(4)
@@ -361,7 +361,7 @@ def test_gauss_newton_with_profiled_scale_matches_the_joint_step():
     r = r - a_s * (a_s @ r) / (a_s @ a_s)                      # at the profiled (optimal) scale
     joint = -np.linalg.lstsq(np.column_stack([A, a_s]), r, rcond=None)[0]
     g = 2.0 * A.T @ r / r.size
-    dz = _gn_direction(jac, ["a", "b"], tr, np.zeros(2), pb, prof, dl, meas, True, g, damping=0.0)
+    dz = gn_direction(jac, ["a", "b"], tr, np.zeros(2), pb, prof, dl, meas, True, g, damping=0.0)
     assert dz == pytest.approx(joint[:2], rel=1e-5)
 
 
@@ -378,7 +378,7 @@ def test_gauss_newton_step_is_short_along_an_unconstrained_direction():
     lobe's weight is 1: its column is zero) gets a short gradient step from the eigenvalue
     floor, not a noise-amplified Newton step; the constrained parameter's step is the
     least-squares one."""
-    from estimate.fit import GN_EIG_FLOOR, _gn_direction
+    from estimate.gauss_newton import GN_EIG_FLOOR, gn_direction
     from estimate.transforms import Transform
 
     x = np.linspace(0.0, 3.0, 50)
@@ -391,7 +391,7 @@ def test_gauss_newton_step_is_short_along_an_unconstrained_direction():
     A = (-jac["a"] / (prof + dl)).ravel()[:, None]
     r = (np.log(meas + dl) - np.log(prof + dl)).ravel()
     g = np.array([2.0 * float(A[:, 0] @ r) / r.size, 1e-3])      # noise in the free component
-    dz = _gn_direction(jac, ["a", "free"], tr, np.zeros(2), pb, prof, dl, meas, False, g, damping=0.0)
+    dz = gn_direction(jac, ["a", "free"], tr, np.zeros(2), pb, prof, dl, meas, False, g, damping=0.0)
     assert dz[0] == pytest.approx(-np.linalg.lstsq(A, r, rcond=None)[0][0], rel=1e-6)
     lam_max = 2.0 * float(A[:, 0] @ A[:, 0]) / r.size
     assert dz[1] == pytest.approx(-1e-3 / (GN_EIG_FLOOR * lam_max), rel=1e-6)
@@ -399,8 +399,8 @@ def test_gauss_newton_step_is_short_along_an_unconstrained_direction():
 
 def test_secant_steps_are_large_in_the_optimiser_variables():
     from estimate.beam import BeamProfile
-    from estimate.fit import secant_steps
     from estimate.forward import ForwardModel
+    from estimate.gauss_newton import secant_steps
     from estimate.geometry import RigGeometry
 
     fm = ForwardModel(RigGeometry(thickness_mm=1.0, magnification=0.5, profile_columns=(236, 276)),
@@ -449,44 +449,44 @@ def test_coarse_start_searches_phase_and_material_jointly():
 
 
 def test_drift_flags_iterates_still_moving_and_not_stationary_ones():
-    from estimate.fit import _drift
+    from estimate.uncertainties import iterate_drift
 
     rng = np.random.default_rng(5)
     n = 40
     z_sigma = np.log(2.4) - 0.004 * np.arange(n) + 0.004 * rng.normal(size=n)   # still falling
     z_b = 1.0 + 0.05 * rng.normal(size=n)                                          # settled
     hist = [[float(np.exp(a)), float(b)] for a, b in zip(z_sigma, z_b)]           # parameter units
-    drift, moving = _drift(hist, ["sigma_t", "b"], 8)
+    drift, moving = iterate_drift(hist, ["sigma_t", "b"], 8)
     assert moving == ["sigma_t"]
     assert drift["sigma_t"] == pytest.approx(np.exp(z_sigma[-8:]).mean() - np.exp(z_sigma[-24:-16]).mean())
     assert drift["sigma_t"] < 0 and abs(drift["b"]) < 0.1
-    assert _drift(hist[:20], ["sigma_t", "b"], 8) == ({}, [])
+    assert iterate_drift(hist[:20], ["sigma_t", "b"], 8) == ({}, [])
 
 
 def test_window_estimate_follows_a_drift_to_its_end_and_averages_a_settled_window():
-    from estimate.fit import _window_estimate, _window_scatter
+    from estimate.uncertainties import window_estimate, window_scatter
 
     rng = np.random.default_rng(11)
     n = 16
     t = np.arange(n)
     rows = np.stack([2.3 - 0.01 * t + 0.004 * rng.normal(size=n),    # drifting, noisy
                      0.9 + 0.002 * rng.normal(size=n)], axis=1)      # settled
-    end = _window_estimate(rows, trend=True)
-    mean = _window_estimate(rows, trend=False)
+    end = window_estimate(rows, trend=True)
+    mean = window_estimate(rows, trend=False)
     # The mean lags the last iterate by half the window's drift; the trend's end does not.
     assert mean[0] == pytest.approx(2.3 - 0.01 * (n - 1) / 2, abs=0.004)
     assert end[0] == pytest.approx(2.3 - 0.01 * (n - 1), abs=0.006)
     assert end[1] == pytest.approx(0.9, abs=0.003)
     assert np.allclose(mean, rows.mean(axis=0))
     # The scatter about the trend is the noise, not the drift.
-    assert np.std(_window_scatter(rows, trend=True)[:, 0]) == pytest.approx(0.004, rel=0.5)
-    assert np.std(_window_scatter(rows, trend=False)[:, 0]) > 0.04
+    assert np.std(window_scatter(rows, trend=True)[:, 0]) == pytest.approx(0.004, rel=0.5)
+    assert np.std(window_scatter(rows, trend=False)[:, 0]) > 0.04
     # Too few rows for a line: the mean.
-    assert np.allclose(_window_estimate(rows[:2], trend=True), rows[:2].mean(axis=0))
+    assert np.allclose(window_estimate(rows[:2], trend=True), rows[:2].mean(axis=0))
 
 
 def test_smooth_rows_keeps_smooth_columns_and_ignores_invalid_pixels():
-    from estimate.fit import _smooth_rows
+    from estimate.gauss_newton import smooth_rows
 
     x = np.linspace(-1.0, 1.0, 101)
     col = np.vstack([1.0 + 0.5 * x, np.full_like(x, 2.0)])   # a Gaussian leaves both unchanged
@@ -494,11 +494,11 @@ def test_smooth_rows_keeps_smooth_columns_and_ignores_invalid_pixels():
     valid[1, 40:45] = False
     col_bad = col.copy()
     col_bad[1, 40:45] = 1e6                        # garbage in masked pixels must not leak
-    out = _smooth_rows(col_bad, valid, 3.0)
+    out = smooth_rows(col_bad, valid, 3.0)
     assert out[0, 12:-12] == pytest.approx(col[0, 12:-12], rel=1e-9)   # edges: exact for constants only
     assert out[1][valid[1]] == pytest.approx(col[1][valid[1]], rel=1e-9)
     assert np.all(out[~valid] == 0.0)
-    assert _smooth_rows(col_bad, valid, 0.0)[valid] == pytest.approx(col_bad[valid])
+    assert smooth_rows(col_bad, valid, 0.0)[valid] == pytest.approx(col_bad[valid])
 
 
 def test_smoothing_removes_most_of_the_noise_gram_matrix():
@@ -528,16 +528,16 @@ def test_smoothing_removes_most_of_the_noise_gram_matrix():
 
 
 def test_snr_step_keeps_measured_directions_and_shrinks_noisy_ones():
-    from estimate.fit import _snr_step
+    from estimate.gauss_newton import snr_step
 
     h_inv = np.diag([1.0, 100.0])                  # the second direction is weak: H^-1 amplifies it
     g = np.array([0.5, 0.01])
     rng = np.random.default_rng(0)
     steady = [g.copy() for _ in range(6)]
-    assert _snr_step(h_inv, g, steady, 0.7) == pytest.approx(h_inv @ g)   # no noise: the Newton step
-    assert _snr_step(h_inv, g, steady[:2], 0.7) == pytest.approx(h_inv @ g)   # too few to tell: unchanged
+    assert snr_step(h_inv, g, steady, 0.7) == pytest.approx(h_inv @ g)   # no noise: the Newton step
+    assert snr_step(h_inv, g, steady[:2], 0.7) == pytest.approx(h_inv @ g)   # too few to tell: unchanged
     noisy = [g + np.array([1e-3, 0.3]) * rng.standard_normal(2) for _ in range(16)]
-    step = _snr_step(h_inv, g, noisy, 0.7)
+    step = snr_step(h_inv, g, noisy, 0.7)
     assert step[0] == pytest.approx(0.5, rel=0.01)      # signal >> noise: kept
     assert 0.0 < step[1] < 0.1 * (h_inv @ g)[1]         # noise >> signal: shrunk
 
@@ -587,7 +587,7 @@ def test_cross_product_matrix_drops_the_noise_gram_matrix():
 def test_bounded_cross_keeps_the_matrix_between_floor_and_mean():
     """The cross-product matrix is held between `floor` x and 1 x the mean's matrix in
     their generalised eigenvalues; inside those bounds it is left as it is."""
-    from estimate.fit import bounded_cross
+    from estimate.gauss_newton import bounded_cross
 
     rng = np.random.default_rng(3)
     q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
@@ -606,7 +606,7 @@ def test_averaged_polish_points_mean_step_within_their_scatter_is_not_added_twic
     standard deviation 0.71) is that scatter again unless it stands out of it. Over many
     draws, adding it anyway widened the interval by about a third; only a drift beyond the
     points' scatter is added and flagged. Without averaged points the drift is added."""
-    from estimate.fit import _combined_uncertainties
+    from estimate.uncertainties import combined_uncertainties
 
     rng = np.random.default_rng(3)
     widths, plain, flagged = [], [], 0
@@ -615,7 +615,7 @@ def test_averaged_polish_points_mean_step_within_their_scatter_is_not_added_twic
         drift = {"x": float((pts[-1] - pts[0]) / 2)}
         sd = {"x": float(np.std(pts, ddof=1))}
         se = {"x": 1.0 / math.sqrt(3)}     # the points' noise model
-        unc, moving = _combined_uncertainties({"x": 0.0}, {}, se, drift, sd, polished=True)
+        unc, moving = combined_uncertainties({"x": 0.0}, {}, se, drift, sd, polished=True)
         widths.append(unc["x"])
         plain.append(math.hypot(se["x"], drift["x"]))
         flagged += bool(moving)
@@ -623,11 +623,11 @@ def test_averaged_polish_points_mean_step_within_their_scatter_is_not_added_twic
     assert np.mean(plain) > 1.15 * np.mean(widths)
     assert flagged < 0.1 * 400
     # A walk: the points still move by 3 per step, far beyond their scatter.
-    unc, moving = _combined_uncertainties({"x": 0.1}, {"x": 0.05}, {"x": 0.5}, {"x": 3.0}, {"x": 1.0},
+    unc, moving = combined_uncertainties({"x": 0.1}, {"x": 0.05}, {"x": 0.5}, {"x": 3.0}, {"x": 1.0},
                                           polished=True)
     assert moving == ["x"] and unc["x"] == pytest.approx(math.hypot(0.1, 0.05, 0.5, 3.0))
     # One polish point or none: the last move is the only measure of the distance left.
-    unc, moving = _combined_uncertainties({"x": 0.1}, {"x": 0.05}, {}, {"x": 0.2}, {}, polished=False)
+    unc, moving = combined_uncertainties({"x": 0.1}, {"x": 0.05}, {}, {"x": 0.2}, {}, polished=False)
     assert moving == [] and unc["x"] == pytest.approx(math.hypot(0.1, 0.05, 0.2))
 
 
@@ -635,7 +635,7 @@ def test_polish_average_takes_the_later_points_in_z():
     """The polish's result is the mean of the points after steps `start`..: the stepped
     parameters averaged in their optimiser variables, solved additive ones as they are, the
     mean step as the drift and the mean's standard error."""
-    from estimate.fit import _polish_average
+    from estimate.polish import polish_average
     from estimate.transforms import Transform
 
     names = ["sigma_t", "phase.b1"]
@@ -645,7 +645,7 @@ def test_polish_average_takes_the_later_points_in_z():
            {"sigma_t": 2.1, "phase.b1": 2.9, "stray.offset": 3.0},
            {"sigma_t": 2.0, "phase.b1": 3.0, "stray.offset": 2.0}]
     acc = [{"accepted": True, "point": p} for p in pts]
-    mean, drift, sd, se = _polish_average(acc, names, tr, 2)
+    mean, drift, sd, se = polish_average(acc, names, tr, 2)
     assert mean["sigma_t"] == pytest.approx(math.exp(np.mean(np.log([1.9, 2.1, 2.0]))))
     assert mean["phase.b1"] == pytest.approx(3.0)
     assert mean["stray.offset"] == pytest.approx(2.0)
@@ -656,20 +656,20 @@ def test_polish_average_takes_the_later_points_in_z():
     # With the steps' noise model: the standard error is the larger of the sample one and
     # the model's (rms of the points' noise / sqrt(3)).
     noisy = [{**e, "noise_sd": {"sigma_t": 0.3, "phase.b1": 0.01}} for e in acc]
-    _, _, _, se_m = _polish_average(noisy, names, tr, 2)
+    _, _, _, se_m = polish_average(noisy, names, tr, 2)
     assert se_m["sigma_t"] == pytest.approx(0.3 / math.sqrt(3))
     assert se_m["phase.b1"] == pytest.approx(se["phase.b1"])
     # Unequal noise: each parameter weighted by 1 / noise_sd^2, the model error 1 / sqrt(sum).
     unequal = [{**e, "noise_sd": {"sigma_t": sdv, "phase.b1": 0.1}} for e, sdv in zip(acc, (0.1, 0.2, 0.1, 0.1))]
-    mean_w, _, sd_w, se_w = _polish_average(unequal, names, tr, 2)
+    mean_w, _, sd_w, se_w = polish_average(unequal, names, tr, 2)
     w = np.array([1 / 0.2 ** 2, 1 / 0.1 ** 2, 1 / 0.1 ** 2])
     assert mean_w["sigma_t"] == pytest.approx(math.exp(np.sum(w * np.log([1.9, 2.1, 2.0])) / w.sum()))
     assert mean_w["phase.b1"] == pytest.approx(3.0)           # equal noise: the plain mean
     assert se_w["sigma_t"] == pytest.approx(1 / math.sqrt(w.sum()))
     assert sd_w["sigma_t"] == pytest.approx(sd["sigma_t"])
     # Too few points after `start`, or averaging off: the last point stands.
-    assert _polish_average(acc[:2], names, tr, 2) is None
-    assert _polish_average(acc, names, tr, 0) is None
+    assert polish_average(acc[:2], names, tr, 2) is None
+    assert polish_average(acc, names, tr, 0) is None
 
 
 def _polish_setup(problem):
@@ -688,13 +688,13 @@ def test_gn_polish_walks_towards_the_truth_and_reports_its_steps(problem, cross)
     """From a start 15 % high in sigma_t, the polish's full Gauss-Newton steps at a fixed,
     moderate spp bring sigma_t within a third of that and lower the loss without render
     noise, with one Jacobian's matrix or two half-spp Jacobians' cross product."""
-    from estimate.fit import _gn_polish
+    from estimate.polish import gn_polish
 
     fm, names, tr, scale = _polish_setup(problem)
     start = fm.default_parameters()
     start.update(TRUTH)
     start["sigma_t"] = 3.45
-    out, trace, renders = _gn_polish(fm, problem, start, names, tr, steps=3, spp=256, jacobian_spp=512, seed=5,
+    out, trace, renders = gn_polish(fm, problem, start, names, tr, steps=3, spp=256, jacobian_spp=512, seed=5,
                                      delta_nodes=[0.02, 0.1], reference_delta_rel=0.045, fixed_scale=scale,
                                      cross=cross)
     assert renders is not None and renders[0].shape == problem.measured.shape
@@ -711,20 +711,20 @@ def test_polish_step_chi2_separates_a_move_from_noise_and_a_walk_goes_on(problem
     """A step's chi^2 against its own render noise: far above the parameter count when the
     polish starts 15 % off in sigma_t, about that count (the noise alone) at the truth. A
     polish still walking goes on past its planned steps; one at the noise floor does not."""
-    from estimate.fit import _gn_polish
+    from estimate.polish import gn_polish
 
     fm, names, tr, scale = _polish_setup(problem)
     kw = {"spp": 256, "jacobian_spp": 512, "delta_nodes": [0.02, 0.1], "reference_delta_rel": 0.045,
           "fixed_scale": scale, "cross": True, "chi2_continue": float(chi2_dist.isf(0.01, len(names))),
           "keep_last": 1, "max_steps": 3}
     off = {**fm.default_parameters(), **TRUTH, "sigma_t": 3.45}
-    _, walk, _ = _gn_polish(fm, problem, off, names, tr, steps=1, seed=5, **kw)
+    _, walk, _ = gn_polish(fm, problem, off, names, tr, steps=1, seed=5, **kw)
     assert walk[0]["step_chi2"] > 10 * len(names)
     assert len(walk) > 1                      # went on: its only planned step was a move
     at = {**fm.default_parameters(), **TRUTH}
     chi2s = []
     for seed in (11, 12, 13):
-        _, tr_at, _ = _gn_polish(fm, problem, at, names, tr, steps=1, seed=seed, **kw)
+        _, tr_at, _ = gn_polish(fm, problem, at, names, tr, steps=1, seed=seed, **kw)
         chi2s.append(tr_at[0]["step_chi2"])
         assert len(tr_at) == 1                # noise alone: stopped as planned
     assert 0.2 * len(names) < np.mean(chi2s) < 4 * len(names)
@@ -734,22 +734,22 @@ def test_a_settled_polish_step_keeps_the_matrix_and_renders_more_samples(problem
     """After a noise-sized step the polish renders the new point at `settled_spp_factor` x the
     spp and its next step keeps the last Jacobians; after a move, or with the factor 1, each
     step renders two new ones at the plain spp. A settled point's noise is smaller."""
-    import estimate.fit as fit_mod
+    import estimate.polish as polish_mod
 
     fm, names, tr, scale = _polish_setup(problem)
     calls: list[int] = []
-    real = fit_mod._gn_jacobian
+    real = polish_mod.gn_jacobian
 
     def counted(*a, **kw):
         calls.append(kw["seed"])
         return real(*a, **kw)
 
-    monkeypatch.setattr(fit_mod, "_gn_jacobian", counted)
+    monkeypatch.setattr(polish_mod, "gn_jacobian", counted)
     kw = {"steps": 3, "spp": 64, "jacobian_spp": 128, "delta_nodes": [0.045], "reference_delta_rel": 0.045,
           "fixed_scale": scale, "cross": True, "seed": 7}
     at = {**fm.default_parameters(), **TRUTH}
     # Every step noise-sized (an infinite threshold): new Jacobians once, then 4x the spp.
-    _, trace, _ = fit_mod._gn_polish(fm, problem, at, names, tr, chi2_continue=math.inf, settled_spp_factor=4, **kw)
+    _, trace, _ = polish_mod.gn_polish(fm, problem, at, names, tr, chi2_continue=math.inf, settled_spp_factor=4, **kw)
     assert all(e["accepted"] for e in trace)
     assert [e["jacobians"] for e in trace] == [2, 0, 0] and len(calls) == 2
     assert [e["spp"] for e in trace] == [64, 256, 256]
@@ -758,38 +758,38 @@ def test_a_settled_polish_step_keeps_the_matrix_and_renders_more_samples(problem
     # No step settled (a zero threshold) or the factor 1: two new Jacobians at 64 spp each step.
     for chi2_continue, factor in ((0.0, 4), (math.inf, 1)):
         calls.clear()
-        _, trace, _ = fit_mod._gn_polish(fm, problem, at, names, tr, chi2_continue=chi2_continue,
+        _, trace, _ = polish_mod.gn_polish(fm, problem, at, names, tr, chi2_continue=chi2_continue,
                                          settled_spp_factor=factor, max_steps=3, **kw)
         assert [e["jacobians"] for e in trace] == [2, 2, 2] and len(calls) == 6
         assert [e["spp"] for e in trace] == [64, 64, 64]
 
 
 def test_an_extended_polish_averages_as_many_last_points_as_planned():
-    from estimate.fit import _average_from, _averaged_count
+    from estimate.polish import averaged_point_count, first_averaged_point
 
-    assert _average_from(4, 4, 2) == 2          # as planned: points 2, 3, 4
-    assert _average_from(3, 4, 2) == 2          # stopped early (a step undone)
-    assert _average_from(7, 4, 2) == 5          # went on: points 5, 6, 7
-    assert _average_from(8, 4, 0) == 0          # the last point alone
+    assert first_averaged_point(4, 4, 2) == 2          # as planned: points 2, 3, 4
+    assert first_averaged_point(3, 4, 2) == 2          # stopped early (a step undone)
+    assert first_averaged_point(7, 4, 2) == 5          # went on: points 5, 6, 7
+    assert first_averaged_point(8, 4, 0) == 0          # the last point alone
     # the noise test watches as many last steps as the result averages
-    assert _averaged_count(4, 2) == 3 and _averaged_count(4, 0) == 1 and _averaged_count(4, 9) == 1
+    assert averaged_point_count(4, 2) == 3 and averaged_point_count(4, 0) == 1 and averaged_point_count(4, 9) == 1
     for planned, start in ((4, 1), (4, 2), (6, 3)):
         n = planned + 3
-        assert n - _average_from(n, planned, start) + 1 == _averaged_count(planned, start)
+        assert n - first_averaged_point(n, planned, start) + 1 == averaged_point_count(planned, start)
 
 
 def test_gn_polish_undoes_a_step_that_makes_the_fit_grossly_worse(problem, monkeypatch):
     """A matrix that points uphill (here: forced) gives a step whose loss rises far beyond
     the noise, and so do its halves: it is undone and the polish stops at its start."""
-    import estimate.fit as fit_mod
+    import estimate.polish as polish_mod
 
     fm, names, tr, scale = _polish_setup(problem)
     start = fm.default_parameters()
     start.update(TRUTH)
     # Uphill, every component at the cap (1 in z: sigma_t x e, ...), so that even the
     # quarter step of the last halving stays far worse.
-    monkeypatch.setattr(fit_mod, "_gn_inverse", lambda *a, **k: -1e4 * np.eye(len(names)))
-    out, trace, _ = fit_mod._gn_polish(fm, problem, start, names, tr, steps=3, spp=128, jacobian_spp=128, seed=5,
+    monkeypatch.setattr(polish_mod, "gn_inverse", lambda *a, **k: -1e4 * np.eye(len(names)))
+    out, trace, _ = polish_mod.gn_polish(fm, problem, start, names, tr, steps=3, spp=128, jacobian_spp=128, seed=5,
                                        delta_nodes=[0.045], reference_delta_rel=0.045, fixed_scale=scale,
                                        caps=np.full(len(names), 4.0))
     assert len(trace) == 1 and not trace[0]["accepted"] and trace[0]["halvings"] == 2

@@ -1,0 +1,380 @@
+"""The polish after the fit's iterations (`estimate.fit.fit_channel`, stage 5 of its docstring).
+
+`gn_polish`: full, unshrunk Gauss-Newton steps at the final spp, each matrix the bounded
+cross product of two half-spp Jacobians, each step's size tested against its own render
+noise; `polish_average`: the noise-weighted mean of its last points and their standard
+error; `averaged_point_count` / `first_averaged_point`: which points that mean takes.
+`lm_polish`: the optional Levenberg-Marquardt polish on the log residuals at one seed
+(off by default).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Collection, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from estimate.errors import ModelParameterError
+from estimate.evaluation import solve_additive
+from estimate.forward import ForwardModel
+from estimate.gauss_newton import gn_columns, gn_inverse, gn_jacobian
+from estimate.loss import decorrelated_loss_se, profile_scale
+from estimate.problem import Problem
+from estimate.transforms import Transform
+
+__all__ = ["averaged_point_count", "first_averaged_point", "gn_polish", "lm_polish", "polish_average"]
+
+
+def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], names: Sequence[str],
+               tr: Sequence[Transform], *, spp: int, seed: int, delta_rel: float, iterations: int,
+               fixed_scale: float | None = None) -> tuple[dict[str, float], list[float]]:
+    """Levenberg-Marquardt on the log residuals at the reference delta, one fixed seed.
+
+    With the seed fixed (common random numbers) the loss is a smooth deterministic function
+    of the parameters, so Gauss-Newton steps converge where Adam on fresh noise each
+    iteration only hovers. The Jacobian is `ForwardModel.jacobian` (central differences);
+    unknowns are the transformed variables z plus log scale (unless `fixed_scale`). Returns
+    the parameters and the loss after each accepted step.
+    """
+    valid = problem.valid
+    meas = problem.measured
+    angles = problem.angles_deg
+
+    def residual(p: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray, float, float, float]:
+        prof = fm.render_profiles(p, angles, spp=spp, seed=seed)
+        sc = fixed_scale if fixed_scale is not None else profile_scale(meas, prof, valid, delta_rel)
+        m = meas / sc
+        dlt = delta_rel * float(np.max(np.where(valid, m, -np.inf)))
+        mm = np.clip(m, -0.5 * dlt, None)
+        r = np.where(valid, np.log(mm + dlt) - np.log(np.clip(prof, 0, None) + dlt), 0.0)
+        return r, prof, sc, dlt, float(np.sum(r * r) / max(1, valid.sum()))
+
+    p = dict(params)
+    z = np.array([t.to_z(p[n]) for n, t in zip(names, tr)])
+    r, prof, sc, dlt, loss = residual(p)
+    losses = [loss]
+    lam = 1e-3
+    for _ in range(iterations):
+        jac = fm.jacobian(p, angles, list(names), spp=spp, seed=seed)
+        cols = [np.where(valid, -jac[n] / (np.clip(prof, 0, None) + dlt), 0.0).ravel() * t.dx_dz(float(zz))
+                for n, t, zz in zip(names, tr, z)]
+        m = meas / sc
+        if fixed_scale is None:
+            cols.append(np.where(valid, -m / (np.clip(m, -0.5 * dlt, None) + dlt), 0.0).ravel())
+        n_z = len(names)
+        A = np.stack(cols, axis=1)
+        AtA = A.T @ A
+        Atr = A.T @ r.ravel()
+        accepted = False
+        rel = 0.0
+        # Up to 8 damping increases (x4 each): in the curved sigma_t-phase valley the
+        # Gauss-Newton steps overshoot; with 4 the polish of a simulated-bench fit
+        # (paper d0.5_s2, calibrated scale) accepted no step at all.
+        for _try in range(8):
+            H = AtA + lam * np.diag(np.diag(AtA) + 1e-12)
+            try:
+                step = -np.linalg.solve(H, Atr)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            z_new = np.array([t.clamp_z(float(zz + dz)) for t, zz, dz in zip(tr, z, step[:n_z])])
+            p_new = dict(p)
+            p_new.update({n: t.to_x(float(zz)) for n, t, zz in zip(names, tr, z_new)})
+            try:
+                p_new = fm.validate(p_new)
+            except ModelParameterError:
+                lam *= 10
+                continue
+            r_n, prof_n, sc_n, dlt_n, loss_n = residual(p_new)
+            if loss_n < loss:
+                p, z, r, prof, sc, dlt = p_new, z_new, r_n, prof_n, sc_n, dlt_n
+                rel = (loss - loss_n) / loss
+                loss = loss_n
+                losses.append(loss)
+                lam = max(lam / 3.0, 1e-6)
+                accepted = True
+                break
+            lam *= 4.0
+        if not accepted or rel < 1e-3:
+            break
+    return p, losses
+
+
+def polish_average(accepted: Sequence[Mapping[str, Any]], names: Sequence[str], tr: Sequence[Transform],
+                    start: int) -> tuple[dict[str, float], dict[str, float], dict[str, float],
+                                         dict[str, float]] | None:
+    """The mean of the points after the accepted polish steps `start`, `start` + 1, ...
+    (1-based; stepped parameters averaged in z, solved additive ones as they are), the mean
+    step between those points (x units: the drift left at the end), the points' standard
+    deviation and the mean's standard error (x units). None when fewer than two points
+    qualify (or `start` <= 0).
+
+    Why: near the optimum each full Gauss-Newton step lands at the optimum plus the
+    gradient's Monte Carlo noise (about 3-5 % of sigma_t on the benchmark at 2 x 1024 spp),
+    so successive points are nearly independent draws about it and their mean is closer.
+    The first step, from the iterations' end, is still a move and is left out by default.
+
+    The standard error is the larger of the points' sample one and the one their steps'
+    noise model gives (each entry's `noise_sd`, when present). Three points' sample standard
+    deviation is itself uncertain by about half: on the session-18 benchmark the points
+    agreed by chance (2.046, 2.091, 2.074; standard error 0.013) and the reported
+    uncertainty was 2.7x under the error.
+
+    When every point has its `noise_sd`, each parameter's mean weighs the points by
+    1 / noise_sd^2 (a settled step's point, from renders at several times the spp, counts
+    for as much more), its model standard error is 1 / sqrt(sum of the weights) and its
+    sample one the weighted scatter's; with equal noise these are the plain ones.
+    """
+    if start <= 0:
+        return None
+    kept = [e for e in accepted[start - 1:] if e.get("point")]
+    pts = [dict(e["point"]) for e in kept]
+    if len(pts) < 2:
+        return None
+    keys = [k for k in pts[0] if all(k in q for q in pts)]
+    noise = [e.get("noise_sd") or {} for e in kept]
+    by_name = dict(zip(names, tr))
+    mean: dict[str, float] = {}
+    sd: dict[str, float] = {}
+    se: dict[str, float] = {}
+    n = len(pts)
+    for k in keys:
+        xs = np.array([q[k] for q in pts], dtype=float)
+        nsd = np.array([q.get(k, math.nan) for q in noise], dtype=float)
+        modelled = bool(np.all(np.isfinite(nsd) & (nsd > 0)))
+        w = 1.0 / nsd ** 2 if modelled else np.ones(n)
+        w = w / w.sum()
+        t = by_name.get(k)
+        mx = float(np.sum(w * xs))
+        mean[k] = t.to_x(float(np.sum(w * [t.to_z(float(x)) for x in xs]))) if t is not None else mx
+        if k in names:
+            sd[k] = float(np.std(xs, ddof=1))
+            # weighted sample standard error (plain sd / sqrt(n) for equal weights)
+            se[k] = math.sqrt(max(float(np.sum(w * (xs - mx) ** 2)) * n / (n - 1), 0.0) * float(np.sum(w ** 2)))
+            if modelled:
+                se[k] = max(se[k], 1.0 / math.sqrt(float(np.sum(1.0 / nsd ** 2))))
+    drift = {k: float((pts[-1][k] - pts[0][k]) / (n - 1)) for k in keys if k in names}
+    return mean, drift, sd, se
+
+
+def averaged_point_count(planned: int, average_from: int) -> int:
+    """How many polish points the result averages when the polish runs its `planned` steps
+    (points `average_from` .. `planned`; 1 when `average_from` is 0: the last point). A polish
+    that goes on past its plan keeps this many of its last points (`first_averaged_point`), and its
+    noise test looks at this many of its last steps (`gn_polish`'s `keep_last`)."""
+    return max(1, planned - average_from + 1) if average_from > 0 else 1
+
+
+def first_averaged_point(n_accepted: int, planned: int, average_from: int) -> int:
+    """The first polish point to average (1-based; 0: none): `average_from`, or, for a polish
+    that went on past its `planned` steps (still walking), the first of its last
+    `averaged_point_count` points."""
+    if average_from > 0 and n_accepted > planned:
+        return n_accepted - averaged_point_count(planned, average_from) + 1
+    return average_from
+
+
+def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], names: Sequence[str],
+               tr: Sequence[Transform], *, steps: int, spp: int, jacobian_spp: int, seed: int,
+               delta_nodes: Sequence[float], reference_delta_rel: float, fixed_scale: float | None,
+               solved: Sequence[str] = (), solved_columns: Mapping[str, np.ndarray] | None = None,
+               smooth_px: float = 3.0, exact: Collection[str] = (), caps: np.ndarray | None = None,
+               scale_guess: float | None = None, jacobian_every: int = 1, gross: float = 1.0,
+               cross: bool = False, max_steps: int | None = None, chi2_continue: float = math.inf,
+               keep_last: int = 3, settled_spp_factor: int = 1,
+               jacobians_out: list[list[dict[str, np.ndarray]]] | None = None
+               ) -> tuple[dict[str, float], list[dict[str, Any]], tuple[np.ndarray, np.ndarray] | None]:
+    """Full Gauss-Newton steps on the delta-averaged log loss at high samples per pixel, from
+    the end of the stochastic iterations.
+
+    Each step: the matrix of a smoothed finite-difference Jacobian at `jacobian_spp` (as in
+    `gn_inverse`, averaged over `delta_nodes`, relative deltas; re-estimated every
+    `jacobian_every` steps) and the gradient 2/n A^T r from the mean log residual of two
+    renders at `spp` with new seeds; the step -H^-1 g is capped per component at `caps` (z).
+    With `cross`, two independent Jacobians at `jacobian_spp` / 2 (the same cost) give the
+    matrix as their cross product (A1^T A2 + A2^T A1) / n, whose expectation lacks the
+    Monte Carlo noise's Gram matrix that inflates A^T A (their mean gives the gradient's
+    columns). The inflation is largest along the sigma_t / phase valley, where the true
+    curvature is smallest, so one Jacobian's steps fall short there: from the benchmark's
+    iteration end (sigma_t 2.39, truth 2.0), four steps ended at 2.01, 2.08 (two seeds), 2.09
+    and 2.10 (two more with 2048-spp gradient renders) with one Jacobian, and at 2.02, 1.97,
+    2.00, 1.96 and 2.01 with the (then unbounded) cross product (session 17; its first step
+    goes most of the way, 2.39 -> 1.88-2.19). In the stochastic iterations
+    the cross product made the fit diverge (session 4, 256 spp, unsmoothed; `gn_inverse`);
+    here the 3-px smoothing, the 512-spp halves, the caps and the acceptance test hold it.
+    A step is halved (twice at most; then the polish stops) only when the loss without
+    render noise (mean r_A r_B over the deltas) of the new point's renders rises by more
+    than `gross` x the polish's starting loss plus 3 standard errors of the difference
+    (from the pixels' products): a finer acceptance test does not work here. With the same
+    seeds on both sides (common random numbers) the comparison rejected steps that fresh renders showed
+    to be good (benchmark, session 16: sigma_t stuck at 2.29 where three unchecked steps
+    went 2.37 -> 2.24 -> 2.12 -> 2.06), and with new seeds the estimator scatters by about
+    the loss itself near the optimum (it can be negative there).
+    Additive parameters in `solved` and a free scale are solved on every pair of renders,
+    as in the iterations.
+
+    Why: the stochastic Gauss-Newton steps cross the sigma_t / phase valley slowly, because
+    along it the averaged gradient is mostly Monte Carlo noise and the steps are shrunk
+    accordingly; at 2 x 1024 spp with a 1024-spp Jacobian the same steps, unshrunk, walk
+    down it (benchmark, session 16, from the fit's end at sigma_t 2.226: 2.157, 2.105,
+    2.065 in three steps; truth 2.0).
+
+    Each step's size is tested against its own Monte Carlo noise: `step_chi2` = dz^T C^-1 dz
+    with C = H^-1 S H^-1 the covariance of the step from the gradient's render noise (S from
+    each pixel's two-render difference (r_A - r_B) / 2, pixels taken as independent). At the
+    optimum a step is that noise alone and its chi^2 is about the number of parameters; a
+    step well above it is still a move. While the last `keep_last` accepted steps are not
+    all below `chi2_continue`, the polish goes on past `steps`, up to `max_steps` in all, so
+    the points that `polish_average` keeps have stopped walking (the benchmark at seed 3,
+    session 17: b2 -0.72 -> -0.56 -> -0.24 -> +0.40 in four steps, truth 1.0, and sigma_t 6 %
+    high from their mean). The noise model leaves out the matrix's own noise and the pixels'
+    correlations, so steps at the noise floor run somewhat above the parameter count: on the
+    benchmark (5 parameters, session 18) 1.6-11 (median ~7), walks 50-1240. At the 1 %
+    quantile (15.1) the off-grid session's polish read steps of 15-30 as moves, went on to 8
+    steps and wandered up its flat valley (points 2.35 -> 2.58, truth 2.4, result 5.7 %
+    high, where the planned four steps' mean was 0.6 % low); the fit uses the 0.1 % quantile
+    (20.5). There, too, that session's steps 4-6 had chi^2 21-39 and the polish went on to 8
+    steps (2.7 % high; four steps' mean 3.0 % low): on its flat valley the steps scatter more
+    than this noise model says.
+
+    Settled steps (`settled_spp_factor` > 1): after a step whose chi^2 is at most
+    `chi2_continue` (the point moved by no more than its noise), the new point's renders are
+    taken at `settled_spp_factor` x `spp`, and the next step keeps the last Jacobians instead
+    of rendering new ones. Near the optimum a point's scatter is the gradient's render noise
+    taken through H^-1 (`noise_sd`), while a matrix error only scales the remaining distance,
+    which is then within the noise; yet the Jacobians were ~80 % of a step's renders (for exp3
+    2 x 10 at 512 spp against two gradient renders at 1024). A settled step at 4x the spp costs
+    ~30 % less than a new-matrix step, and its point scatters half as much. A step that turns
+    out a move is followed by new Jacobians at `spp`. "Noise-sized" is judged on the scale of
+    `spp` (chi^2 x spp / the step's spp): the first settled step is expected to exceed its
+    own, 4x smaller noise, since it starts from a point that carries the coarser steps'
+    scatter; read as a move, it sent the benchmark's polish back and forth between the two
+    kinds of step up to its 8 steps. Whether the polish goes on past `steps` is judged on
+    each step's own noise, so it goes on until the settled steps are noise-sized too.
+    Off in `FitSettings` (session 19, benchmark seeds 0-2 with the factor 4: sigma_t +2.7,
+    +1.0, +3.5 %; the settled points agreed within 1-2 % of each other but not with the
+    truth, and one fit's error was 3.2x its smaller uncertainty; the default's seeds 0-2 in
+    session 18: +1.1, +0.9, +1.0 %). No gain in accuracy or time was shown.
+
+    Returns the parameters, per step {loss, loss_new, accepted, halvings, step (x units),
+    step_chi2 (of the full step, before caps and halvings), jacobians (new Jacobians
+    rendered for it), spp (of its gradient's renders), and when accepted, point: the stepped
+    and solved parameters after it, and noise_sd}, and the last pair of renders (A, B; with
+    the solved additive terms) at the returned parameters. `jacobians_out` receives the
+    Jacobians rendered for each step that rendered any (the uncertainties reuse the last
+    ones: `sandwich_uncertainties`).
+    """
+    valid, meas, angles = problem.valid, problem.measured, problem.angles_deg
+    n_v = max(1, int(valid.sum()))
+    cols_out = list((solved_columns or {}).values())
+
+    def state(p_in: Mapping[str, float], k: int, spp_k: int
+              ) -> tuple[dict[str, float], np.ndarray, np.ndarray, float, tuple[float, float]]:
+        """Renders A, B at `p_in` (seeds of step k, `spp_k` each), the solved values and scale,
+        and the loss without render noise with its standard error."""
+        p = dict(p_in)
+        pa = fm.render_profiles(p, angles, spp=spp_k, seed=seed + 2 * k)
+        pb = fm.render_profiles(p, angles, spp=spp_k, seed=seed + 2 * k + 1)
+        if solved:
+            shift = solve_additive(fm, problem, p, solved, 0.5 * (pa + pb), reference_delta_rel, fixed_scale,
+                                    scale_guess=scale_guess, columns=solved_columns)
+            pa, pb = pa + shift, pb + shift
+        sc = fixed_scale if fixed_scale is not None else profile_scale(meas, 0.5 * (pa + pb), valid,
+                                                                        reference_delta_rel, guess=scale_guess)
+        per_delta = np.array([decorrelated_loss_se(meas, pa, pb, valid, sc, q) for q in delta_nodes])
+        return p, pa, pb, sc, (float(per_delta[:, 0].mean()), float(per_delta[:, 1].mean()))
+
+    def noise_sized(chi2: float, spp_step: int) -> bool:
+        """A step no larger than its noise on the scale of `spp` (a settled step's chi^2 is
+        measured against its own, spp_step / spp times smaller noise)."""
+        return chi2 * spp / spp_step <= chi2_continue
+
+    if steps <= 0:
+        return dict(params), [], None
+    max_steps = steps if max_steps is None else max(steps, max_steps)
+    spp_now = spp
+    p, pa, pb, sc, (loss, se) = state(params, 0, spp_now)
+    loss_start = loss
+    trace: list[dict[str, Any]] = []
+    jac: dict[str, np.ndarray] = {}
+    jac_b: dict[str, np.ndarray] | None = None
+    for k in range(max_steps):
+        if k >= steps:
+            recent = [e for e in trace if e["accepted"]][-max(1, keep_last):]
+            if all(e["step_chi2"] <= chi2_continue for e in recent):
+                break
+        z = np.array([t.to_z(p[n]) for n, t in zip(names, tr)])
+        new_jacobians = 0
+        settled = (settled_spp_factor > 1 and bool(jac) and bool(trace) and trace[-1]["accepted"]
+                   and noise_sized(trace[-1]["step_chi2"], trace[-1]["spp"]))
+        if k % jacobian_every == 0 and not settled:
+            if cross:
+                half = max(1, jacobian_spp // 2)
+                jac_a = gn_jacobian(fm, problem, p, names, spp=half, seed=seed + 1000 + k)
+                jac_b = gn_jacobian(fm, problem, p, names, spp=half, seed=seed + 5000 + k)
+                new_jacobians = 2
+                jac = {n: 0.5 * (jac_a[n] + jac_b[n]) for n in names}
+            else:
+                jac = gn_jacobian(fm, problem, p, names, spp=jacobian_spp, seed=seed + 1000 + k)
+                jac_a, jac_b = jac, None
+                new_jacobians = 1
+            if jacobians_out is not None:
+                jacobians_out.append([jac_a] if jac_b is None else [jac_a, jac_b])
+        m = meas / sc
+        m_max = float(np.max(np.where(valid, m, -np.inf)))
+        mean = 0.5 * (pa + pb)
+        dls = [max(q * m_max, 1e-30) for q in delta_nodes]
+        g = np.zeros(len(names))
+        # Per pixel, the gradient's share of the renders' noise: one draw of it from the two
+        # renders' difference (the same noise drives every delta node, so they add up first).
+        u = np.zeros((meas.size, len(names)))
+        for d in dls:
+            A = gn_columns(jac, names, tr, z, problem, mean, d, m, fixed_scale is None, cols_out, smooth_px, exact)
+            mm = np.log(np.clip(m, -0.5 * d, None) + d)
+            ra, rb = (np.where(valid, mm - np.log(np.clip(q, 0.0, None) + d), 0.0) for q in (pa, pb))
+            g += 2.0 * (A.T @ (0.5 * (ra + rb)).ravel()) / n_v / len(dls)
+            u += 2.0 * A * (0.5 * (ra - rb)).ravel()[:, None] / n_v / len(dls)
+        h_inv = gn_inverse(jac_a, names, tr, z, problem, mean, dls, m, fixed_scale is None,
+                            profiled_columns=cols_out, smooth_px=smooth_px, exact=exact, jac_cross=jac_b)
+        dz = -(h_inv @ g)
+        c_dz = h_inv @ (u.T @ u) @ h_inv.T
+        step_chi2 = float(dz @ np.linalg.pinv(c_dz, rcond=1e-10, hermitian=True) @ dz)
+        if caps is not None:
+            dz = np.clip(dz, -caps, caps)
+        entry: dict[str, Any] = {"loss": loss, "loss_new": float("nan"), "accepted": False, "halvings": 0,
+                                 "step": {}, "step_chi2": step_chi2, "jacobians": new_jacobians, "spp": spp_now}
+        trace.append(entry)
+        for halving in range(3):
+            z_new = np.array([t.clamp_z(float(zz + d_)) for t, zz, d_ in zip(tr, z, dz)])
+            p_try = dict(p)
+            p_try.update({n: t.to_x(float(zz)) for n, t, zz in zip(names, tr, z_new)})
+            dz = 0.5 * dz
+            try:
+                p_try = fm.validate(p_try)
+            except ModelParameterError:
+                continue
+            # The new point's renders: at the settled spp when this step is noise-sized (the
+            # next one will be a settled step), else at `spp`.
+            spp_new = spp * settled_spp_factor if noise_sized(step_chi2, spp_now) else spp
+            p_new, pa_n, pb_n, sc_n, (loss_n, se_n) = state(p_try, k + 1, spp_new)
+            entry.update(loss_new=loss_n, halvings=halving)
+            # Undone (halved, twice at most) only when the rise exceeds the polish's starting
+            # loss plus 3 standard errors of the difference: the estimator scatters by about
+            # the loss itself near the optimum, and can be negative there.
+            if loss_n - loss <= gross * max(loss_start, 0.0) + 3.0 * math.hypot(se, se_n):
+                # The point's own Monte Carlo scatter: a full Gauss-Newton step lands at the
+                # optimum plus the step's noise, whose z-space covariance is c_dz (halved with
+                # the step), taken to x units at the new point.
+                sd_z = np.sqrt(np.clip(np.diag(c_dz), 0.0, None)) * 0.5 ** halving
+                entry.update(accepted=True, step={n: float(p_new[n] - p[n]) for n in names},
+                             point={n: float(v) for n, v in p_new.items() if n in names or n in solved},
+                             noise_sd={n: float(sd * abs(t.dx_dz(float(zz))))
+                                       for n, t, sd, zz in zip(names, tr, sd_z, z_new)})
+                p, pa, pb, sc, loss, se, spp_now = p_new, pa_n, pb_n, sc_n, loss_n, se_n, spp_new
+                scale_guess = sc
+                break
+        if not entry["accepted"]:
+            break
+    return p, trace, (pa, pb)

@@ -1,0 +1,249 @@
+"""Parameter uncertainties of a fit (`estimate.fit.fit_channel`, stage 7 of its docstring).
+
+`fisher_uncertainties`: the Gauss-Newton / Fisher bound from the data and render variance.
+`sandwich_uncertainties`: the sandwich covariance H^-1 M H^-1 of the log loss, its curvature
+H and its robust meat M from the cross products of Jacobians with independent render noise
+(bounded by `UNCERTAINTY_CROSS_FLOOR`), so neither carries one Jacobian's own noise.
+`iterate_drift`, `window_estimate`, `window_scatter`: how far the iterates still moved and
+scattered at the end. `combined_uncertainties` adds the parts in quadrature (the polish
+drift only where it stands out of its points' scatter); `combined_covariance` builds the
+covariance matrix that goes with them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from estimate.evaluation import jacobian_columns
+from estimate.forward import ForwardModel
+from estimate.gauss_newton import bounded_cross
+from estimate.problem import Problem
+
+__all__ = ["DRIFT_T", "UNCERTAINTY_CROSS_FLOOR", "combined_covariance", "combined_uncertainties",
+           "fisher_uncertainties", "iterate_drift", "sandwich_uncertainties", "window_estimate", "window_scatter"]
+
+
+def fisher_uncertainties(fm: ForwardModel, problem: Problem, params: Mapping[str, float],
+                         names: Sequence[str], scale: float, model_variance: np.ndarray,
+                         profiles: np.ndarray, *, spp: int, seed: int, inflate: float = 1.0,
+                         fit_scale: bool = True, jac: Mapping[str, np.ndarray] | None = None
+                         ) -> tuple[dict[str, float], float]:
+    """1-sigma uncertainties of `names` and of the scale from the Gauss-Newton Fisher matrix
+    of the linear chi^2 (the bound of an ideal variance-weighted fit; the log-loss fit is
+    not that fit, see `sandwich_uncertainties`). Scale uncertainty NaN when not fitted."""
+    jac = jac if jac is not None else jacobian_columns(fm, problem, params, names, spp=spp, seed=seed)
+    w = np.where(problem.valid, 1.0 / (problem.variance + scale ** 2 * model_variance), 0.0)
+    w = np.where(np.isfinite(w), w, 0.0).ravel()
+    cols = [scale * jac[n].ravel() for n in names] + ([profiles.ravel()] if fit_scale else [])
+    J = np.stack(cols, axis=1)
+    F = J.T @ (J * w[:, None])
+    try:
+        cov = np.linalg.pinv(F, rcond=1e-12) * max(1.0, inflate)
+    except np.linalg.LinAlgError:
+        return {n: float("nan") for n in names}, float("nan")
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    return {n: float(sd[i]) for i, n in enumerate(names)}, (float(sd[-1]) * (1.0 if fit_scale else float("nan")))
+
+
+#: Smallest generalised eigenvalue of the uncertainties' cross-product curvature against the
+#: matrix of the Jacobians' mean (`sandwich_uncertainties`, `bounded_cross`).
+UNCERTAINTY_CROSS_FLOOR = 0.1
+
+
+def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names: Sequence[str], scale: float,
+                           profiles: np.ndarray, model_variance: np.ndarray, jac: Mapping[str, np.ndarray],
+                           *, delta_rel: float, fit_scale: bool, render_variance_factor: float = 2.0,
+                           covariance_out: dict[str, dict[str, float]] | None = None,
+                           jac_more: Sequence[Mapping[str, np.ndarray]] = (),
+                           cross_floor: float = UNCERTAINTY_CROSS_FLOOR
+                           ) -> tuple[dict[str, float], float, float]:
+    """1-sigma uncertainties of the log-loss estimator (sandwich), its scale's, and the
+    log-space reduced chi^2. With `covariance_out`, the full covariance of `names` (the
+    uniformly inflated sandwich, before the diagonal choice below) is written into it.
+
+    With `jac_more`, further Jacobians with independent render noise (at the same point or
+    one within the fit's noise of it), the curvature is the mean of the pairs' cross
+    products (A_i^T A_j + A_j^T A_i) / 2, held between `cross_floor` x and 1 x the matrix of
+    the Jacobians' mean (`bounded_cross`), and so is the meat (A_i^T S A_j, S the
+    residuals' noise variance). One Monte Carlo Jacobian's A^T A carries the noise's own
+    Gram matrix, which dominates where the true curvature is weakest, along the sigma_t /
+    phase valley. On the paper simulation's d 0.5 um / sigma_t 6 fit (session 20) a
+    512-spp Jacobian's two weakest eigenvalues were 5x those of a 4096-spp one, and two
+    4096-spp Jacobians' cross product put them at 0.13 and 0.19 of their mean's; the
+    single 512-spp Jacobian gave sigma_t a sandwich of 0.013-0.014 /mm, the 4096-spp pair
+    0.24, four 512-spp ones 0.26. The fit was 0.71 /mm off, and a fit with sigma_t held at
+    the truth reached the same loss. Where a direction's cross-product eigenvalue falls
+    below the floor the Jacobians' noise does not resolve its curvature, and the interval
+    there is the floor's: about 1 / sqrt(floor) x what the Jacobians' mean alone would give.
+
+    The fit minimises sum r^2 with r = log(m/s + delta) - log(I + delta), so its covariance
+    is H^-1 (A^T S A) H^-1 with A = dr/d(theta, log s), H = A^T A (Gauss-Newton curvature
+    of the log loss) and S the covariance of r: the sensor noise var_m / (m + s delta)^2
+    plus the Monte Carlo noise of the render the polish used (`render_variance_factor` x
+    the variance of the two-seed mean in `model_variance`: one render at the same spp)
+    / (I + delta)^2, independent per pixel. The result is multiplied by
+    max(1, chi^2_log / dof), chi^2_log = sum r^2 / S: residuals larger than the noise
+    (model error, correlated Monte Carlo structure in the data) widen the intervals.
+
+    Where the residuals exceed the noise, the robust (White / HC0) sandwich with the
+    residuals themselves in the meat, H^-1 (A^T diag(r^2) A) H^-1, is used when it is
+    smaller: a uniform inflation by the reduced chi^2 assumes the excess has the noise's
+    pattern, but excess concentrated in the tails (frozen Monte Carlo noise of a simulated
+    truth, 2900x the sensor variance there) widened sigma_t's interval to 17 % for a fit
+    3 % off. With `jac_more` its meat is the cross products A_i^T diag(r^2) A_j too: the
+    Jacobians' mean carries their noise's Gram matrix, weighted by the large residuals,
+    on top of a curvature that the cross products have freed of that noise.
+    """
+    valid = problem.valid
+    m = problem.measured / scale
+    dl = max(delta_rel * float(np.max(np.where(valid, m, -np.inf))), 1e-30)
+    mm = np.clip(m, -0.5 * dl, None)
+    ip = np.clip(profiles, 0, None)
+    r = np.where(valid, np.log(mm + dl) - np.log(ip + dl), 0.0)
+    var_r = (problem.variance / scale ** 2) / (mm + dl) ** 2 + render_variance_factor * model_variance / (ip + dl) ** 2
+    var_r = np.where(valid & np.isfinite(var_r), var_r, 0.0)
+
+    def columns(j: Mapping[str, np.ndarray]) -> np.ndarray:
+        cols = [np.where(valid, -j[n] / (ip + dl), 0.0).ravel() for n in names]
+        if fit_scale:
+            cols.append(np.where(valid, -m / (mm + dl), 0.0).ravel())
+        return np.where(np.isfinite(a := np.stack(cols, axis=1)), a, 0.0)
+
+    As = [columns(j) for j in (jac, *jac_more)]
+    A = np.mean(As, axis=0)
+    pairs = [(a, b) for i, a in enumerate(As) for b in As[i + 1:]]
+
+    def gram(w: np.ndarray) -> np.ndarray:
+        """A^T diag(w) A: with several Jacobians, their pairs' cross products bounded by the mean's."""
+        mean_gram = A.T @ (A * w[:, None])
+        if not pairs:
+            return mean_gram
+        cross = sum(a.T @ (b * w[:, None]) + b.T @ (a * w[:, None]) for a, b in pairs) / (2 * len(pairs))
+        return bounded_cross(cross, mean_gram, cross_floor)
+
+    H, meat = gram(np.ones(A.shape[0])), gram(var_r.ravel())
+    n = int(valid.sum())
+    dof = max(1, n - A.shape[1])
+    c2 = float(np.sum(np.where(var_r > 0, r * r / np.where(var_r > 0, var_r, 1.0), 0.0)))
+    red = c2 / dof
+    try:
+        Hi = np.linalg.pinv(H, rcond=1e-12)
+    except np.linalg.LinAlgError:
+        return {k: float("nan") for k in names}, float("nan"), red
+    cov = Hi @ meat @ Hi * max(1.0, red)
+    if covariance_out is not None:
+        covariance_out.update({a: {b: float(cov[i, j]) for j, b in enumerate(names)} for i, a in enumerate(names)})
+    if red > 1.0:
+        robust = Hi @ gram(r.ravel() ** 2) @ Hi
+        modelled = Hi @ meat @ Hi
+        # never below the noise-only sandwich, never above the uniformly inflated one
+        d = np.clip(np.diag(robust), np.diag(modelled), np.diag(cov))
+        cov = np.diag(d)
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    s_unc = float(sd[-1]) * scale if fit_scale else float("nan")
+    return {k: float(sd[i]) for i, k in enumerate(names)}, s_unc, red
+
+
+#: Drift t-statistic above which a parameter counts as still moving when the fit stopped.
+#: Successive iterates are correlated (gradient momentum), so the naive standard error is
+#: too small by ~2-3x; 5 keeps the flag for drifts several times their noise.
+DRIFT_T = 5.0
+
+
+def iterate_drift(history: Sequence[Sequence[float]], names: Sequence[str],
+           window: int) -> tuple[dict[str, float], list[str]]:
+    """Per parameter: mean of the last `window` iterates minus the mean of the `window`
+    iterates two windows earlier (parameter units), and the names whose drift exceeds
+    `DRIFT_T` standard errors (from the scatter within the two windows).
+
+    The flattening rule stops when the loss no longer falls by more than its noise, which
+    happens along the sigma_t / phase valley while the iterates still move steadily: on the
+    one-channel benchmark sigma_t fell 2.34 -> 2.29 between those windows (truth 2.0) with a
+    scatter of ~0.01 inside each. Empty when there are fewer than 3 windows of iterates."""
+    if len(history) < 3 * window or window < 2:
+        return {}, []
+    xs = np.array(history[-3 * window:], dtype=np.float64)
+    a, b = xs[-window:], xs[:window]
+    d = a.mean(axis=0) - b.mean(axis=0)
+    se = np.sqrt(a.var(axis=0, ddof=1) / window + b.var(axis=0, ddof=1) / window)
+    drift = {n: float(d[i]) for i, n in enumerate(names)}
+    moving = [n for i, n in enumerate(names) if se[i] > 0 and abs(d[i]) > DRIFT_T * se[i]]
+    return drift, moving
+
+
+def window_estimate(rows: Sequence[Sequence[float]] | Sequence[np.ndarray], trend: bool) -> np.ndarray:
+    """The result from the last iterates (rows): their mean, or with `trend` the value at the
+    last row of a straight line fitted to each column (least squares), which removes the
+    mean's lag behind iterates that drift steadily."""
+    xs = np.asarray(rows, dtype=np.float64)
+    if not trend or len(xs) < 3:
+        return xs.mean(axis=0)
+    t = np.arange(len(xs), dtype=np.float64)
+    slope, icpt = np.polyfit(t, xs, 1)
+    return icpt + slope * t[-1]
+
+
+def window_scatter(rows: Sequence[Sequence[float]], trend: bool) -> np.ndarray:
+    """The iterates about their summary (`window_estimate`): minus the mean, or minus their
+    linear trend, so a steady drift is not counted as the optimiser's scatter."""
+    xs = np.asarray(rows, dtype=np.float64)
+    if not trend or len(xs) < 3:
+        return xs - xs.mean(axis=0)
+    t = np.arange(len(xs), dtype=np.float64)
+    slope, icpt = np.polyfit(t, xs, 1)
+    return xs - (icpt + np.outer(t, slope))
+
+
+def combined_uncertainties(base: Mapping[str, float], spread: Mapping[str, float],
+                            polish_se: Mapping[str, float], drift: Mapping[str, float],
+                            polish_sd: Mapping[str, float], *, polished: bool) -> tuple[dict[str, float], list[str]]:
+    """The reported 1-sigma uncertainties (parameter units) and the names still moving.
+
+    `base` (the larger of the sandwich and the Fisher bound), the iterates' `spread` and the
+    averaged polish points' standard error `polish_se` add in quadrature. A parameter still
+    moving when the fit stopped is at least its `drift` from the optimum, so the drift is
+    added too, with one exception. When the result is the mean of several polish points
+    (`polish_se` has the name), those points scatter about the optimum by their render noise
+    and their mean step (the drift) is, unless it stands out of that scatter (`polish_sd`),
+    the same scatter again: for three independent points its standard deviation is 0.71 of
+    one point's, more than the mean's standard error (0.58) that already holds it. Such a
+    drift is neither added nor flagged (session 23; on four noise draws of the benchmark
+    truth adding it widened sigma_t's interval by 0-23 %; the errors were 0.22-0.94 of the
+    interval without it). Without averaged points (one polish step's point, or none) the
+    drift is the only measure of the last move and is always added; there `polished`
+    decides only whether the names are flagged here (the iterations flag their own).
+    """
+    unc: dict[str, float] = {}
+    moving: list[str] = []
+    for n, b in base.items():
+        u = math.hypot(b, spread.get(n, 0.0), polish_se.get(n, 0.0))
+        if n in drift:
+            stands_out = abs(drift[n]) > math.hypot(u, polish_sd.get(n, 0.0))
+            if polished and stands_out:
+                moving.append(n)
+            if stands_out or n not in polish_se:
+                u = math.hypot(u, drift[n])
+        unc[n] = u
+    return unc, moving
+
+
+def combined_covariance(names: Sequence[str], unc: Mapping[str, float], sandwich: Mapping[str, Mapping[str, float]],
+                iterate_cov: np.ndarray) -> dict[str, dict[str, float]]:
+    """Full covariance whose diagonal is the reported uncertainties squared and whose
+    correlations are those of the sandwich covariance plus the averaged iterates' own
+    covariance (the two sources of error the uncertainties combine)."""
+    k = len(names)
+    c = np.array([[float(sandwich.get(a, {}).get(b, 0.0)) for b in names] for a in names]) if sandwich \
+        else np.zeros((k, k))
+    c = np.where(np.isfinite(c), c, 0.0) + iterate_cov
+    d = np.sqrt(np.clip(np.diag(c), 0.0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = np.where(np.outer(d, d) > 0, c / np.outer(d, d), 0.0)
+    np.fill_diagonal(corr, 1.0)
+    corr = np.clip(corr, -1.0, 1.0)
+    sd = np.array([float(unc[n]) for n in names])
+    full = corr * np.outer(sd, sd)
+    return {a: {b: float(full[i, j]) for j, b in enumerate(names)} for i, a in enumerate(names)}
