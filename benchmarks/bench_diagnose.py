@@ -104,9 +104,9 @@ def synthetic_recording(case: dict[str, Any], excess: float = 0.0) -> tuple[Any,
     from dataclasses import dataclass
 
     from estimate.beam import BeamProfile
-    from estimate.diagnose import _smoothed_variance
     from estimate.forward import ForwardModel
     from estimate.geometry import RigGeometry
+    from estimate.refit import smoothed_variance
 
     geometry = RigGeometry(thickness_mm=1.0, magnification=0.5, profile_columns=(236, 276))
     beam = BeamProfile.disk(0.3)
@@ -130,7 +130,7 @@ def synthetic_recording(case: dict[str, Any], excess: float = 0.0) -> tuple[Any,
     renders = np.stack([truth_model.render_profiles(params, angles, spp=4096, seed=500 + k) for k in range(4)])
     scale = 1e4
     signal = scale * renders.mean(axis=0)
-    var = signal / 5.0 + (1e-3 * signal.max()) ** 2 + scale ** 2 * _smoothed_variance(renders) / 4
+    var = signal / 5.0 + (1e-3 * signal.max()) ** 2 + scale ** 2 * smoothed_variance(renders) / 4
     rng = np.random.default_rng(case.get("seed", 1))
     meas = signal + rng.normal(size=signal.shape) * np.sqrt(var)
     meas = meas + rng.normal(size=signal.shape) * np.sqrt(excess * var)  # frozen, not in `var`

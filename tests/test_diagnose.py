@@ -24,16 +24,10 @@ import yaml
 from estimate.beam import BeamProfile
 from estimate.diagnose import (
     BaseFit,
-    RefitResult,
-    _cross_covariance,
     _magnitude_lr_z,
     _run_fit_settings,
-    _smoothed_variance,
     diagnose_channel,
-    evaluate,
     refine_channel,
-    refit,
-    render_stack,
     screen_candidates,
 )
 from estimate.errors import ModelParameterError
@@ -41,6 +35,14 @@ from estimate.extensions.base import ParameterSpec
 from estimate.fit import FitSettings
 from estimate.forward import ForwardModel
 from estimate.geometry import RigGeometry
+from estimate.refit import (
+    RefitResult,
+    cross_covariance,
+    evaluate,
+    refit,
+    render_stack,
+    smoothed_variance,
+)
 from estimate.residuals import (
     fit_significance,
     local_noise_variance,
@@ -89,7 +91,7 @@ def record(effect: dict[str, float], seed: int = 3, excess: float = 0.0) -> Reco
     truth = renders.mean(axis=0)
     scale = 1e4
     signal = scale * truth
-    var = signal / 5.0 + (1e-3 * signal.max()) ** 2 + scale ** 2 * _smoothed_variance(renders) / 4
+    var = signal / 5.0 + (1e-3 * signal.max()) ** 2 + scale ** 2 * smoothed_variance(renders) / 4
     rng = np.random.default_rng(seed)
     meas = signal + rng.normal(size=signal.shape) * np.sqrt(var)
     # Frozen pixel noise that the variance channel does not hold.
@@ -472,13 +474,13 @@ def test_cli_end_to_end_writes_diagnosis_and_json(tmp_path, capsys):
 def test_beam_rms_width_and_the_halo_width_bound():
     """A Gaussian of 1/e^2 radius R has 1-sigma R/2, a disk of radius R has R/2 per axis; a
     refit may not shrink a halo below the calibrated beam's width (it would be part of the map)."""
-    from estimate.diagnose import _bounds
+    from estimate.refit import parameter_bounds
 
     assert BeamProfile.gaussian(0.4).rms_width_mm() == pytest.approx(0.2, rel=1e-3)
     assert BeamProfile.disk(0.3).rms_width_mm() == pytest.approx(0.15, rel=0.02)
     beam = BeamProfile.gaussian(0.5)
     fm = ForwardModel(RigGeometry(thickness_mm=1.0), beam, phase="hg", extensions=("beam_halo",))
-    lo, hi = _bounds(fm, "beam_halo.sigma_mm")
+    lo, hi = parameter_bounds(fm, "beam_halo.sigma_mm")
     assert lo == pytest.approx(0.25, rel=1e-3) and hi == 50.0
 
 
@@ -604,12 +606,12 @@ def test_refit_covariance_from_two_noisy_jacobians_is_not_narrowed_by_their_nois
     def sd(cov: np.ndarray) -> float:
         return float(np.sqrt(cov[1, 1]))
 
-    exact = sd(_cross_covariance(true, true))
-    one = np.mean([sd(_cross_covariance(a, a)) for a in (noisy() for _ in range(20))])
-    two = np.mean([sd(_cross_covariance(noisy(), noisy())) for _ in range(20)])
+    exact = sd(cross_covariance(true, true))
+    one = np.mean([sd(cross_covariance(a, a)) for a in (noisy() for _ in range(20))])
+    two = np.mean([sd(cross_covariance(noisy(), noisy())) for _ in range(20)])
     assert one < 0.8 * exact
     assert two == pytest.approx(exact, rel=0.15)
-    cov = _cross_covariance(noisy(), noisy())
+    cov = cross_covariance(noisy(), noisy())
     assert cov.shape == (3, 3) and np.isnan(cov[2, 2]) and np.all(np.isfinite(cov[:2, :2]))
 
 

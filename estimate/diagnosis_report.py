@@ -1,0 +1,162 @@
+"""How a diagnosis is shown: `summary_text` (the plain-language summary printed by
+`rig diagnose` and kept in the report) and `plot_diagnosis` (residual maps and profiles
+before and after, written beside diagnosis.yaml).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from estimate.diagnose import ChannelDiagnosis
+
+__all__ = ["plot_diagnosis", "summary_text"]
+
+
+def plot_diagnosis(out_dir: Any, d: ChannelDiagnosis, problem: Any) -> list[Any]:
+    """residuals_<f>.png (normalised residual maps before/after) and profiles_<f>.png
+    (measured vs model before/after at the worst angles)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    evs = [("before", d.before)] + ([("after", d.after)] if d.after else [])
+    fig, axes = plt.subplots(1, len(evs), figsize=(5.5 * len(evs), 3.8), squeeze=False)
+    lim = 5.0
+    x = np.asarray(problem.x_mm)
+    for ax, (label, ev) in zip(axes[0], evs):
+        im = ax.imshow(np.nan_to_num(ev.residuals.r_adjusted), aspect="auto", cmap="coolwarm", vmin=-lim, vmax=lim,
+                       extent=(x[0], x[-1], len(problem.angles_deg) - 0.5, -0.5), interpolation="nearest")
+        ax.set_yticks(range(len(problem.angles_deg)))
+        ax.set_yticklabels([f"{a:g}" for a in problem.angles_deg], fontsize=7)
+        ax.set_xlabel("x [mm]")
+        ax.set_ylabel("light angle [deg]")
+        ax.set_title(f"{label}: reduced chi2 {ev.residuals.reduced_chi2_adjusted:.2f} (noise floor)", fontsize=9)
+    fig.colorbar(im, ax=axes[0].tolist(), label="residual / (f sigma_HDR)")
+    p = out_dir / f"residuals_{d.channel}.png"
+    fig.savefig(p, dpi=80)
+    plt.close(fig)
+    paths.append(p)
+    per = d.localisation["per_angle"]
+    worst = sorted(range(len(problem.angles_deg)), key=lambda i: -per[f"{problem.angles_deg[i]:g}"]["excess_sigma"])[:3]
+    fig, axes = plt.subplots(1, len(worst), figsize=(4 * len(worst), 3.2), squeeze=False)
+    for ax, i in zip(axes[0], worst):
+        ax.semilogy(x, np.clip(problem.measured[i], 1e-6, None), ".", ms=3, color="k", label="measured")
+        for label, ev in evs:
+            ax.semilogy(x, np.clip(ev.scale * ev.model[i], 1e-6, None), "-", lw=1, label=f"model {label}")
+        ax.set_title(f"{problem.angles_deg[i]:g} deg", fontsize=9)
+        ax.set_xlabel("x [mm]")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    p = out_dir / f"profiles_{d.channel}.png"
+    fig.savefig(p, dpi=80)
+    plt.close(fig)
+    paths.append(p)
+    return paths
+
+
+def _fmt(v: Any, u: Any = None) -> str:
+    if u is None or not isinstance(u, (int, float)):
+        return f"{v:.4g}"
+    return f"{v:.4g} +- {u:.2g}"
+
+
+def _red(region: dict[str, Any]) -> str:
+    v = region.get("reduced_chi2")
+    return "-" if v is None or region.get("pixels", 0) == 0 else f"{v:.2f}"
+
+
+def summary_text(doc: Mapping[str, Any]) -> str:
+    """Plain-language summary of a diagnosis document (terminal and HTML report)."""
+    import io
+
+    out = io.StringIO()
+    for ch, d in doc["channels"].items():
+        print(f"channel {ch}: {d['verdict']}", file=out)
+        if not d["significant"]:
+            continue
+        loc = d["localisation"]
+        regions = []
+        for a, b in (("front", "back"), ("grazing", "normal"), ("peak", "tails")):
+            regions.append(f"{a} {_red(loc[a])} / {b} {_red(loc[b])}")
+        tests = (d.get("before") or {}).get("smooth") or []
+        if tests:
+            print("  smooth structure (binned / per-pixel power of the residual beyond the fit; 1 = none): "
+                  + "; ".join(f"{t['bin_px']} px bins {t['reduced']:.2f} (log10 p {t['log10_p']:.1f})"
+                for t in tests), file=out)
+        print("  where (reduced chi2 at the noise floor, by region): " + "; ".join(regions)
+              + f"; left-right asymmetry {loc['asymmetry']['difference_sigma']:+.1f} sigma", file=out)
+        if d.get("unconverged"):
+            print(f"  {d['unconverged']}", file=out)
+        cands = d["candidates"]
+        if cands:
+            print("  score tests (statistic / dof, share of the excess it can explain):", file=out)
+            for c in cands:
+                print(f"    {c['name']:<20} {c['statistic']:10.1f} / {c['dof']}   log10 p {c['log10_p']:8.1f}"
+                      f"   {100 * min(1.0, c['explained']):5.1f} %", file=out)
+        for e in d["confirmations"]:
+            held = (f", held-out chi2 {e['chi2_heldout_before']:.0f} -> {e['chi2_heldout_after']:.0f}"
+                    if "chi2_heldout_after" in e else "")
+            mag = ""
+            if "magnitude_sigma" in e:
+                by = (" (likelihood ratio)" if e.get("magnitude_lr_sigma", 0.0) > e.get("magnitude_wald_sigma", 0.0)
+                      else "")
+                mag = f", magnitude {e['magnitude_sigma']:.1f} sigma from absent{by}"
+            print(f"  refit with {e['effect']}: BIC improves by {e['delta_bic']:.1f}{held}{mag}"
+                  f" -> {'confirmed' if e['confirmed'] else 'not confirmed'}", file=out)
+        for e in d.get("pruned") or []:
+            final = e.get("stage") == "final fit"
+            why = ("dropped: the final fit has no use for it (it stays in the fitted model at its fitted value)"
+                   if final else "dropped: its signature was borrowed from the effect added after it")
+            print(f"  backward check ({'estimator' if final else 'refit'}): {e['effect']} set to absent in the model "
+                  f"with {', '.join(e['with'])} raises chi2 by {e['chi2_rise']:.1f}, "
+                  f"{'less than' if e['dropped'] else 'more than'} the {e['needed']:.1f} adding it needs -> "
+                  f"{why if e['dropped'] else 'kept'}", file=out)
+        imp = d.get("importance") or {}
+        if len(imp) >= 2:
+            order = d.get("confirmed_order") or []
+            print(f"  named by the chi2 each carries in the {next(iter(imp.values()))['stage']} (set to absent alone): "
+                  + ", ".join(f"{e} {v['chi2_rise']:.0f}" for e, v in imp.items())
+                  + (f"; the rounds added them as {', '.join(order)}" if list(imp) != order[:len(imp)] else ""),
+                  file=out)
+        for name, ps in d["confirmed_effects"].items():
+            vals = ", ".join(f"{k.split('.', 1)[1]} = {_fmt(v['value'], v['uncertainty'])}" for k, v in ps.items())
+            print(f"  left-out physics: {name} ({vals})", file=out)
+        if d["confirmed_effects"]:
+            print(f"  reduced chi2 {d['reduced_chi2_before']:.3f} -> {d['reduced_chi2_after']:.3f} (HDR variance); "
+                  f"{d['reduced_chi2_adjusted_before']:.3f} -> {d['reduced_chi2_adjusted_after']:.3f} "
+                  "(noise floor)", file=out)
+            unc = d.get("material_uncertainty_after") or {}
+            for k, before in d["material_before"].items():
+                print(f"    {k:<10} {before:.4g} -> {_fmt(d['material_after'][k], unc.get(k))}", file=out)
+            ff = d.get("final_fit") or {}
+            lm = d.get("refit_lm") or {}
+            if ff.get("kept") and lm:
+                print(f"  (final model fitted by the estimator, {ff['iterations']} iterations, {ff['time_s']:.0f} s; "
+                      f"the Levenberg-Marquardt refit had reduced chi2 {lm['reduced_chi2_adjusted']:.3f} at the floor, "
+                      + ", ".join(f"{k} {v:.4g}" for k, v in lm["material"].items() if k in ("sigma_t", "albedo"))
+                      + ")", file=out)
+            elif ff:
+                print(f"  ({ff['reason']})", file=out)
+            fixed = d.get("material_fixed_seed_after") or {}
+            if not ff.get("kept") and fixed:
+                print("  (sigma_t, albedo and the phase after: one Gauss-Newton step on the decorrelated chi^2 of "
+                      "two render seeds from the Levenberg-Marquardt refit's fixed-seed optimum ("
+                      + ", ".join(f"{k} {v:.4g}" for k, v in fixed.items() if k in ("sigma_t", "albedo"))
+                      + "), whose render noise biases it low in albedo; the estimator's final fit, without "
+                      "--quick, is the reference)", file=out)
+            elif not ff.get("kept"):
+                spp = (doc.get("settings") or {}).get("spp")
+                print("  (sigma_t, albedo and the phase after are the Levenberg-Marquardt refit's: "
+                      + (f"{spp}-spp " if spp else "") + "renders at fixed seeds, whose render noise biases "
+                      "them beyond their uncertainties (albedo 0.02-0.07 low at 512 spp on the synthetic proof "
+                      "suite); the estimator's final fit, without --quick, does not share this bias)", file=out)
+    if doc.get("refit_run"):
+        print(f"refit written as estimate run {doc['refit_run']}", file=out)
+    print(f"diagnosis written to diagnoses/{doc['run_id']}/diagnosis.yaml", file=out)
+    return out.getvalue().rstrip()

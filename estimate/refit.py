@@ -1,0 +1,377 @@
+"""A model against a recording: the diagnosis' evaluations and refits (`estimate.diagnose`).
+
+`evaluate` renders a model at several seeds and returns its normalised residuals, with the
+model's own Monte-Carlo variance (pooled over `VARIANCE_POOL_PX` neighbours) in the noise;
+`render_stack` the renders themselves. `refit` is a Levenberg-Marquardt loop on the forward
+model's `jacobian` (finite differences with common random numbers and the large secant
+steps of `estimate.gauss_newton.secant_steps`, exact for image-space parameters), with the
+scale (measured = scale * rendered) as a free linear parameter; its covariance takes its
+curvature from the bounded cross product of two Jacobians with independent render noise
+(`cross_covariance`), and with `decorrelate` it ends with one Gauss-Newton step on the
+decorrelated chi^2 of two render seeds (`decorrelated_step`), which removes the fixed-seed
+optimum's render-noise bias.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+
+from estimate.errors import ModelParameterError
+from estimate.gauss_newton import bounded_cross, secant_steps
+from estimate.residuals import (
+    FitResiduals,
+    fit_significance,
+    normalised_residuals,
+)
+from estimate.uncertainties import UNCERTAINTY_CROSS_FLOOR
+
+__all__ = ["DEFAULT_REPEATS", "DEFAULT_SEED", "MAX_GLARE_FRACTION", "Evaluation", "RefitResult", "best_scale",
+           "cross_covariance", "decorrelated_step", "evaluate", "parameter_bounds", "recording_variance", "refit",
+           "render_stack", "smoothed_variance"]
+
+
+#: The refit's second Jacobian, for its uncertainties' cross-product curvature, is rendered
+#: at the refit's seed plus this (render noise independent of the refit's own).
+UNCERTAINTY_SEED_OFFSET = 7919
+
+
+#: Evaluation seeds and repeats of a diagnosis (`rig diagnose`): every model, the final fit
+#: included, is rendered at seeds DEFAULT_SEED + 7 k, k < DEFAULT_REPEATS.
+DEFAULT_SEED = 1000
+
+
+DEFAULT_REPEATS = 6
+
+
+#: Pixels pooled in the estimate of the model's Monte-Carlo variance.
+VARIANCE_POOL_PX = 15
+
+
+@dataclass
+class Evaluation:
+    """A model evaluated against the data: mean render of `repeats` seeds and its residuals."""
+
+    parameters: dict[str, float]
+    extensions: list[str]
+    scale: float
+    model: np.ndarray
+    model_variance: np.ndarray
+    residuals: FitResiduals
+    n_params: int
+
+
+def recording_variance(problem: Any) -> np.ndarray:
+    var = np.asarray(problem.variance, dtype=np.float64).copy()
+    valid = getattr(problem, "valid", None)
+    if valid is not None:
+        var = np.where(np.asarray(valid, bool), var, np.inf)
+    return np.where(np.isfinite(var) & (var > 0), var, np.inf)
+
+
+def best_scale(measured: np.ndarray, var: np.ndarray, f: np.ndarray) -> float:
+    w = 1.0 / var
+    den = float(np.sum(w * f * f))
+    return float(np.sum(w * measured * f) / den) if den > 0 else 1.0
+
+
+def smoothed_variance(renders: np.ndarray) -> np.ndarray:
+    """Per-pixel Monte-Carlo variance of one render from a few seeds, pooled over neighbours.
+
+    A variance from a handful of seeds is itself so noisy that dividing by it turns the
+    normalised residuals into Student-t variables (variance 3 for 4 seeds). The path
+    tracer's variance per unit of signal changes slowly along the profile (it follows
+    the signal through the sharp spot), so the ratio variance / mean is pooled over
+    `VARIANCE_POOL_PX` pixels and multiplied back by the mean.
+    """
+    v = renders.var(axis=0, ddof=1)
+    m = np.abs(renders.mean(axis=0))
+    floor = 1e-6 * max(float(m.max()), 1e-300)
+    ratio = v / np.maximum(m, floor)
+    pooled = ndimage.uniform_filter1d(ratio, VARIANCE_POOL_PX, axis=-1, mode="nearest")
+    return pooled * np.maximum(m, floor)
+
+
+def evaluate(model: Any, params: Mapping[str, float], problem: Any, n_params: int, *, spp: int = 256,
+             seed: int = DEFAULT_SEED, repeats: int = 4, angle_idx: Sequence[int] | None = None,
+             scale: float | None = None, noise_variance: np.ndarray | None = None,
+             renders: np.ndarray | None = None) -> Evaluation:
+    """Render `repeats` seeds, average, and test the fit (scale refitted unless given).
+
+    `noise_variance` (per pixel of the whole problem, e-^2/s^2): the data's noise variance
+    including its noise floor, which replaces var_HDR and the estimated floor, so that
+    models are compared in one noise metric; the model's own Monte-Carlo variance (which
+    differs between models: a blur averages it over neighbouring pixels) is added to it.
+    None: the usual residuals, the noise floor estimated from them.
+    `renders`: the (repeats, N, W) stack these arguments would render (`render_stack`),
+    when the caller already has it.
+    """
+    idx = list(range(len(problem.angles_deg))) if angle_idx is None else list(angle_idx)
+    if renders is None:
+        renders = render_stack(model, params, problem, spp=spp, seed=seed, repeats=repeats, angle_idx=idx)
+    mean = renders.mean(axis=0)
+    mvar = smoothed_variance(renders) / repeats if repeats > 1 else np.zeros_like(mean)
+    meas = np.asarray(problem.measured, dtype=np.float64)[idx]
+    var = recording_variance(problem)[idx]
+    if noise_variance is None:
+        s = best_scale(meas, var, mean) if scale is None else float(scale)
+        r = normalised_residuals(meas, var, mean, s, mvar)
+        r = np.where(np.isfinite(var), r, np.nan)
+        res = fit_significance(r, n_params)
+    else:
+        nv = np.asarray(noise_variance, dtype=np.float64)[idx]
+        s = best_scale(meas, nv, mean) if scale is None else float(scale)
+        r = normalised_residuals(meas, nv, mean, s, mvar)
+        r = np.where(np.isfinite(nv), r, np.nan)
+        res = fit_significance(r, n_params, noise_scale=np.ones(len(idx)))
+    return Evaluation(dict(model.validate(params)), list(model.extensions), s, mean, mvar, res, n_params)
+
+
+def render_stack(model: Any, params: Mapping[str, float], problem: Any, *, spp: int = 256, seed: int = DEFAULT_SEED,
+                 repeats: int = 4, angle_idx: Sequence[int] | None = None) -> np.ndarray:
+    """The (repeats, N, W) renders `evaluate` averages: seeds seed + 7 k."""
+    idx = list(range(len(problem.angles_deg))) if angle_idx is None else list(angle_idx)
+    angles = [float(problem.angles_deg[i]) for i in idx]
+    return np.stack([model.render_profiles(params, angles, spp=spp, seed=seed + 7 * k) for k in range(repeats)])
+
+
+#: Largest fraction of the light a refit may put in the lens blur's wide tail (veiling
+#: glare). Camera lenses scatter about 1-5 % of the light that way (ISO 9358 glare
+#: indices), so 10 % is generous. Without this bound, the bench's refractive-boundary session
+#: (no blur at all) got a joint refit with a 24 % tail beside n = 1.14. The tail stood in for
+#: the boundary, and the estimator's final fit, started with the effects held there, ended
+#: 19 % high in sigma_t.
+MAX_GLARE_FRACTION = 0.1
+
+
+def parameter_bounds(model: Any, name: str) -> tuple[float, float]:
+    spec = model.specs[name]
+    lo = spec.lower
+    hi = spec.upper
+    if spec.open_lower or name in ("sigma_t",):
+        lo = lo + max(1e-6, 1e-6 * abs(hi if math.isfinite(hi) else 1.0))
+    if name == "thickness_error.e":
+        lo = max(lo, -0.5)
+    if name == "sensor_nonlinearity.compression":
+        hi = min(hi, 0.32)
+    if name == "lens_blur.tail_fraction":
+        hi = min(hi, MAX_GLARE_FRACTION)
+    if name == "beam_halo.sigma_mm":
+        # A halo no wider than the calibrated beam would be part of the calibration's map.
+        # Without this bound a refit (synthetic suite, 30 % halo at 1 mm) collapsed the halo
+        # to sigma 5e-5 mm, extra power in the core, which fitted its own render's noise.
+        beam = getattr(model, "beam_profile", None)
+        if beam is not None:
+            lo = max(lo, beam.rms_width_mm())
+    return lo, hi
+
+
+@dataclass
+class RefitResult:
+    """Result of `refit`: parameters, scale, 1-sigma uncertainties, chi^2 of the fixed-seed fit."""
+
+    parameters: dict[str, float]
+    scale: float
+    uncertainties: dict[str, float]
+    chi2: float
+    iterations: int
+    covariance: dict[tuple[str, str], float] = field(default_factory=dict)
+    #: with `refit(decorrelate=True)`: the parameters and scale after the decorrelated
+    #: Gauss-Newton step (`decorrelated_step`; the LM point when the step gained nothing),
+    #: free of the fixed-seed chi^2's render-noise bias; `parameters` and `chi2` stay the LM's
+    decorrelated: dict[str, float] | None = None
+    decorrelated_scale: float | None = None
+
+
+def refit_columns(jac: Mapping[str, np.ndarray], f: np.ndarray, s: float, sig: np.ndarray) -> np.ndarray:
+    """d residual / d (free parameters, scale) of the refit's chi^2, one column each."""
+    cols = [np.ravel(-s * jac[n] / sig) for n in jac] + [np.ravel(-f / sig)]
+    return np.nan_to_num(np.stack(cols, axis=1), nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def cross_inverse(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Inverse Gauss-Newton curvature from two Jacobians with independent render noise,
+    every column (the scale's last) included; NaN rows and columns where both are zero.
+
+    The curvature is their cross product (A^T B + B^T A) / 2, held between
+    `UNCERTAINTY_CROSS_FLOOR` x and 1 x the matrix of their mean (`bounded_cross`), with the
+    columns normalised first: parameters in their own units span many decades (a
+    stray-light offset in e-/s against an albedo). A column that is zero in both (a halo's
+    width while its fraction is 0) constrains nothing: its variance is NaN (unknown), not 0.
+    """
+    mean = 0.5 * (a + b)
+    cn = np.linalg.norm(mean, axis=0)
+    live = cn > 1e-300 * max(1.0, float(np.max(cn, initial=0.0)))
+    an, bn, mn = (x[:, live] / cn[live] for x in (a, b, mean))
+    h = bounded_cross(0.5 * (an.T @ bn + bn.T @ an), mn.T @ mn, UNCERTAINTY_CROSS_FLOOR)
+    inv = np.full((a.shape[1], a.shape[1]), np.nan)
+    inv[np.ix_(live, live)] = np.linalg.pinv(h) / np.outer(cn[live], cn[live])
+    return inv
+
+
+def cross_covariance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Gauss-Newton covariance (unit noise) of the free parameters from two Jacobians with
+    independent render noise (`cross_inverse` without the scale's row and column)."""
+    return cross_inverse(a, b)[:-1, :-1]
+
+
+def decorrelated_chi2(meas: np.ndarray, sig: np.ndarray, f_a: np.ndarray, f_b: np.ndarray) -> tuple[float, float]:
+    """sum r_A r_B / sig^2 over pixels, r = measured - scale x render, for two renders with
+    independent noise, at the scale that minimises it; returns (loss, scale)."""
+    w = np.where(np.isfinite(sig), 1.0 / np.where(np.isfinite(sig), sig, 1.0) ** 2, 0.0)
+    den = float(np.sum(w * f_a * f_b))
+    s = float(np.sum(w * meas * 0.5 * (f_a + f_b)) / den) if den > 0 else 1.0
+    return float(np.sum(w * (meas - s * f_a) * (meas - s * f_b))), s
+
+
+def decorrelated_step(render: Callable[[dict[str, float]], tuple[np.ndarray, np.ndarray]], meas: np.ndarray,
+                       sig: np.ndarray, theta: Mapping[str, float], s: float, f_a: np.ndarray, f_b: np.ndarray,
+                       a: np.ndarray, b: np.ndarray, free: Sequence[str],
+                       bounds: Sequence[tuple[float, float]], halvings: int = 2) -> tuple[dict[str, float], float]:
+    """One Gauss-Newton step on the decorrelated chi^2 from a fixed-seed optimum.
+
+    A fixed-seed chi^2 sum (m - s f_A)^2 / sig^2 has the expectation sum ((m - s E f)^2 +
+    s^2 Var f_A) / sig^2: its minimum leans towards parameters whose renders are less
+    noisy (the synthetic suite's clean recording, refitted from the truth at 512 spp:
+    albedo 0.81-0.84 for 0.90, at 4096 spp 0.89; the bias goes as 1 / spp). The product of
+    two renders with independent noise, sum r_A r_B, has no such term. From the LM optimum
+    (theta, s) of seed A, with `a`, `b` the residuals' Jacobians there (free parameters and
+    scale; seeds A and B) and `f_a`, `f_b` the renders, the step is -H^-1 g with g =
+    (A^T r_B + B^T r_A) / 2 and H the bounded cross product (`cross_inverse`); halved up
+    to `halvings` times while it does not lower the loss (scale profiled, `render(theta)`
+    gives both seeds' renders). Returns the parameters and scale of the best point (theta
+    and its decorrelated scale when no step gains).
+    """
+    keep = np.isfinite(sig)
+    r_a = np.where(keep, (meas - s * f_a) / np.where(keep, sig, 1.0), 0.0).ravel()
+    r_b = np.where(keep, (meas - s * f_b) / np.where(keep, sig, 1.0), 0.0).ravel()
+    inv = np.nan_to_num(cross_inverse(a, b), nan=0.0)
+    step = -inv @ (0.5 * (a.T @ r_b + b.T @ r_a))
+    loss0, s0 = decorrelated_chi2(meas, sig, f_a, f_b)
+    for k in range(halvings + 1):
+        frac = 0.5 ** k
+        trial = dict(theta)
+        for j, (n, (lo, hi)) in enumerate(zip(free, bounds)):
+            trial[n] = float(np.clip(theta[n] + frac * step[j], lo, hi))
+        try:
+            loss, s_t = decorrelated_chi2(meas, sig, *render(trial))
+        except ModelParameterError:
+            continue
+        if loss < loss0:
+            return trial, s_t
+    return dict(theta), s0
+
+
+def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[str], *,
+          angle_idx: Sequence[int] | None = None, spp: int = 256, seed: int = 2000, iterations: int = 12,
+          model_variance: np.ndarray | None = None, noise_scale: np.ndarray | None = None,
+          decorrelate: bool = False) -> RefitResult:
+    """Levenberg-Marquardt fit of `free` parameters (and the scale) with a fixed render seed.
+
+    `noise_scale` (f per angle of the whole problem, `estimate.residuals.noise_floor`)
+    scales each angle's variance by f^2. Uncertainties: Gauss-Newton covariance at the
+    optimum, its curvature from two Jacobians with independent render noise
+    (`cross_covariance`: this seed's and seed + `UNCERTAINTY_SEED_OFFSET`'s, one render and
+    one Jacobian more), inflated by the (adjusted) reduced chi^2 when it exceeds 1.
+    With `decorrelate`, one Gauss-Newton step on the two seeds' decorrelated chi^2 from the
+    LM optimum (`decorrelated_step`, two renders a try) gives `RefitResult.decorrelated`:
+    the LM's fixed-seed chi^2 leans towards parameters with quieter renders.
+    """
+    idx = list(range(len(problem.angles_deg))) if angle_idx is None else list(angle_idx)
+    angles = [float(problem.angles_deg[i]) for i in idx]
+    meas = np.asarray(problem.measured, dtype=np.float64)[idx]
+    var = recording_variance(problem)[idx]
+    mv = None if model_variance is None else np.asarray(model_variance)[idx]
+    floor2 = (np.ones(len(idx)) if noise_scale is None else np.asarray(noise_scale, dtype=np.float64)[idx] ** 2)[:, None]
+    theta = dict(model.validate(start))
+    free = list(free)
+    bounds = [parameter_bounds(model, n) for n in free]
+    for n, (lo, hi) in zip(free, bounds):
+        theta[n] = float(np.clip(theta[n], lo, hi))
+
+    def residual(th: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+        f = model.render_profiles(th, angles, spp=spp, seed=seed)
+        s = best_scale(meas, var * floor2, f)
+        v = var if mv is None else var + s * s * mv
+        sig = np.sqrt(v * floor2)
+        r = (meas - s * f) / sig
+        r = np.where(np.isfinite(sig), r, 0.0)
+        return r, f, s, sig
+
+    r, f, s, sig = residual(theta)
+    chi2 = float(np.sum(r * r))
+    lam = 1e-3
+    it = 0
+    A = None
+    a_at: dict[str, float] = {}  # the point of the loop's last Jacobian
+    for it in range(1, iterations + 1):
+        # Secant steps (estimate.fit.secant_steps), not the parameters' small default steps:
+        # with common random numbers a render is not a smooth function of sigma_t or the
+        # phase (a free flight crossing the slab boundary flips), and small-step columns
+        # differed between seeds by up to 2x, so LM saw no descent towards the optimum.
+        A = refit_columns(model.jacobian(theta, angles, free, spp=spp, seed=seed,
+                                          steps=secant_steps(model, theta, free)), f, s, sig)
+        a_at = dict(theta)
+        g = A.T @ r.ravel()
+        H = A.T @ A
+        d = np.maximum(np.diag(H), 1e-300)
+        improved = False
+        for _ in range(8):
+            try:
+                step = -np.linalg.solve(H + lam * np.diag(d), g)
+            except np.linalg.LinAlgError:
+                lam *= 10.0
+                continue
+            trial = dict(theta)
+            for j, (n, (lo, hi)) in enumerate(zip(free, bounds)):
+                trial[n] = float(np.clip(theta[n] + step[j], lo, hi))
+            try:
+                r2, f2, s2, sig2 = residual(trial)
+            except ModelParameterError:
+                lam *= 10.0
+                continue
+            c2 = float(np.sum(r2 * r2))
+            if c2 < chi2:
+                rel = (chi2 - c2) / max(chi2, 1e-300)
+                theta, r, f, s, sig, chi2 = trial, r2, f2, s2, sig2, c2
+                lam = max(lam / 3.0, 1e-7)
+                improved = True
+                break
+            lam *= 4.0
+        if not improved or rel < 1e-4:
+            break
+    unc: dict[str, float] = {}
+    if A is not None:
+        # The curvature from two Jacobians with independent render noise (this seed's and
+        # another's): one Monte Carlo Jacobian's A^T A carries the noise's own Gram matrix,
+        # which dominates the weakly constrained directions and narrows their intervals
+        # (estimate.fit.sandwich_uncertainties). The refit itself stays at one seed.
+        steps = secant_steps(model, theta, free)
+        seed_b = seed + UNCERTAINTY_SEED_OFFSET
+        f_b = model.render_profiles(theta, angles, spp=spp, seed=seed_b)
+        # The loop's last Jacobian is this seed's at the final point unless a step moved it since.
+        a_own = A if a_at == theta else refit_columns(
+            model.jacobian(theta, angles, free, spp=spp, seed=seed, steps=steps), f, s, sig)
+        As = [a_own, refit_columns(model.jacobian(theta, angles, free, spp=spp, seed=seed_b, steps=steps),
+                                    f_b, s, sig)]
+        n_obs = int(np.sum(np.isfinite(sig)))
+        red = chi2 / max(1, n_obs - len(free) - 1)
+        cov = cross_covariance(As[0], As[1]) * max(1.0, red)
+        unc = {n: float(math.sqrt(max(cov[j, j], 0.0))) if np.isfinite(cov[j, j]) else float("nan")
+               for j, n in enumerate(free)}
+        covd = {(a, b): float(cov[i, j]) for i, a in enumerate(free) for j, b in enumerate(free)}
+        dec: dict[str, float] | None = None
+        dec_s: float | None = None
+        if decorrelate:
+            def both(th: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
+                return (model.render_profiles(th, angles, spp=spp, seed=seed),
+                        model.render_profiles(th, angles, spp=spp, seed=seed_b))
+
+            dec, dec_s = decorrelated_step(both, meas, sig, theta, s, f, f_b, As[0], As[1], free, bounds)
+        return RefitResult(theta, s, unc, chi2, it, covd, dec, dec_s)
+    return RefitResult(theta, s, unc, chi2, it)
