@@ -389,11 +389,16 @@ def _flattened(losses: Sequence[float], window: int) -> bool:
     return slope > -2.0 * se
 
 
+#: The stages of `fit_channel`, in order (`FitResult.stage_times`, `on_stage`).
+STAGES = ("start", "iterations", "polish", "evaluation", "uncertainties", "done")
+
+
 def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[str] = (),
                 start: Mapping[str, float] | None = None, fixed: Mapping[str, float] | None = None,
                 settings: FitSettings | None = None, forward: ForwardModel | None = None,
                 progress: Callable[[int, float, int], None] | None = None,
-                scale_calibration: ScaleCalibration | None = None) -> FitResult:
+                scale_calibration: ScaleCalibration | None = None,
+                on_stage: Callable[[str], None] | None = None) -> FitResult:
     """Fit one channel.
 
     Args:
@@ -406,7 +411,9 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         fixed: parameters held at the given values (not fitted, no uncertainty).
         settings: optimiser settings.
         forward: a ready ForwardModel for this problem (else built).
-        progress: called as progress(iteration, reference loss, spp).
+        progress: called after each iteration as progress(iteration (from 1), reference loss, spp).
+        on_stage: called with each stage's name as it begins ("start", "iterations",
+            "polish", "evaluation", "uncertainties"), and with "done" at the end.
         scale_calibration: the measured scale for `settings.scale == "calibrated"` (else
             `estimate.loss.calibrated_scale` of the problem's session).
 
@@ -423,6 +430,10 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         now = time.monotonic()
         stage_times[name] = stage_times.get(name, 0.0) + now - t_stage
         t_stage = now
+        if on_stage:
+            on_stage(STAGES[STAGES.index(name) + 1])
+    if on_stage:
+        on_stage(STAGES[0])
     phase = model_phase(model)
     fm = forward or ForwardModel(problem.geometry, problem.beam, phase=phase, extensions=extensions,
                                  profile_y_shape=problem.y_shapes())
@@ -710,6 +721,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             drifting = moving
         covariance = combined_covariance(names, unc, sandwich_cov, it_cov)
         stage_done("uncertainties")
+    elif on_stage:
+        on_stage("done")
     return FitResult(
         channel=problem.channel, model=phase, extensions=list(fm.extensions), parameters=final,
         uncertainties=unc, fixed=fixed, scale=ev["scale"], scale_uncertainty=s_unc, loss=ev["loss"],

@@ -98,3 +98,48 @@ def test_extension_parameters_are_printed(session, capsys):
 def test_missing_session_exit_2(tmp_path, capsys):
     assert main(["estimate", str(tmp_path / "nope")]) == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
+
+
+def test_live_status_names_each_stage_on_a_terminal_and_draws_nothing_off_it(session):
+    """The fit reports its stages in order; on a terminal the status line shows each stage and
+    the iterations' spp and loss, and off a terminal (a log, a pipe) nothing is drawn."""
+    import io
+
+    from rich.console import Console
+
+    from estimate.fit import STAGES, FitSettings, fit_channel
+    from estimate.problem import load_problem
+    from rig.fit_progress import STAGE_LABELS, FitProgress
+
+    pb = load_problem(session, "g", 32)
+    settings = FitSettings(max_iterations=3, spp_start=32, spp_max=32, final_spp=64, polish_steps=1,
+                           uncertainty_spp=32, scale="free")
+    for terminal in (True, False):
+        buf = io.StringIO()
+        stages: list[str] = []
+        with FitProgress(console=Console(file=buf, force_terminal=terminal, width=120)) as live:
+            progress, on_stage = live.channel("g", "exp3")
+
+            def record(stage: str, on_stage=on_stage) -> None:
+                stages.append(stage)
+                on_stage(stage)
+
+            fit_channel(pb, "exp3", settings=settings, progress=progress, on_stage=record)
+        assert stages == list(STAGES)
+        text = buf.getvalue()
+        if terminal:
+            for stage in STAGES[:-1]:
+                assert f"g (exp3): {STAGE_LABELS[stage]}" in text
+            assert "iteration 1, 32 spp, loss " in text
+        else:
+            assert text == ""
+
+
+def test_plain_output_ends_each_channel_with_its_time_and_steps(session, capsys):
+    argv = ["estimate", str(session), "--channels", "g", "--columns", "32", "--max-iterations", "3",
+            "--spp-max", "32", "--polish-steps", "1", "--scale", "free", "--no-progress"]
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert "fitting channel g (exp3) ..." in err
+    line = next(x for x in err.splitlines() if x.startswith("  g: "))
+    assert "iterations + " in line and "polish steps" in line

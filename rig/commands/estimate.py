@@ -46,6 +46,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="measured/rendered intensity scale: from the calibrated beam power and the lens's "
                         "collection solid angle (calibrated, default) or fitted per channel (free)")
     p.add_argument("--json", action="store_true", help="print the results as JSON")
+    p.add_argument("--no-progress", action="store_true",
+                   help="no live status line (stage, iteration, spp, loss) on the terminal while fitting")
     p.add_argument("--diagnose", action="store_true", help="run the diagnosis on the new fit (estimate.diagnose)")
     p.set_defaults(func=run)
 
@@ -62,6 +64,7 @@ def run(args: argparse.Namespace) -> int:
     from estimate.loss import calibrated_scale
     from estimate.problem import load_problem, session_channels
     from estimate.results import new_run_dir, write_run
+    from rig.fit_progress import FitProgress
 
     session = Path(args.session)
     if args.degree < 0 or args.degree > 12:
@@ -101,11 +104,18 @@ def run(args: argparse.Namespace) -> int:
     for m in models:
         phase = model_phase(m, args.degree)
         fits = []
-        for c in channels:
-            if not args.json:
-                print(f"fitting channel {c} ({phase}) ...", file=sys.stderr, flush=True)
-            fits.append(fit_channel(problems[c], phase, extensions=exts, settings=settings,
-                                    scale_calibration=scales.get(c)))
+        with FitProgress(enabled=not (args.json or args.no_progress)) as live:
+            for c in channels:
+                if not args.json:
+                    print(f"fitting channel {c} ({phase}) ...", file=sys.stderr, flush=True)
+                progress, on_stage = live.channel(c, phase)
+                f = fit_channel(problems[c], phase, extensions=exts, settings=settings,
+                                scale_calibration=scales.get(c), progress=progress, on_stage=on_stage)
+                fits.append(f)
+                if not args.json:
+                    steps = sum(1 for e in f.polish if e.get("accepted"))
+                    print(f"  {c}: {sum(f.stage_times_s.values()):.0f} s, {f.iterations} iterations "
+                          f"+ {steps} polish steps, {f.stop_reason}", file=sys.stderr, flush=True)
         run_dir = new_run_dir(session, phase)
         write_run(run_dir, session, fits, problems,
                   {"columns": int(problems[channels[0]].n_px), "iterations": settings.max_iterations,
