@@ -53,9 +53,9 @@ def evaluate(fm: ForwardModel, problem: Problem, params: Mapping[str, float], *,
 
 
 def solve_additive(fm: ForwardModel, problem: Problem, params: dict[str, float], names: Sequence[str],
-                    mean: np.ndarray, delta_rel: float, fixed_scale: float | None,
-                    scale_guess: float | None = None, columns: Mapping[str, np.ndarray] | None = None
-                    ) -> np.ndarray:
+                   mean: np.ndarray, delta_rel: float, fixed_scale: float | None,
+                   scale_guess: float | None = None, columns: Mapping[str, np.ndarray] | None = None
+                   ) -> np.ndarray:
     """Set the additive parameters `names` in `params` (in place) to their log-loss optimum
     for the render `mean` (made with the old values; with a free scale, the scale and
     they are solved in turn, twice) and return what that adds to the render (N, W).
@@ -77,5 +77,5 @@ def solve_additive(fm: ForwardModel, problem: Problem, params: dict[str, float],
 
 
 def jacobian_columns(fm: ForwardModel, problem: Problem, params: Mapping[str, float], names: Sequence[str],
-                      *, spp: int, seed: int) -> dict[str, np.ndarray]:
+                     *, spp: int, seed: int) -> dict[str, np.ndarray]:
     return fm.jacobian(params, problem.angles_deg, list(names), spp=spp, seed=seed)

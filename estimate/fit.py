@@ -539,7 +539,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             pa, pb_ = lin_a.profiles, lin_b.profiles
             if solved:
                 shift = solve_additive(fm, problem, p, solved, 0.5 * (pa + pb_), delta_rel, fixed_scale,
-                                        scale_guess=scale, columns=solved_cols)
+                                       scale_guess=scale, columns=solved_cols)
                 pa, pb_ = pa + shift, pb_ + shift
                 # (The linearizations keep the previous additive values: the last image-space
                 # effect adds them, so the pull-back through the chain does not depend on them.)
@@ -578,7 +578,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         if mode == "gn":
             if gn_jac is None or it - gn_jac_it >= st.gn_jacobian_every:
                 gn_jac = gn_jacobian(fm, problem, p, stepped, spp=st.gn_jacobian_spp,
-                                      seed=st.seed * 100_003 + 70_000 + it)
+                                     seed=st.seed * 100_003 + 70_000 + it)
                 gn_jac_it = it
             # Gradients are averaged over iterations (momentum): a single one's Monte Carlo
             # noise is 2-4x its mean per component at 512 spp (albedo worst), and
@@ -589,8 +589,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             m_max = dl / delta_rel
             gn_dl = [max(q * m_max, 1e-30) for q in gn_nodes] if gn_nodes else dl
             h_inv = gn_inverse(gn_jac, stepped, tr, z, problem, mean, gn_dl, m, fixed_scale is None,
-                                profiled_columns=list(solved_cols.values()), smooth_px=st.gn_smooth_px,
-                                exact=exact_columns)
+                               profiled_columns=list(solved_cols.values()), smooth_px=st.gn_smooth_px,
+                               exact=exact_columns)
             gn_grads.append(g)
             recent = gn_grads[-2 * st.window:]
             gn_trace.append([it, *predicted_decrease(h_inv, g_avg, recent, st.gn_momentum)])
@@ -636,16 +636,16 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     if st.polish_steps > 0 and stepped:
         caps = 5.0 * adam.lr / st.lr_scale     # the iterations' step cap
         final, polish, _ = gn_polish(fm, problem, final, stepped, tr, steps=st.polish_steps, spp=st.final_spp,
-                                   jacobian_spp=st.final_spp, seed=st.seed * 100_003 + 30_000,
-                                   delta_nodes=gn_nodes or [d_ref], reference_delta_rel=d_ref,
-                                   fixed_scale=fixed_scale, solved=solved, solved_columns=solved_cols,
-                                   smooth_px=st.gn_smooth_px, exact=exact_columns, caps=caps, scale_guess=scale,
-                                   jacobian_every=st.polish_jacobian_every, cross=st.polish_cross,
-                                   max_steps=2 * st.polish_steps if st.polish_max_steps is None
-                                   else st.polish_max_steps,
-                                   chi2_continue=float(chi2_dist.isf(st.polish_continue_p, len(stepped))),
-                                   keep_last=averaged_point_count(st.polish_steps, st.polish_average_from),
-                                   settled_spp_factor=st.polish_settled_spp, jacobians_out=polish_jacobians)
+                                     jacobian_spp=st.final_spp, seed=st.seed * 100_003 + 30_000,
+                                     delta_nodes=gn_nodes or [d_ref], reference_delta_rel=d_ref,
+                                     fixed_scale=fixed_scale, solved=solved, solved_columns=solved_cols,
+                                     smooth_px=st.gn_smooth_px, exact=exact_columns, caps=caps, scale_guess=scale,
+                                     jacobian_every=st.polish_jacobian_every, cross=st.polish_cross,
+                                     max_steps=2 * st.polish_steps if st.polish_max_steps is None
+                                     else st.polish_max_steps,
+                                     chi2_continue=float(chi2_dist.isf(st.polish_continue_p, len(stepped))),
+                                     keep_last=averaged_point_count(st.polish_steps, st.polish_average_from),
+                                     settled_spp_factor=st.polish_settled_spp, jacobians_out=polish_jacobians)
     # After the polish, the drift is its last step: what the fit still moved by at the end
     # (and `drifting` those parameters whose last step exceeds their uncertainty); when its
     # later points are averaged, their mean step and the mean's standard error instead.
@@ -667,8 +667,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     lm_losses: list[float] = []
     if st.lm_iterations > 0:
         final, lm_losses = lm_polish(fm, problem, final, stepped, tr, spp=st.lm_spp,
-                                      seed=st.seed * 100_003 + 40_000, delta_rel=d_ref, iterations=st.lm_iterations,
-                                      fixed_scale=fixed_scale)
+                                     seed=st.seed * 100_003 + 40_000, delta_rel=d_ref, iterations=st.lm_iterations,
+                                     fixed_scale=fixed_scale)
     stage_done("polish")
     ev = evaluate(fm, problem, final, spp=st.final_spp, seed=st.seed * 100_003 + 50_000, delta_rel=d_ref,
                   fixed_scale=fixed_scale, additive=solved)

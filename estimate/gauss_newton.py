@@ -38,7 +38,7 @@ def averaged_gradient_cov(recent: Sequence[np.ndarray], momentum: float) -> np.n
 
 
 def predicted_decrease(h_inv: np.ndarray, g_avg: np.ndarray, recent: Sequence[np.ndarray],
-                        momentum: float) -> tuple[float, float]:
+                       momentum: float) -> tuple[float, float]:
     """The loss decrease the Gauss-Newton model predicts for a full step, 0.5 g^T H^-1 g with
     g the averaged gradient, and the part of it that the gradient's Monte Carlo noise alone
     would produce, 0.5 tr(H^-1 C_avg) (`averaged_gradient_cov`).
@@ -114,23 +114,23 @@ def secant_steps(fm: ForwardModel, params: Mapping[str, float], names: Sequence[
 
 
 def gn_jacobian(fm: ForwardModel, problem: Problem, p: Mapping[str, float], names: Sequence[str],
-                 *, spp: int, seed: int) -> dict[str, np.ndarray]:
+                *, spp: int, seed: int) -> dict[str, np.ndarray]:
     """d profiles / d x at `p` for the Gauss-Newton matrix (central differences, large steps)."""
     return fm.jacobian(p, problem.angles_deg, list(names), spp=spp, seed=seed, steps=secant_steps(fm, p, names))
 
 
 def gn_direction(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequence[Transform], z: np.ndarray,
-                  problem: Problem, mean: np.ndarray, dl: float, m: np.ndarray, profiled_scale: bool,
-                  grad_z: np.ndarray, damping: float = 1e-3, eig_floor: float | None = None) -> np.ndarray:
+                 problem: Problem, mean: np.ndarray, dl: float, m: np.ndarray, profiled_scale: bool,
+                 grad_z: np.ndarray, damping: float = 1e-3, eig_floor: float | None = None) -> np.ndarray:
     """Gauss-Newton step in z for the log loss mean(r^2) given its gradient `grad_z`
     (-H^-1 grad_z with H^-1 from `gn_inverse`)."""
     return -(gn_inverse(jac, names, tr, z, problem, mean, dl, m, profiled_scale, damping, eig_floor) @ grad_z)
 
 
 def gn_columns(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequence[Transform], z: np.ndarray,
-                problem: Problem, mean: np.ndarray, d: float, m: np.ndarray, profiled_scale: bool,
-                profiled_columns: Sequence[np.ndarray] = (), smooth_px: float = 0.0,
-                exact: Collection[str] = ()) -> np.ndarray:
+               problem: Problem, mean: np.ndarray, d: float, m: np.ndarray, profiled_scale: bool,
+               profiled_columns: Sequence[np.ndarray] = (), smooth_px: float = 0.0,
+               exact: Collection[str] = ()) -> np.ndarray:
     """A = d r / d z (pixels x len(names)) of the log residuals r = log(m + d) - log(I + d)
     at absolute delta `d`, with the profiled directions (scale, additive columns) projected
     out; see `gn_inverse`."""
@@ -180,10 +180,10 @@ def bounded_cross(h_cross: np.ndarray, h_mean: np.ndarray, floor: float) -> np.n
 
 
 def gn_inverse(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequence[Transform], z: np.ndarray,
-                problem: Problem, mean: np.ndarray, dl: float | Sequence[float], m: np.ndarray, profiled_scale: bool,
-                damping: float = 1e-3, eig_floor: float | None = None,
-                profiled_columns: Sequence[np.ndarray] = (), smooth_px: float = 0.0,
-                exact: Collection[str] = (), jac_cross: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
+               problem: Problem, mean: np.ndarray, dl: float | Sequence[float], m: np.ndarray, profiled_scale: bool,
+               damping: float = 1e-3, eig_floor: float | None = None,
+               profiled_columns: Sequence[np.ndarray] = (), smooth_px: float = 0.0,
+               exact: Collection[str] = (), jac_cross: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
     """Inverse of the Gauss-Newton matrix of the log loss mean(r^2) in the variables z.
 
     `profiled_columns`: d profiles / d p (N, W) of parameters solved at every iteration
@@ -233,7 +233,7 @@ def gn_inverse(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequence
             H += 2.0 * (A.T @ A) / n / len(dls)
         else:
             B = gn_columns(jac_cross, names, tr, z, problem, mean, d, m, profiled_scale, profiled_columns,
-                            smooth_px, exact)
+                           smooth_px, exact)
             H += (A.T @ B + B.T @ A) / n / len(dls)
             H_mean += 0.5 * ((A + B).T @ (A + B)) / n / len(dls)
     if jac_cross is not None:

@@ -28,8 +28,8 @@ __all__ = ["averaged_point_count", "first_averaged_point", "gn_polish", "lm_poli
 
 
 def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], names: Sequence[str],
-               tr: Sequence[Transform], *, spp: int, seed: int, delta_rel: float, iterations: int,
-               fixed_scale: float | None = None) -> tuple[dict[str, float], list[float]]:
+              tr: Sequence[Transform], *, spp: int, seed: int, delta_rel: float, iterations: int,
+              fixed_scale: float | None = None) -> tuple[dict[str, float], list[float]]:
     """Levenberg-Marquardt on the log residuals at the reference delta, one fixed seed.
 
     With the seed fixed (common random numbers) the loss is a smooth deterministic function
@@ -103,7 +103,7 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
 
 
 def polish_average(accepted: Sequence[Mapping[str, Any]], names: Sequence[str], tr: Sequence[Transform],
-                    start: int) -> tuple[dict[str, float], dict[str, float], dict[str, float],
+                   start: int) -> tuple[dict[str, float], dict[str, float], dict[str, float],
                                          dict[str, float]] | None:
     """The mean of the points after the accepted polish steps `start`, `start` + 1, ...
     (1-based; stepped parameters averaged in z, solved additive ones as they are), the mean
@@ -177,15 +177,15 @@ def first_averaged_point(n_accepted: int, planned: int, average_from: int) -> in
 
 
 def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], names: Sequence[str],
-               tr: Sequence[Transform], *, steps: int, spp: int, jacobian_spp: int, seed: int,
-               delta_nodes: Sequence[float], reference_delta_rel: float, fixed_scale: float | None,
-               solved: Sequence[str] = (), solved_columns: Mapping[str, np.ndarray] | None = None,
-               smooth_px: float = 3.0, exact: Collection[str] = (), caps: np.ndarray | None = None,
-               scale_guess: float | None = None, jacobian_every: int = 1, gross: float = 1.0,
-               cross: bool = False, max_steps: int | None = None, chi2_continue: float = math.inf,
-               keep_last: int = 3, settled_spp_factor: int = 1,
-               jacobians_out: list[list[dict[str, np.ndarray]]] | None = None
-               ) -> tuple[dict[str, float], list[dict[str, Any]], tuple[np.ndarray, np.ndarray] | None]:
+              tr: Sequence[Transform], *, steps: int, spp: int, jacobian_spp: int, seed: int,
+              delta_nodes: Sequence[float], reference_delta_rel: float, fixed_scale: float | None,
+              solved: Sequence[str] = (), solved_columns: Mapping[str, np.ndarray] | None = None,
+              smooth_px: float = 3.0, exact: Collection[str] = (), caps: np.ndarray | None = None,
+              scale_guess: float | None = None, jacobian_every: int = 1, gross: float = 1.0,
+              cross: bool = False, max_steps: int | None = None, chi2_continue: float = math.inf,
+              keep_last: int = 3, settled_spp_factor: int = 1,
+              jacobians_out: list[list[dict[str, np.ndarray]]] | None = None
+              ) -> tuple[dict[str, float], list[dict[str, Any]], tuple[np.ndarray, np.ndarray] | None]:
     """Full Gauss-Newton steps on the delta-averaged log loss at high samples per pixel, from
     the end of the stochastic iterations.
 
@@ -279,7 +279,7 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
         pb = fm.render_profiles(p, angles, spp=spp_k, seed=seed + 2 * k + 1)
         if solved:
             shift = solve_additive(fm, problem, p, solved, 0.5 * (pa + pb), reference_delta_rel, fixed_scale,
-                                    scale_guess=scale_guess, columns=solved_columns)
+                                   scale_guess=scale_guess, columns=solved_columns)
             pa, pb = pa + shift, pb + shift
         sc = fixed_scale if fixed_scale is not None else profile_scale(meas, 0.5 * (pa + pb), valid,
                                                                         reference_delta_rel, guess=scale_guess)
@@ -337,7 +337,7 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
             g += 2.0 * (A.T @ (0.5 * (ra + rb)).ravel()) / n_v / len(dls)
             u += 2.0 * A * (0.5 * (ra - rb)).ravel()[:, None] / n_v / len(dls)
         h_inv = gn_inverse(jac_a, names, tr, z, problem, mean, dls, m, fixed_scale is None,
-                            profiled_columns=cols_out, smooth_px=smooth_px, exact=exact, jac_cross=jac_b)
+                           profiled_columns=cols_out, smooth_px=smooth_px, exact=exact, jac_cross=jac_b)
         dz = -(h_inv @ g)
         c_dz = h_inv @ (u.T @ u) @ h_inv.T
         step_chi2 = float(dz @ np.linalg.pinv(c_dz, rcond=1e-10, hermitian=True) @ dz)

@@ -230,9 +230,9 @@ def decorrelated_chi2(meas: np.ndarray, sig: np.ndarray, f_a: np.ndarray, f_b: n
 
 
 def decorrelated_step(render: Callable[[dict[str, float]], tuple[np.ndarray, np.ndarray]], meas: np.ndarray,
-                       sig: np.ndarray, theta: Mapping[str, float], s: float, f_a: np.ndarray, f_b: np.ndarray,
-                       a: np.ndarray, b: np.ndarray, free: Sequence[str],
-                       bounds: Sequence[tuple[float, float]], halvings: int = 2) -> tuple[dict[str, float], float]:
+                      sig: np.ndarray, theta: Mapping[str, float], s: float, f_a: np.ndarray, f_b: np.ndarray,
+                      a: np.ndarray, b: np.ndarray, free: Sequence[str],
+                      bounds: Sequence[tuple[float, float]], halvings: int = 2) -> tuple[dict[str, float], float]:
     """One Gauss-Newton step on the decorrelated chi^2 from a fixed-seed optimum.
 
     A fixed-seed chi^2 sum (m - s f_A)^2 / sig^2 has the expectation sum ((m - s E f)^2 +
@@ -358,7 +358,7 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
         a_own = A if a_at == theta else refit_columns(
             model.jacobian(theta, angles, free, spp=spp, seed=seed, steps=steps), f, s, sig)
         As = [a_own, refit_columns(model.jacobian(theta, angles, free, spp=spp, seed=seed_b, steps=steps),
-                                    f_b, s, sig)]
+                                   f_b, s, sig)]
         n_obs = int(np.sum(np.isfinite(sig)))
         red = chi2 / max(1, n_obs - len(free) - 1)
         cov = cross_covariance(As[0], As[1]) * max(1.0, red)

@@ -198,8 +198,8 @@ def window_scatter(rows: Sequence[Sequence[float]], trend: bool) -> np.ndarray:
 
 
 def combined_uncertainties(base: Mapping[str, float], spread: Mapping[str, float],
-                            polish_se: Mapping[str, float], drift: Mapping[str, float],
-                            polish_sd: Mapping[str, float], *, polished: bool) -> tuple[dict[str, float], list[str]]:
+                           polish_se: Mapping[str, float], drift: Mapping[str, float],
+                           polish_sd: Mapping[str, float], *, polished: bool) -> tuple[dict[str, float], list[str]]:
     """The reported 1-sigma uncertainties (parameter units) and the names still moving.
 
     `base` (the larger of the sandwich and the Fisher bound), the iterates' `spread` and the

@@ -41,7 +41,7 @@ def _gn_matrix(jac: dict, prof: np.ndarray, delta: float | list[float] = 1e-3, f
     pb = SimpleNamespace(valid=np.ones(prof.shape, bool))
     lin = [Transform("linear", 0.1, -10, 10)] * len(names)
     return np.linalg.inv(gn_inverse(jac, names, lin, np.zeros(len(names)), pb, prof, delta, prof, fit_scale,
-                                     damping=0.0, eig_floor=1e-12, **kw))
+                                    damping=0.0, eig_floor=1e-12, **kw))
 
 
 @pytest.fixture(scope="module")
@@ -624,7 +624,7 @@ def test_averaged_polish_points_mean_step_within_their_scatter_is_not_added_twic
     assert flagged < 0.1 * 400
     # A walk: the points still move by 3 per step, far beyond their scatter.
     unc, moving = combined_uncertainties({"x": 0.1}, {"x": 0.05}, {"x": 0.5}, {"x": 3.0}, {"x": 1.0},
-                                          polished=True)
+                                         polished=True)
     assert moving == ["x"] and unc["x"] == pytest.approx(math.hypot(0.1, 0.05, 0.5, 3.0))
     # One polish point or none: the last move is the only measure of the distance left.
     unc, moving = combined_uncertainties({"x": 0.1}, {"x": 0.05}, {}, {"x": 0.2}, {}, polished=False)
@@ -695,8 +695,8 @@ def test_gn_polish_walks_towards_the_truth_and_reports_its_steps(problem, cross)
     start.update(TRUTH)
     start["sigma_t"] = 3.45
     out, trace, renders = gn_polish(fm, problem, start, names, tr, steps=3, spp=256, jacobian_spp=512, seed=5,
-                                     delta_nodes=[0.02, 0.1], reference_delta_rel=0.045, fixed_scale=scale,
-                                     cross=cross)
+                                    delta_nodes=[0.02, 0.1], reference_delta_rel=0.045, fixed_scale=scale,
+                                    cross=cross)
     assert renders is not None and renders[0].shape == problem.measured.shape
     assert trace and trace[0]["accepted"]
     assert abs(out["sigma_t"] - 3.0) < 0.15, out
@@ -759,7 +759,7 @@ def test_a_settled_polish_step_keeps_the_matrix_and_renders_more_samples(problem
     for chi2_continue, factor in ((0.0, 4), (math.inf, 1)):
         calls.clear()
         _, trace, _ = polish_mod.gn_polish(fm, problem, at, names, tr, chi2_continue=chi2_continue,
-                                         settled_spp_factor=factor, max_steps=3, **kw)
+                                           settled_spp_factor=factor, max_steps=3, **kw)
         assert [e["jacobians"] for e in trace] == [2, 2, 2] and len(calls) == 6
         assert [e["spp"] for e in trace] == [64, 64, 64]
 
@@ -790,8 +790,8 @@ def test_gn_polish_undoes_a_step_that_makes_the_fit_grossly_worse(problem, monke
     # quarter step of the last halving stays far worse.
     monkeypatch.setattr(polish_mod, "gn_inverse", lambda *a, **k: -1e4 * np.eye(len(names)))
     out, trace, _ = polish_mod.gn_polish(fm, problem, start, names, tr, steps=3, spp=128, jacobian_spp=128, seed=5,
-                                       delta_nodes=[0.045], reference_delta_rel=0.045, fixed_scale=scale,
-                                       caps=np.full(len(names), 4.0))
+                                         delta_nodes=[0.045], reference_delta_rel=0.045, fixed_scale=scale,
+                                         caps=np.full(len(names), 4.0))
     assert len(trace) == 1 and not trace[0]["accepted"] and trace[0]["halvings"] == 2
     assert trace[0]["loss_new"] > trace[0]["loss"]
     assert all(out[n] == start[n] for n in names)
