@@ -748,7 +748,9 @@ def _final_fit_start(problem: Any, model: Any, lm: Evaluation, settings: FitSett
 def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, settings: FitSettings, *,
                    spp: int = 256, seed: int = DEFAULT_SEED, repeats: int = DEFAULT_REPEATS,
                    log: Callable[[str], None] | None = None,
-                   scale_calibration: ScaleCalibration | None = None) -> FitResult | None:
+                   scale_calibration: ScaleCalibration | None = None,
+                   progress: Callable[[int, float, int], None] | None = None,
+                   on_stage: Callable[[str], None] | None = None) -> FitResult | None:
     """The final model fitted by the estimator itself, in place of the Levenberg-Marquardt refit.
 
     The confirmations refit by Levenberg-Marquardt on chi^2 at one fixed seed: fast, and the
@@ -766,7 +768,8 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
     worse than the model without the effect; then the LM refit is kept and `d.final_fit`
     says why. Returns the estimator's `FitResult` when kept, else None. Costs one fit at the
     default settings on 2 cores: 146 s on the bench's stray-light session, 504 s with the
-    refractive boundary, whose renders are the slowest.
+    refractive boundary, whose renders are the slowest. `progress` and `on_stage` go to
+    `fit_channel` (a live status line, `rig.fit_progress`).
     """
     if not d.confirmed or d.after is None:
         return None
@@ -782,7 +785,7 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
     say(f"  final fit with {', '.join(d.confirmed)} by the estimator (log loss, Adam + Gauss-Newton), "
         f"started at the {start_info['from']} ...")
     fr = fit_channel(problem, m.phase, extensions=exts, start=start, settings=settings, forward=m,
-                     scale_calibration=cal)
+                     scale_calibration=cal, progress=progress, on_stage=on_stage)
     stack = render_stack(m, fr.parameters, problem, spp=spp, seed=seed, repeats=repeats)
     ev = evaluate(m, fr.parameters, problem, len(fr.free) + 1, spp=spp, seed=seed, repeats=repeats, renders=stack)
     b, a = d.before.residuals, ev.residuals
@@ -968,7 +971,9 @@ def _check_same_session(session_dir: Any, run_doc: Mapping[str, Any], run_dir: A
 def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[str] | None = None,
                   channels: Sequence[str] | None = None, spp: int = 256, repeats: int = DEFAULT_REPEATS,
                   iterations: int = 8, seed: int = DEFAULT_SEED, plots: bool = True, log: Callable[[str], None] | None = None,
-                  refine: bool = True) -> dict[str, Any]:
+                  refine: bool = True,
+                  fit_progress: Callable[[str, str], tuple[Callable[[int, float, int], None], Callable[[str], None]]]
+                  | None = None) -> dict[str, Any]:
     """Diagnose every channel of an estimate run of a session and write the results.
 
     Writes SESSION/diagnoses/<run_id>/diagnosis.yaml (+ residual plots) and, when an effect
@@ -976,7 +981,8 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
     of a channel with confirmed effects is fitted by the estimator with the run's own
     settings (`refine_channel`); without, the Levenberg-Marquardt refit is the final one.
     Returns the diagnosis document (`channels.<f>` = `ChannelDiagnosis.as_dict()`, plus
-    `refit_run`).
+    `refit_run`). `fit_progress(channel, model)`, when given, returns the (progress,
+    on_stage) callbacks for a channel's final fit (`rig.fit_progress.FitProgress.channel`).
 
     Raises:
         DataError: no fit to diagnose, a fit from another session, unreadable inputs.
@@ -1039,7 +1045,9 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
         d = diagnose_channel(pb, base, make_model, candidates=effects, spp=spp, seed=seed, repeats=repeats,
                              iterations=iterations, log=log)
         if refine and d.confirmed:
-            fr = refine_channel(pb, d, make_model, fit_settings, spp=spp, seed=seed, repeats=repeats, log=log)
+            cb_progress, cb_stage = fit_progress(ch, phase) if fit_progress else (None, None)
+            fr = refine_channel(pb, d, make_model, fit_settings, spp=spp, seed=seed, repeats=repeats, log=log,
+                                progress=cb_progress, on_stage=cb_stage)
             if fr is not None:
                 finals[ch] = fr
         diags[ch] = d

@@ -32,7 +32,7 @@ from estimate.diagnose import (
 )
 from estimate.errors import ModelParameterError
 from estimate.extensions.base import ParameterSpec
-from estimate.fit import FitSettings
+from estimate.fit import STAGES, FitSettings
 from estimate.forward import ForwardModel
 from estimate.geometry import RigGeometry
 from estimate.refit import (
@@ -328,7 +328,9 @@ def test_final_fit_by_the_estimator_replaces_the_refit_of_a_confirmed_effect():
     assert d.fixed_seed_after and d.fixed_seed_after != lm.parameters
     st = FitSettings(seed=2, scale="free", max_iterations=14, spp_start=64, spp_max=128, final_spp=256, window=3,
                      polish_steps=1)
-    fr = refine_channel(pb, d, make_model, st, spp=128, repeats=3)
+    stages: list[str] = []
+    fr = refine_channel(pb, d, make_model, st, spp=128, repeats=3, on_stage=stages.append)
+    assert stages == list(STAGES)              # the final fit reports its stages (rig's status line)
     assert fr is not None and d.final_fit["kept"] and d.final_fit["iterations"] == fr.iterations
     assert fr.extensions == ["stray_light"] and fr.start["sigma_t"] == lm.parameters["sigma_t"]
     assert d.lm_after is lm and d.after.parameters == make_model(["stray_light"]).validate(fr.parameters)

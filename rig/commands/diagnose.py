@@ -37,6 +37,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "the Levenberg-Marquardt refit is then the final model")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     p.add_argument("--json", action="store_true", help="print the diagnosis as JSON")
+    p.add_argument("--no-progress", action="store_true",
+                   help="no live status line on the terminal during the estimator's final fit")
     p.set_defaults(func=run)
 
 
@@ -53,6 +55,7 @@ def run(args: argparse.Namespace) -> int:
 
     from estimate.diagnose import run_diagnosis
     from estimate.extensions import EXTENSIONS
+    from rig.fit_progress import FitProgress
 
     session = Path(args.session)
     if not (session / "session.yaml").is_file():
@@ -64,8 +67,10 @@ def run(args: argparse.Namespace) -> int:
     if args.spp < 16:
         raise UsageError("--spp must be >= 16")
     log = None if args.json else (lambda s: print(s, file=sys.stderr))
-    doc = run_diagnosis(session, args.fit, effects=effects, channels=_list(args.channels, True), spp=args.spp,
-                        seed=args.seed, plots=not args.no_plots, log=log, refine=not args.quick)
+    with FitProgress(enabled=not (args.json or args.no_progress)) as live:
+        doc = run_diagnosis(session, args.fit, effects=effects, channels=_list(args.channels, True), spp=args.spp,
+                            seed=args.seed, plots=not args.no_plots, log=log, refine=not args.quick,
+                            fit_progress=live.channel)
     if args.json:
         print(json.dumps(doc, indent=1, default=float))
     else:

@@ -152,7 +152,8 @@ def run(args: argparse.Namespace) -> int:
             from estimate import diagnose  # type: ignore[attr-defined]
 
             log = None if args.json else (lambda m: print(m, file=sys.stderr))
-            doc = diagnose.run_diagnosis(session, fit_run=run_dir, log=log)
+            with FitProgress(enabled=not (args.json or args.no_progress)) as live:
+                doc = diagnose.run_diagnosis(session, fit_run=run_dir, log=log, fit_progress=live.channel)
             if args.json:
                 out.setdefault("diagnoses", []).append(doc)
             else:
