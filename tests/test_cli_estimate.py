@@ -120,7 +120,7 @@ def test_live_status_names_each_stage_on_a_terminal_and_draws_nothing_off_it(ses
         with FitProgress(console=Console(file=buf, force_terminal=terminal, width=120)) as live:
             progress, on_stage = live.channel("g", "exp3")
 
-            def record(stage: str, on_stage=on_stage) -> None:
+            def record(stage: str, on_stage=on_stage, stages=stages) -> None:
                 stages.append(stage)
                 on_stage(stage)
 
