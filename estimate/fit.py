@@ -389,7 +389,7 @@ def _flattened(losses: Sequence[float], window: int) -> bool:
     return slope > -2.0 * se
 
 
-#: The stages of `fit_channel`, in order (`FitResult.stage_times`, `on_stage`).
+#: The stages of `fit_channel`, in order (`FitResult.stage_times_s`, `on_stage`).
 STAGES = ("start", "iterations", "polish", "evaluation", "uncertainties", "done")
 
 
