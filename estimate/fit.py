@@ -57,7 +57,8 @@ result and the loop; the stages' parts live beside it: `estimate.start` (1),
    the benchmark);
 5. Gauss-Newton polish (`gn_polish`, `polish_steps` = 4): full, unshrunk Gauss-Newton steps
    at `final_spp` (two 1024-spp renders per step and a new matrix from the cross product of
-   two 512-spp Jacobians, `polish_cross`), which walk down the valley several % of sigma_t
+   two 512-spp Jacobians, `polish_cross`; since session 25 forward and backward differences
+   against half of each render, `polish_one_sided`), which walk down the valley several % of sigma_t
    per step where the iterations crawled (benchmark, session 16: from 2.38 to 1.98 in four
    steps; truth 2.0). It replaced the iterations' 512-spp stage in the time budget. Near
    the optimum its steps scatter by 3-5 % of sigma_t (the gradient's noise at 2 x 1024 spp
@@ -191,6 +192,7 @@ class FitSettings:
     polish_steps: int = 4            # full Gauss-Newton steps at final_spp after the iterations (0: none)
     polish_jacobian_every: int = 1   # polish steps between re-estimates of its Jacobian
     polish_cross: bool = True        # polish matrix from two half-spp Jacobians' cross product (see gn_polish)
+    polish_one_sided: bool = True    # those Jacobians as forward / backward differences against half renders
     polish_average_from: int = 2     # the result: mean of the points after polish steps >= this (1-based; 0: last point)
     polish_max_steps: int | None = None   # polish steps in all while its last points still walk (None: 2 x polish_steps)
     polish_continue_p: float = 0.001  # a step is still a move when its noise chi^2 exceeds this upper quantile
@@ -645,7 +647,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
                                      else st.polish_max_steps,
                                      chi2_continue=float(chi2_dist.isf(st.polish_continue_p, len(stepped))),
                                      keep_last=averaged_point_count(st.polish_steps, st.polish_average_from),
-                                     settled_spp_factor=st.polish_settled_spp, jacobians_out=polish_jacobians)
+                                     settled_spp_factor=st.polish_settled_spp, one_sided=st.polish_one_sided,
+                                     jacobians_out=polish_jacobians)
     # After the polish, the drift is its last step: what the fit still moved by at the end
     # (and `drifting` those parameters whose last step exceeds their uncertainty); when its
     # later points are averaged, their mean step and the mean's standard error instead.

@@ -412,14 +412,15 @@ class ForwardModel:
     def jacobian(self, params: Mapping[str, float], angles_deg: Sequence[float], names: Sequence[str], *,
                  spp: int = 128, seed: int = 0, steps: Mapping[str, float] | None = None,
                  columns: tuple[int, int] | None = None,
-                 base_profiles: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                 base_profiles: np.ndarray | None = None, backward: bool = False) -> dict[str, np.ndarray]:
         """d profiles / d parameter for each name, arrays (N, W).
 
         "image" parameters: exact through the image-space function (one render in all).
         Others: central differences with common random numbers (same seeds), step
         `steps[name]` or the parameter's default `fd_step * max(1, |value|)`, shrunk to stay
         inside its range; one-sided (forward) differences against `base_profiles` when
-        given (the `render_profiles` result with the same parameters and seed).
+        given (the `render_profiles` result with the same parameters and seed), or backward
+        ones with `backward` (each falls back to the other side at a bound of the range).
         prbvolpath has no forward mode, so this is the efficient way to get a few columns
         of the Jacobian.
         """
@@ -442,15 +443,19 @@ class ForwardModel:
             lo = x - h
             hi = x + h
             lower = spec.lower + (1e-9 if spec.open_lower else 0.0)
+            if name == "thickness_error.e":
+                lower = max(lower, -0.9)
             lo = max(lo, lower)
             hi = min(hi, spec.upper)
-            if name == "thickness_error.e":
-                lo = max(lo, -0.9)
             one_sided = base_profiles is not None
-            if one_sided:
+            if one_sided and backward:
+                hi = x
+                if lo == x:  # at the lower bound: step up instead
+                    lo, hi = x, min(x + h, spec.upper)
+            elif one_sided:
                 lo = x
                 if hi == x:  # at the upper bound: step down instead
-                    hi, lo = x, x - h
+                    hi, lo = x, max(x - h, lower)
             v_lo = dict(values)
             v_hi = dict(values)
             v_lo[name] = lo

@@ -19,12 +19,15 @@ import numpy as np
 from estimate.errors import ModelParameterError
 from estimate.evaluation import solve_additive
 from estimate.forward import ForwardModel
-from estimate.gauss_newton import gn_columns, gn_inverse, gn_jacobian
+from estimate.gauss_newton import gn_columns, gn_inverse, gn_jacobian, secant_steps
 from estimate.loss import decorrelated_loss_se, profile_scale
 from estimate.problem import Problem
 from estimate.transforms import Transform
 
 __all__ = ["averaged_point_count", "first_averaged_point", "gn_polish", "lm_polish", "polish_average"]
+
+#: a render kept as the base of one-sided differences: (profiles, seed, spp)
+Base = tuple[np.ndarray, int, int]
 
 
 def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], names: Sequence[str],
@@ -183,7 +186,7 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
               smooth_px: float = 3.0, exact: Collection[str] = (), caps: np.ndarray | None = None,
               scale_guess: float | None = None, jacobian_every: int = 1, gross: float = 1.0,
               cross: bool = False, max_steps: int | None = None, chi2_continue: float = math.inf,
-              keep_last: int = 3, settled_spp_factor: int = 1,
+              keep_last: int = 3, settled_spp_factor: int = 1, one_sided: bool = False,
               jacobians_out: list[list[dict[str, np.ndarray]]] | None = None
               ) -> tuple[dict[str, float], list[dict[str, Any]], tuple[np.ndarray, np.ndarray] | None]:
     """Full Gauss-Newton steps on the delta-averaged log loss at high samples per pixel, from
@@ -258,6 +261,16 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
     truth, and one fit's error was 3.2x its smaller uncertainty; the default's seeds 0-2 in
     session 18: +1.1, +0.9, +1.0 %). No gain in accuracy or time was shown.
 
+    One-sided Jacobians (`one_sided`, with `cross`): each of renders A and B is the mean of
+    two at half the spp, and the two Jacobians are forward and backward differences against
+    the first half of A and of B respectively, when those were rendered at `jacobian_spp` / 2
+    (else against a new base render). Each costs one render per parameter instead of two, so
+    a step renders 7 instead of 12 renders' worth at `spp` for 5 parameters. The mean of a
+    forward and a backward difference is the central one, and the cross product of the two
+    keeps the central difference's O(h^2) error. A one-sided Jacobian's noise is correlated
+    with its base's (with common random numbers the perturbed render repeats the base's
+    paths), so the gradient pairs each with the other render's residuals.
+
     Returns the parameters, per step {loss, loss_new, accepted, halvings, step (x units),
     step_chi2 (of the full step, before caps and halvings), jacobians (new Jacobians
     rendered for it), spp (of its gradient's renders), and when accepted, point: the stepped
@@ -271,12 +284,21 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
     cols_out = list((solved_columns or {}).values())
 
     def state(p_in: Mapping[str, float], k: int, spp_k: int
-              ) -> tuple[dict[str, float], np.ndarray, np.ndarray, float, tuple[float, float]]:
+              ) -> tuple[dict[str, float], np.ndarray, np.ndarray, float, tuple[float, float], list[Base]]:
         """Renders A, B at `p_in` (seeds of step k, `spp_k` each), the solved values and scale,
-        and the loss without render noise with its standard error."""
+        the loss without render noise with its standard error, and (`one_sided`) the first
+        half-spp render of each of A and B, which the next Jacobians difference against."""
         p = dict(p_in)
-        pa = fm.render_profiles(p, angles, spp=spp_k, seed=seed + 2 * k)
-        pb = fm.render_profiles(p, angles, spp=spp_k, seed=seed + 2 * k + 1)
+        bases: list[Base] = []
+        if one_sided and spp_k >= 2:
+            # Each render the mean of two at half the spp (the same noise as one at spp_k).
+            half_k = spp_k // 2
+            halves = [fm.render_profiles(p, angles, spp=half_k, seed=seed + 2_000 + 4 * k + i) for i in range(4)]
+            pa, pb = 0.5 * (halves[0] + halves[1]), 0.5 * (halves[2] + halves[3])
+            bases = [(halves[0], seed + 2_000 + 4 * k, half_k), (halves[2], seed + 2_000 + 4 * k + 2, half_k)]
+        else:
+            pa = fm.render_profiles(p, angles, spp=spp_k, seed=seed + 2 * k)
+            pb = fm.render_profiles(p, angles, spp=spp_k, seed=seed + 2 * k + 1)
         if solved:
             shift = solve_additive(fm, problem, p, solved, 0.5 * (pa + pb), reference_delta_rel, fixed_scale,
                                    scale_guess=scale_guess, columns=solved_columns)
@@ -284,7 +306,24 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
         sc = fixed_scale if fixed_scale is not None else profile_scale(meas, 0.5 * (pa + pb), valid,
                                                                         reference_delta_rel, guess=scale_guess)
         per_delta = np.array([decorrelated_loss_se(meas, pa, pb, valid, sc, q) for q in delta_nodes])
-        return p, pa, pb, sc, (float(per_delta[:, 0].mean()), float(per_delta[:, 1].mean()))
+        return p, pa, pb, sc, (float(per_delta[:, 0].mean()), float(per_delta[:, 1].mean())), bases
+
+    def one_sided_jacobian(p_at: Mapping[str, float], base: Base | None, half: int, fallback_seed: int,
+                           backward: bool) -> dict[str, np.ndarray]:
+        """Forward (or backward) differences at `half` spp against `base` when it was rendered
+        at that spp, else against a new base render at `fallback_seed`."""
+        if base is None or base[2] != half:
+            base = (fm.render_profiles(p_at, angles, spp=half, seed=fallback_seed), fallback_seed, half)
+        # Twice the central differences' secant steps: with common random numbers the
+        # perturbed render's paths decorrelate from the base's in proportion to the step, so
+        # a one-sided difference over h is ~1.4x as noisy as a central one over +-h, and one
+        # over 2h about as noisy (512 spp, the benchmark's parameters: sigma_t column 1.04
+        # against 1.13 relative RMS error; phase columns 0.20-0.32 against 0.18-0.19). The
+        # one-sided differences' O(h) error (~15 % of the phase columns there) cancels in
+        # the mean of the forward and the backward one.
+        steps = {n: 2.0 * h for n, h in secant_steps(fm, p_at, names).items()}
+        return fm.jacobian(p_at, angles, list(names), spp=half, seed=base[1], steps=steps,
+                           base_profiles=base[0], backward=backward)
 
     def noise_sized(chi2: float, spp_step: int) -> bool:
         """A step no larger than its noise on the scale of `spp` (a settled step's chi^2 is
@@ -295,7 +334,7 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
         return dict(params), [], None
     max_steps = steps if max_steps is None else max(steps, max_steps)
     spp_now = spp
-    p, pa, pb, sc, (loss, se) = state(params, 0, spp_now)
+    p, pa, pb, sc, (loss, se), bases = state(params, 0, spp_now)
     loss_start = loss
     trace: list[dict[str, Any]] = []
     jac: dict[str, np.ndarray] = {}
@@ -310,7 +349,13 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
         settled = (settled_spp_factor > 1 and bool(jac) and bool(trace) and trace[-1]["accepted"]
                    and noise_sized(trace[-1]["step_chi2"], trace[-1]["spp"]))
         if k % jacobian_every == 0 and not settled:
-            if cross:
+            if cross and one_sided:
+                half = max(1, jacobian_spp // 2)
+                jac_a = one_sided_jacobian(p, bases[0] if bases else None, half, seed + 1000 + k, backward=False)
+                jac_b = one_sided_jacobian(p, bases[1] if bases else None, half, seed + 5000 + k, backward=True)
+                new_jacobians = 2
+                jac = {n: 0.5 * (jac_a[n] + jac_b[n]) for n in names}
+            elif cross:
                 half = max(1, jacobian_spp // 2)
                 jac_a = gn_jacobian(fm, problem, p, names, spp=half, seed=seed + 1000 + k)
                 jac_b = gn_jacobian(fm, problem, p, names, spp=half, seed=seed + 5000 + k)
@@ -322,6 +367,9 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
                 new_jacobians = 1
             if jacobians_out is not None:
                 jacobians_out.append([jac_a] if jac_b is None else [jac_a, jac_b])
+        # The one-sided Jacobians of the point whose renders A, B the gradient uses (a
+        # settled step keeps older ones, whose noise is independent of them).
+        paired = (jac_a, jac_b) if one_sided and cross and jac_b is not None and new_jacobians else None
         m = meas / sc
         m_max = float(np.max(np.where(valid, m, -np.inf)))
         mean = 0.5 * (pa + pb)
@@ -334,7 +382,15 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
             A = gn_columns(jac, names, tr, z, problem, mean, d, m, fixed_scale is None, cols_out, smooth_px, exact)
             mm = np.log(np.clip(m, -0.5 * d, None) + d)
             ra, rb = (np.where(valid, mm - np.log(np.clip(q, 0.0, None) + d), 0.0) for q in (pa, pb))
-            g += 2.0 * (A.T @ (0.5 * (ra + rb)).ravel()) / n_v / len(dls)
+            if paired:
+                # Each one-sided Jacobian's noise is correlated with its base render's, which
+                # is half of render A's (or B's); paired with the other render's residuals its
+                # noise averages out of the gradient instead of biasing it.
+                a_a, a_b = (gn_columns(j, names, tr, z, problem, mean, d, m, fixed_scale is None, cols_out,
+                                       smooth_px, exact) for j in paired)
+                g += (a_b.T @ ra.ravel() + a_a.T @ rb.ravel()) / n_v / len(dls)
+            else:
+                g += 2.0 * (A.T @ (0.5 * (ra + rb)).ravel()) / n_v / len(dls)
             u += 2.0 * A * (0.5 * (ra - rb)).ravel()[:, None] / n_v / len(dls)
         h_inv = gn_inverse(jac_a, names, tr, z, problem, mean, dls, m, fixed_scale is None,
                            profiled_columns=cols_out, smooth_px=smooth_px, exact=exact, jac_cross=jac_b)
@@ -358,7 +414,7 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
             # The new point's renders: at the settled spp when this step is noise-sized (the
             # next one will be a settled step), else at `spp`.
             spp_new = spp * settled_spp_factor if noise_sized(step_chi2, spp_now) else spp
-            p_new, pa_n, pb_n, sc_n, (loss_n, se_n) = state(p_try, k + 1, spp_new)
+            p_new, pa_n, pb_n, sc_n, (loss_n, se_n), bases_n = state(p_try, k + 1, spp_new)
             entry.update(loss_new=loss_n, halvings=halving)
             # Undone (halved, twice at most) only when the rise exceeds the polish's starting
             # loss plus 3 standard errors of the difference: the estimator scatters by about
@@ -372,7 +428,7 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
                              point={n: float(v) for n, v in p_new.items() if n in names or n in solved},
                              noise_sd={n: float(sd * abs(t.dx_dz(float(zz))))
                                        for n, t, sd, zz in zip(names, tr, sd_z, z_new)})
-                p, pa, pb, sc, loss, se, spp_now = p_new, pa_n, pb_n, sc_n, loss_n, se_n, spp_new
+                p, pa, pb, sc, loss, se, spp_now, bases = p_new, pa_n, pb_n, sc_n, loss_n, se_n, spp_new, bases_n
                 scale_guess = sc
                 break
         if not entry["accepted"]:

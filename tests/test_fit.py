@@ -683,20 +683,21 @@ def _polish_setup(problem):
     return fm, names, tr, scale
 
 
-@pytest.mark.parametrize("cross", [False, True])
-def test_gn_polish_walks_towards_the_truth_and_reports_its_steps(problem, cross):
+@pytest.mark.parametrize(("cross", "one_sided"), [(False, False), (True, False), (True, True)])
+def test_gn_polish_walks_towards_the_truth_and_reports_its_steps(problem, cross, one_sided):
     """From a start 15 % high in sigma_t, the polish's full Gauss-Newton steps at a fixed,
     moderate spp bring sigma_t within a third of that and lower the loss without render
-    noise, with one Jacobian's matrix or two half-spp Jacobians' cross product."""
+    noise, with one Jacobian's matrix, two half-spp Jacobians' cross product, or two
+    one-sided ones against half of each gradient render."""
     from estimate.polish import gn_polish
 
     fm, names, tr, scale = _polish_setup(problem)
     start = fm.default_parameters()
     start.update(TRUTH)
     start["sigma_t"] = 3.45
-    out, trace, renders = gn_polish(fm, problem, start, names, tr, steps=3, spp=256, jacobian_spp=512, seed=5,
+    out, trace, renders = gn_polish(fm, problem, start, names, tr, steps=3, spp=512, jacobian_spp=512, seed=5,
                                     delta_nodes=[0.02, 0.1], reference_delta_rel=0.045, fixed_scale=scale,
-                                    cross=cross)
+                                    cross=cross, one_sided=one_sided)
     assert renders is not None and renders[0].shape == problem.measured.shape
     assert trace and trace[0]["accepted"]
     assert abs(out["sigma_t"] - 3.0) < 0.15, out
@@ -762,6 +763,47 @@ def test_a_settled_polish_step_keeps_the_matrix_and_renders_more_samples(problem
                                            settled_spp_factor=factor, max_steps=3, **kw)
         assert [e["jacobians"] for e in trace] == [2, 2, 2] and len(calls) == 6
         assert [e["spp"] for e in trace] == [64, 64, 64]
+
+
+def test_one_sided_polish_jacobians_reuse_half_of_each_render(problem, monkeypatch):
+    """With one-sided Jacobians each step renders 5 perturbed profiles per Jacobian against
+    the first half-spp render of A (forward) and of B (backward), and no base of its own; at
+    a Jacobian spp that differs from the renders' halves it renders one base per Jacobian."""
+    fm, names, tr, scale = _polish_setup(problem)
+    import estimate.polish as polish_mod
+
+    calls: list[tuple[int, int]] = []
+    real_radiance = fm._render_radiance
+
+    def counted(values, angles, window, spp, seed, *a, **k):
+        calls.append((spp, seed))
+        return real_radiance(values, angles, window, spp, seed, *a, **k)
+
+    real_jac = fm.jacobian
+    directions: list[bool] = []
+
+    def jac_counted(*a, **kw):
+        directions.append(kw.get("backward", False))
+        assert kw["base_profiles"] is not None
+        return real_jac(*a, **kw)
+
+    monkeypatch.setattr(fm, "_render_radiance", counted)     # every render goes through it
+    monkeypatch.setattr(fm, "jacobian", jac_counted)
+    at = {**fm.default_parameters(), **TRUTH}
+    kw = {"steps": 2, "seed": 7, "delta_nodes": [0.045], "reference_delta_rel": 0.045, "fixed_scale": scale,
+          "cross": True, "one_sided": True, "chi2_continue": math.inf}
+    _, trace, _ = polish_mod.gn_polish(fm, problem, at, names, tr, spp=128, jacobian_spp=128, **kw)
+    assert [e["jacobians"] for e in trace] == [2, 2] and directions == [False, True, False, True]
+    # per point 4 half renders (64 spp); per step 2 x 5 perturbed renders at 64 spp
+    assert sorted({s for s, _ in calls}) == [64]
+    points = 1 + sum(e["halvings"] + 1 for e in trace)         # the start's and each tried step's
+    assert len(calls) == 4 * points + 2 * 2 * len(names)
+    calls.clear()
+    _, trace, _ = polish_mod.gn_polish(fm, problem, at, names, tr, spp=128, jacobian_spp=256, steps=1,
+                                       **{k: v for k, v in kw.items() if k != "steps"})
+    points = 1 + trace[0]["halvings"] + 1
+    assert len(calls) == 4 * points + 2 * (1 + len(names))   # a base of its own per Jacobian at 128 spp
+    assert sum(s == 128 for s, _ in calls) == 2 * (1 + len(names))
 
 
 def test_an_extended_polish_averages_as_many_last_points_as_planned():

@@ -161,6 +161,41 @@ def test_albedo_and_phase_gradients_match_finite_differences() -> None:
     assert grads["phase.b1"] == pytest.approx(fd("phase.b1", 0.3), rel=0.15, abs=0.02 * abs(grads["albedo"]))
 
 
+def test_one_sided_jacobians_average_to_the_central_one_and_turn_at_a_bound() -> None:
+    """With common random numbers, a forward and a backward difference against the same
+    seed's render average to exactly the central difference; at the upper bound of albedo
+    the forward difference steps down instead (and the backward one up at sigma_t's lower)."""
+    model = _model("exp3", max_depth=16)
+    p = {"sigma_t": 2.0, "albedo": 0.8, "phase.b1": 1.5, "phase.b2": 0.5, "phase.b3": 0.2}
+    angles = [40.0, 140.0]
+    names = ["sigma_t", "albedo", "phase.b1"]
+    steps = {"sigma_t": 0.1, "albedo": 0.05, "phase.b1": 0.3}
+    base = model.render_profiles(p, angles, spp=64, seed=5)
+    central = model.jacobian(p, angles, names, spp=64, seed=5, steps=steps)
+    fwd = model.jacobian(p, angles, names, spp=64, seed=5, steps=steps, base_profiles=base)
+    bwd = model.jacobian(p, angles, names, spp=64, seed=5, steps=steps, base_profiles=base, backward=True)
+    for n in names:
+        assert np.abs(fwd[n] - bwd[n]).max() > 1e-6 * np.abs(central[n]).max()   # not the same difference
+        np.testing.assert_allclose(0.5 * (fwd[n] + bwd[n]), central[n], rtol=1e-9,
+                                   atol=1e-12 * np.abs(central[n]).max())
+    # At albedo's upper bound (1) a forward step is impossible: it steps down, as the backward one.
+    top = {**p, "albedo": 1.0}
+    base_top = model.render_profiles(top, angles, spp=64, seed=5)
+    up = model.jacobian(top, angles, ["albedo"], spp=64, seed=5, steps=steps, base_profiles=base_top)
+    down = model.jacobian(top, angles, ["albedo"], spp=64, seed=5, steps=steps, base_profiles=base_top,
+                          backward=True)
+    np.testing.assert_allclose(up["albedo"], down["albedo"], rtol=1e-12)
+    assert np.all(np.isfinite(up["albedo"])) and up["albedo"].sum() > 0    # more albedo, more light
+    # Near sigma_t's lower bound (0, open) a backward step turns up instead.
+    thin = {**p, "sigma_t": 1e-9}
+    base_thin = model.render_profiles(thin, angles, spp=64, seed=5)
+    back = model.jacobian(thin, angles, ["sigma_t"], spp=64, seed=5, steps={"sigma_t": 0.1},
+                          base_profiles=base_thin, backward=True)
+    fwd_thin = model.jacobian(thin, angles, ["sigma_t"], spp=64, seed=5, steps={"sigma_t": 0.1},
+                              base_profiles=base_thin)
+    np.testing.assert_allclose(back["sigma_t"], fwd_thin["sigma_t"], rtol=1e-12)
+
+
 def test_sigma_t_gradient_matches_analytic_single_scattering(single_model: ForwardModel) -> None:
     angles = [40.0, 140.0]
     cot = np.random.default_rng(1).random((2, N_PIX)) + 0.5
