@@ -44,8 +44,9 @@ SCALE = "calibrated"  # intensity scale of the fits (--scale); as rig estimate's
 #: the delta-averaged loss and kept-path gradients since session 15; iterations to 256 spp and
 #: a 1024-spp Gauss-Newton polish since session 16; its cross-product matrix and averaged
 #: points since session 17; the screened coarse grid and the polish's noise test since 18; the
-#: uncertainties' cross-product curvature since 20).
-RECIPE = "jointgrid-smoothgn-davg-polish-cross-chi2-crossunc"
+#: uncertainties' cross-product curvature since 20; the polish's one-sided Jacobians and
+#: iterations to 128 spp since 25).
+RECIPE = "jointgrid-smoothgn-davg-polish-cross-chi2-crossunc-onesided128"
 
 WORLD_TEMPLATE = """\
 # Paper section 4 simulation case: poly-disperse Mie, mean diameter {d} um, sigma_t {s} /mm.

@@ -49,8 +49,8 @@ result and the loop; the stages' parts live beside it: `estimate.start` (1),
    delta is tracked; when over the last 2 x `window` iterations its fitted slope is not
    significantly negative (above -2 standard errors from the scatter of the losses about
    the line, i.e. the Monte Carlo noise of the loss), the fit has flattened at this spp: spp
-   doubles and the step shrinks (x0.85, Adam); when it flattens at `spp_max` (256) the
-   iterations stop ("converged"). Their result is the average of the last `window` iterates
+   doubles and the step shrinks (x0.85, Adam); when it flattens at `spp_max` (128 since
+   session 25; 256 before) the iterations stop ("converged"). Their result is the average of the last `window` iterates
    (2 x `window` for Gauss-Newton), which averages the Monte Carlo noise of the steps; when
    they still drift (`iterate_drift`), the end of their linear trend instead, since their mean
    lags the last iterate by half the window's drift (session 16: 1.3-2.9 % of sigma_t on
@@ -60,7 +60,11 @@ result and the loop; the stages' parts live beside it: `estimate.start` (1),
    two 512-spp Jacobians, `polish_cross`; since session 25 forward and backward differences
    against half of each render, `polish_one_sided`), which walk down the valley several % of sigma_t
    per step where the iterations crawled (benchmark, session 16: from 2.38 to 1.98 in four
-   steps; truth 2.0). It replaced the iterations' 512-spp stage in the time budget. Near
+   steps; truth 2.0). It replaced the iterations' 512-spp stage in the time budget, and
+   since session 25 their 256-spp stage too: a one-sided polish step costs ~14 s on 2 cores,
+   about ten 256-spp iterations, and walks further than those (benchmark seeds 0-3: 110-155 s
+   a fit, sigma_t +2.1, -0.8, -0.2, -2.6 %; with the 256-spp stage and central Jacobians
+   169-293 s, +0.3, +0.8, -1.1, +2.3 %). Near
    the optimum its steps scatter by 3-5 % of sigma_t (the gradient's noise at 2 x 1024 spp
    along the valley), so the result is the mean of the points after steps 2-4
    (`polish_average_from`, `polish_average`). Each step's chi^2 against its own render
@@ -170,7 +174,7 @@ class FitSettings:
 
     max_iterations: int = 80
     spp_start: int = 128
-    spp_max: int = 256               # the iterations' largest spp (the polish and final evaluation: final_spp)
+    spp_max: int = 128               # the iterations' largest spp (the polish and final evaluation: final_spp)
     final_spp: int = 1024
     start_spp: int = 32               # coarse joint grid (estimate.start)
     window: int = 8

@@ -35,7 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--extensions", default="", help="forward-model extensions to include, comma separated")
     p.add_argument("--allow-partial", action="store_true", help="fit the stacks present when some are missing")
     p.add_argument("--max-iterations", type=int, default=None, help="optimiser iterations at most (80: 10 Adam, then Gauss-Newton)")
-    p.add_argument("--spp-max", type=int, default=None, help="largest samples per pixel of the optimiser's iterations (256); with it set, the "
+    p.add_argument("--spp-max", type=int, default=None, help="largest samples per pixel of the optimiser's iterations (128); with it set, the "
                    "Gauss-Newton polish and the final evaluation use twice that (else 1024) and the uncertainties at most that")
     p.add_argument("--polish-steps", type=int, default=None,
                    help="full Gauss-Newton steps at the final spp after the iterations (4, up to twice that while the "
