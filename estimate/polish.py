@@ -349,16 +349,14 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
         settled = (settled_spp_factor > 1 and bool(jac) and bool(trace) and trace[-1]["accepted"]
                    and noise_sized(trace[-1]["step_chi2"], trace[-1]["spp"]))
         if k % jacobian_every == 0 and not settled:
-            if cross and one_sided:
+            if cross:
                 half = max(1, jacobian_spp // 2)
-                jac_a = one_sided_jacobian(p, bases[0] if bases else None, half, seed + 1000 + k, backward=False)
-                jac_b = one_sided_jacobian(p, bases[1] if bases else None, half, seed + 5000 + k, backward=True)
-                new_jacobians = 2
-                jac = {n: 0.5 * (jac_a[n] + jac_b[n]) for n in names}
-            elif cross:
-                half = max(1, jacobian_spp // 2)
-                jac_a = gn_jacobian(fm, problem, p, names, spp=half, seed=seed + 1000 + k)
-                jac_b = gn_jacobian(fm, problem, p, names, spp=half, seed=seed + 5000 + k)
+                if one_sided:
+                    jac_a = one_sided_jacobian(p, bases[0] if bases else None, half, seed + 1000 + k, backward=False)
+                    jac_b = one_sided_jacobian(p, bases[1] if bases else None, half, seed + 5000 + k, backward=True)
+                else:
+                    jac_a = gn_jacobian(fm, problem, p, names, spp=half, seed=seed + 1000 + k)
+                    jac_b = gn_jacobian(fm, problem, p, names, spp=half, seed=seed + 5000 + k)
                 new_jacobians = 2
                 jac = {n: 0.5 * (jac_a[n] + jac_b[n]) for n in names}
             else:
