@@ -40,7 +40,7 @@ def main() -> int:
                     help="intensity scale: from the calibration and the lens (default, as rig estimate) or fitted")
     ap.add_argument("--keep-session", metavar="DIR",
                     help="write the synthetic session to DIR and keep it, or reuse the one already there "
-                         "(its truth-spp and seed are recorded beside it); saves ~2 min a run")
+                         "(how it was made is recorded beside it); saves ~2 min a run")
     ap.add_argument("--out", metavar="FILE", help="write the results here instead of "
                     "benchmarks/results/bench_estimate.json (for trials of other settings)")
     ap.add_argument("--setting", action="append", default=[], metavar="KEY=VALUE",
@@ -56,8 +56,21 @@ def main() -> int:
             overrides[key] = json.loads(value)
         except json.JSONDecodeError:
             overrides[key] = value
+    from estimate.errors import ModelParameterError
     from estimate.fit import FitSettings, fit_channel, loss_at
     from estimate.problem import load_problem
+
+    # Checked before the session is made or loaded: a typo costs a line, not minutes.
+    unknown = set(overrides) - set(FitSettings().to_dict())
+    if unknown:
+        print(f"--setting: no fit setting named {', '.join(sorted(unknown))}", file=sys.stderr)
+        return 2
+    try:
+        settings = FitSettings.from_dict({**FitSettings(seed=args.seed, scale=args.scale).to_dict(), **overrides},
+                                         where="--setting")
+    except ModelParameterError as e:
+        print(e, file=sys.stderr)
+        return 2
 
     tmp = None
     truth = None
@@ -85,7 +98,8 @@ def main() -> int:
             session = tmp / "s"
         if not session.exists():
             t = time.monotonic()
-            make_session(session, {args.channel: TRUTH}, angles=ANGLES, spp=args.truth_spp, width=320, scale=2e5)
+            make_session(session, {args.channel: TRUTH}, angles=ANGLES, spp=args.truth_spp, width=recipe["width"],
+                         scale=recipe["scale"])
             print(f"synthetic session written in {time.monotonic() - t:.1f} s")
             if args.keep_session:
                 stamp.write_text(json.dumps(recipe))
@@ -96,12 +110,6 @@ def main() -> int:
         c0 = time.process_time()
         pb = load_problem(session, args.channel)
         t_load = time.monotonic() - t0
-        settings = FitSettings.from_dict({**FitSettings(seed=args.seed, scale=args.scale).to_dict(), **overrides},
-                                         where="--setting")
-        unknown = set(overrides) - set(settings.to_dict())
-        if unknown:
-            print(f"--setting: no fit setting named {', '.join(sorted(unknown))}", file=sys.stderr)
-            return 2
         r = fit_channel(pb, args.model, settings=settings)
         wall = time.monotonic() - t0
         cpu = time.process_time() - c0  # all threads; / 2 ~ the wall time on 2 free cores
