@@ -37,8 +37,11 @@ from estimate.forward import ForwardModel
 from estimate.geometry import RigGeometry
 from estimate.refit import (
     RefitResult,
+    best_scale,
     cross_covariance,
     evaluate,
+    independent_residuals,
+    recording_variance,
     refit,
     render_stack,
     smoothed_variance,
@@ -676,3 +679,60 @@ def test_decorrelated_step_removes_the_fixed_seed_refits_render_noise_bias():
     # without the option the result is the LM's alone
     r = refit(toy, rec, truth, ["toy.w", "toy.c"], spp=64, seed=100, iterations=20, model_variance=(0.3 * mean) ** 2)
     assert r.decorrelated is None
+
+
+class _Fireflies:
+    """A smooth profile rendered with path-tracer-like noise: each pixel the mean of
+    spp / 16 lognormal(0, 1.5) path weights (most a little low, a few far high), unbiased."""
+
+    x = np.linspace(-4.0, 4.0, 256)
+    parameter_names: ClassVar[list[str]] = ["toy.w"]
+    extensions: ClassVar[list[str]] = []
+
+    def validate(self, p):
+        return {"toy.w": float(p.get("toy.w", 1.0))}
+
+    def mean(self, th):
+        return np.exp(-np.abs(self.x) / th["toy.w"]) + 0.02
+
+    def render_profiles(self, th, angles, *, spp, seed):
+        k = max(1, spp // 16)
+        w = np.random.default_rng(seed).lognormal(0.0, 1.5, size=(len(angles), self.x.size, k)).mean(axis=-1)
+        return self.mean(th) * w / math.exp(1.5 ** 2 / 2)
+
+
+def _firefly_recording(seed: int) -> tuple[_Fireflies, Recording]:
+    """A recording of `_Fireflies` at scale 1e4 whose own noise (1 % shot-like) is far below
+    the renders' (~30 % a pixel), as on a real rig's tails."""
+    toy = _Fireflies()
+    angles = np.arange(10.0, 90.0, 10.0)
+    truth = 1e4 * np.tile(toy.mean({"toy.w": 1.0}), (len(angles), 1))
+    var = 0.01 * truth + 1.0
+    meas = truth + np.random.default_rng(100 + seed).normal(size=truth.shape) * np.sqrt(var)
+    return toy, Recording(angles, toy.x, meas, var, GEOMETRY, BEAM)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_residuals_weighed_by_independent_renders_have_no_render_noise_bias(seed):
+    """At the true parameters and scale, residuals divided by their own renders' variance
+    lean positive (a firefly shrinks its own residual) and the smooth test calls the
+    correct model wrong; weighed by other renders they are centred and pass."""
+    toy, rec = _firefly_recording(seed)
+    th = {"toy.w": 1.0}
+    ev = evaluate(toy, th, rec, 1, spp=256, seed=7 + 1000 * seed, repeats=6, scale=1e4)
+    r_ind, sigma = independent_residuals(rec, ev, toy, spp=256, repeats=6, seed=90_000 + seed)
+    assert np.mean(ev.residuals.r_adjusted) > 0.1
+    assert abs(float(np.mean(r_ind))) < 0.05
+    assert not smooth_structure(r_ind)[2]
+    assert sigma.shape == rec.measured.shape and np.all(sigma > 0)
+
+
+def test_scale_weighs_the_renders_own_noise():
+    """Weights 1 / var_data trust a noisy render's pixels as exact and pull the scale low
+    (fireflies in the regressor); with the render's variance in the weights it is close."""
+    toy, rec = _firefly_recording(0)
+    renders = render_stack(toy, {"toy.w": 1.0}, rec, spp=256, seed=7, repeats=6)
+    mean, mvar = renders.mean(axis=0), smoothed_variance(renders) / 6
+    var = recording_variance(rec)
+    assert best_scale(rec.measured, var, mean) / 1e4 < 0.95
+    assert best_scale(rec.measured, var, mean, mvar) / 1e4 == pytest.approx(1.0, abs=0.04)
