@@ -10,7 +10,10 @@
    They also complete the whole-fit test: a mismatch is significant when the smooth test
    of the residual beyond the fitted parameters (less its projection on their derivative
    columns: what re-tuning them cannot remove) or one candidate's score test (at ALPHA /
-   candidates) rejects.
+   candidates) rejects. Both see the residual weighed by the variance of renders
+   independent of the mean it tests (`estimate.refit.independent_residuals`), and the
+   scale's direction is an independent render too: a render's fireflies otherwise
+   correlate with their own weights and make a correct model look wrong.
 3. Confirm: the leading candidates are refitted with their extension switched on, on the
    training angles (every `HOLDOUT_EVERY`-th light angle is held out); a candidate is
    confirmed when the BIC improves by more than `BIC_STRONG`, its magnitude is more than

@@ -161,9 +161,10 @@ def independent_residuals(problem: Any, ev: Evaluation, model: Any, *, spp: int,
     small variance and its positive residual at full weight. The normalised residuals of a
     correct model then lean positive wherever the render noise dominates (the tails), a
     smooth mismatch to the smooth-structure test, and one along the lens blur's and the
-    halo's signatures to the score tests. On the clean demo session (1024 spp frozen into
-    the recording, 6 x 256 spp in the model): mean residual +0.56, 16-px variance ratio
-    2.8 (p 5e-9); weighed by `repeats` other renders: +0.15, 1.3 (p 0.35).
+    halo's signatures to the score tests. On the clean demo session (channel g, 1024 spp
+    frozen into the recording, 6 x 256 spp in the model) the screening so weighed found
+    the lens blur's score 43 on 2 dof and the smooth test beyond the fit p = 6e-4; weighed
+    by 6 other renders, the largest score is 3.5 on 1 dof and p = 0.74.
 
     `model` and `ev` must be the same model at the same parameters, `ev` the mean of
     `repeats` renders at `spp` (as `evaluate` makes it). Renders `repeats` more at seeds
