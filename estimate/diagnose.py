@@ -851,8 +851,9 @@ def _screen(problem: Any, current: Evaluation, exts: Sequence[str], make_model: 
     m0 = make_model(exts)
     free = _free_names(m0, exts)
     # Pixels weighed by 1 / (f^2 var): the excess white noise does not inflate the scores.
-    # The residual and the weights are those of `independent_residuals` (the evaluation's
-    # own were weighed by its renders' variance, which favours the recording's side).
+    # The residual and the weights are those of `independent_residuals`: the evaluation's
+    # own residual is divided by the variance of the very renders it subtracts, which
+    # biases it wherever the render noise dominates.
     r_adj, sigma = independent_residuals(problem, current, m0, spp=spp, repeats=repeats, seed=seed + INDEPENDENT_SEED)
     # Image-space columns are built on an independent render: built on the evaluation's
     # mean render, a blur's column (blur(model) - model) would carry minus that render's
