@@ -271,11 +271,21 @@ def _plain(x: Any) -> Any:
     return x
 
 
+#: Effect parameters that a refit starts as `FREE_PARAMETERS` says but holds there. The
+#: full-well radiance W: at or above the brightest pixel the compression's shape
+#: c (I / W)^2 is the same for every W (c scales with W^2), so a free W adds nothing
+#: there, and below it W only clips: with W -> 0 the "compression" scales every pixel but
+#: the faintest by 1 - c, a second scale. A refit of the synthetic refractive_boundary-2
+#: session (v9, round 2) took that (c 0.31 at W ~ 0) and named sensor_nonlinearity beside
+#: the boundary.
+HELD_PARAMETERS: frozenset[str] = frozenset({"sensor_nonlinearity.full_well_radiance"})
+
+
 def _free_names(model: Any, extensions: Sequence[str]) -> list[str]:
     base = [n for n in model.parameter_names if n in ("sigma_t", "albedo") or n.startswith("phase.")]
     out = list(base)
     for e in extensions:
-        out += list(FREE_PARAMETERS[e])
+        out += [k for k in FREE_PARAMETERS[e] if k not in HELD_PARAMETERS]
     return out
 
 
@@ -629,7 +639,7 @@ def _yardstick(problem: Any, before: Evaluation) -> np.ndarray:
 
 def _bic_penalty(effect: str, n_obs: int) -> float:
     """BIC's price of adding `effect`'s k free parameters on n observations: k ln n."""
-    return len(FREE_PARAMETERS[effect]) * math.log(max(2, n_obs))
+    return len([k for k in FREE_PARAMETERS[effect] if k not in HELD_PARAMETERS]) * math.log(max(2, n_obs))
 
 
 def _bic_bar(effect: str, n_obs: int) -> float:
@@ -795,7 +805,8 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
     start, start_info = _final_fit_start(problem, m, lm, settings, cal)
     say(f"  final fit with {', '.join(d.confirmed)} by the estimator (log loss, Adam + Gauss-Newton), "
         f"started at the {start_info['from']} ...")
-    fr = fit_channel(problem, m.phase, extensions=exts, start=start, settings=settings, forward=m,
+    held = {k: float(start[k]) for k in HELD_PARAMETERS if k in m.parameter_names and k in start}
+    fr = fit_channel(problem, m.phase, extensions=exts, start=start, fixed=held, settings=settings, forward=m,
                      scale_calibration=cal, progress=progress, on_stage=on_stage)
     stack = render_stack(m, fr.parameters, problem, spp=spp, seed=seed, repeats=repeats)
     ev = evaluate(m, fr.parameters, problem, len(fr.free) + 1, spp=spp, seed=seed, repeats=repeats, renders=stack)

@@ -24,6 +24,8 @@ import yaml
 from estimate.beam import BeamProfile
 from estimate.diagnose import (
     BaseFit,
+    _bic_penalty,
+    _free_names,
     _magnitude_lr_z,
     _run_fit_settings,
     diagnose_channel,
@@ -736,3 +738,14 @@ def test_scale_weighs_the_renders_own_noise():
     var = recording_variance(rec)
     assert best_scale(rec.measured, var, mean) / 1e4 < 0.95
     assert best_scale(rec.measured, var, mean, mvar) / 1e4 == pytest.approx(1.0, abs=0.04)
+
+
+def test_refits_hold_the_full_well_radiance_and_price_the_compression_alone():
+    """Above the brightest pixel W only rescales the compression; below it, it clips every
+    pixel into a second scale. Refits free the compression alone and BIC prices one parameter."""
+    m = make_model(["sensor_nonlinearity"])
+    free = _free_names(m, ["sensor_nonlinearity"])
+    assert "sensor_nonlinearity.compression" in free
+    assert "sensor_nonlinearity.full_well_radiance" not in free
+    assert _bic_penalty("sensor_nonlinearity", 1000) == pytest.approx(math.log(1000))
+    assert _bic_penalty("lens_blur", 1000) == pytest.approx(2 * math.log(1000))
