@@ -191,7 +191,7 @@ def detectability(case: dict[str, Any], excess: float, base_params: dict[str, fl
     data's real noise (variance channel x (1 + excess)), scale refitted, renders averaged.
     Confirmation needs a BIC gain above k ln n + BIC_STRONG, so a concealed effect whose
     gain here is below that threshold cannot be named by any refit-based test."""
-    from estimate.diagnose import BIC_STRONG, FREE_PARAMETERS, evaluate
+    from estimate.diagnose import evaluate
 
     rec, make_model, params = recording or synthetic_recording(case, excess)
     noise = rec.variance * (1.0 + excess)
@@ -199,10 +199,18 @@ def detectability(case: dict[str, Any], excess: float, base_params: dict[str, fl
     exts = sorted(case["effects"])
     true = evaluate(make_model(exts), params, rec, 0, spp=spp, repeats=repeats, noise_variance=noise)
     n = int(np.sum(np.isfinite(base.residuals.r)))
-    k = sum(len(FREE_PARAMETERS[e]) for e in exts)
     return {"chi2_base_fit": base.residuals.chi2_adjusted, "chi2_truth": true.residuals.chi2_adjusted,
             "gain": base.residuals.chi2_adjusted - true.residuals.chi2_adjusted,
-            "threshold": (k * math.log(max(n, 2)) + BIC_STRONG) if k else float("nan"), "pixels": n}
+            "threshold": bic_threshold(exts, n), "pixels": n}
+
+
+def bic_threshold(effects: list[str], pixels: int) -> float:
+    """The chi^2 drop a refit with `effects` must reach (k ln n + BIC_STRONG, k the free
+    parameters the refits fit: held ones such as the full-well radiance do not count)."""
+    from estimate.diagnose import BIC_STRONG, FREE_PARAMETERS, HELD_PARAMETERS
+
+    k = sum(len([q for q in FREE_PARAMETERS[e] if q not in HELD_PARAMETERS]) for e in effects)
+    return (k * math.log(max(pixels, 2)) + BIC_STRONG) if k else float("nan")
 
 
 # ---------------------------------------------------------------------------- bench
@@ -354,7 +362,13 @@ def score(case: dict[str, Any], res: dict[str, Any], source: str = "synthetic") 
             "reduced_chi2_before": res["reduced_chi2_before"], "reduced_chi2_after": res["reduced_chi2_after"],
             "reduced_chi2_adjusted_before": adj_b, "reduced_chi2_adjusted_after": adj_a, "noise_floor": floor,
             "truth_reduced_chi2_adjusted": res.get("truth_reduced_chi2_adjusted"),
-            "material_error": err, "detectability": res.get("detectability"),
+            "material_error": err,
+            # the threshold from the current parameter count (cases cached before the
+            # full-well radiance was held counted it)
+            "detectability": ({**res["detectability"],
+                               "threshold": bic_threshold(sorted(case["effects"]), int(res["detectability"]["pixels"]))}
+                              if res.get("detectability") and "pixels" in res["detectability"]
+                              else res.get("detectability")),
             "magnitude_z": magnitude_z(case, res) if source == "synthetic" else {},
             "material_z": material_z(res),
             "material_z_fixed_seed": material_z(res, "material_fixed_seed_after"),
