@@ -33,8 +33,8 @@ from estimate.residuals import (
 from estimate.uncertainties import UNCERTAINTY_CROSS_FLOOR
 
 __all__ = ["DEFAULT_REPEATS", "DEFAULT_SEED", "MAX_GLARE_FRACTION", "Evaluation", "RefitResult", "best_scale",
-           "cross_covariance", "decorrelated_step", "evaluate", "independent_residuals", "parameter_bounds", "recording_variance", "refit",
-           "render_stack", "smoothed_variance"]
+           "cross_covariance", "decorrelated_step", "evaluate", "independent_residuals", "parameter_bounds",
+           "recording_variance", "refit", "render_stack", "smoothed_variance"]
 
 
 #: The refit's second Jacobian, for its uncertainties' cross-product curvature, is rendered
