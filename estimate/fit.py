@@ -67,11 +67,15 @@ result and the loop; the stages' parts live beside it: `estimate.start` (1),
    169-293 s, +0.3, +0.8, -1.1, +2.3 %). Near
    the optimum its steps scatter by 3-5 % of sigma_t (the gradient's noise at 2 x 1024 spp
    along the valley), so the result is the mean of the points after steps 2-4
-   (`polish_average_from`, `polish_average`). Each step's chi^2 against its own render
-   noise (`step_chi2`) tells a move from that scatter; while any of the last three is a
-   move (above the 0.1 % quantile, `polish_continue_p`) the polish goes on, up to
-   `polish_max_steps` (2 x `polish_steps`), and averages its last three points, each
-   weighed by its own noise. Optionally (`polish_settled_spp` > 1, off by default; session
+   (`polish_average_from`, `polish_average`). Each step's chi^2 against its render noise
+   and that of the point it starts from (`step_chi2`) tells a move from that scatter; while
+   any of the last three is a move (above the 0.1 % quantile, `polish_continue_p`) the
+   polish goes on, up to `polish_max_steps` (2 x `polish_steps`), and averages its last
+   three points, each weighed by its own noise. Since session 27 a step whose loss rises
+   beyond its noise is retried with more Levenberg-Marquardt damping (`polish_damped`), and
+   the per-parameter caps are 15 of Adam's last learning rates (`polish_cap_lr`; 5 before):
+   benchmark seeds 0-3 82-143 s, sigma_t +1.8, -2.1, -0.3, -2.2 % (the session-25 recipe
+   on the same session: 146 s, +2.4 % at seed 0; session 25: 110-155 s). Optionally (`polish_settled_spp` > 1, off by default; session
    19) a step after a noise-sized one keeps the matrix and renders its gradient at that
    many times the spp. An optional
    Levenberg-Marquardt polish (`lm_iterations`, off by default) on the log residuals at one
@@ -201,6 +205,9 @@ class FitSettings:
     polish_max_steps: int | None = None   # polish steps in all while its last points still walk (None: 2 x polish_steps)
     polish_continue_p: float = 0.001  # a step is still a move when its noise chi^2 exceeds this upper quantile
     polish_settled_spp: int = 1      # > 1: after a noise-sized polish step, renders at this x final_spp, last Jacobians kept
+    polish_jacobian_spp: int | None = None  # spp of the polish's Jacobians (the two halves' sum; None: final_spp)
+    polish_damped: bool = True       # Levenberg-Marquardt damping of polish steps whose loss rises (see gn_polish)
+    polish_cap_lr: float = 15.0      # the polish's per-parameter step cap (z), in Adam's last learning rates
     uncertainty_spp: int = 512       # the uncertainties' Jacobian at the final point (two without a polish)
     decorrelated: bool = True
     #: solve additive parameters (stray-light offset and slope) exactly at every iteration
@@ -239,6 +246,9 @@ class FitSettings:
             elif f.name == "polish_max_steps":
                 if v is not None and not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
                     raise bad("a whole number >= 0 or null")
+            elif f.name == "polish_jacobian_spp":
+                if v is not None and not (isinstance(v, int) and not isinstance(v, bool) and v >= 2):
+                    raise bad("a whole number >= 2 or null (null: final_spp)")
             elif f.name == "delta_range":
                 if not (isinstance(v, list | tuple) and len(v) == 2 and all(_finite_number(x) and x > 0 for x in v)
                         and v[0] <= v[1]):
@@ -640,9 +650,10 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     polish: list[dict[str, Any]] = []
     polish_jacobians: list[list[dict[str, np.ndarray]]] = []
     if st.polish_steps > 0 and stepped:
-        caps = 5.0 * adam.lr / st.lr_scale     # the iterations' step cap
+        caps = st.polish_cap_lr * adam.lr / st.lr_scale     # 3x the iterations' step cap
         final, polish, _ = gn_polish(fm, problem, final, stepped, tr, steps=st.polish_steps, spp=st.final_spp,
-                                     jacobian_spp=st.final_spp, seed=st.seed * 100_003 + 30_000,
+                                     jacobian_spp=st.polish_jacobian_spp or st.final_spp,
+                                     seed=st.seed * 100_003 + 30_000,
                                      delta_nodes=gn_nodes or [d_ref], reference_delta_rel=d_ref,
                                      fixed_scale=fixed_scale, solved=solved, solved_columns=solved_cols,
                                      smooth_px=st.gn_smooth_px, exact=exact_columns, caps=caps, scale_guess=scale,
@@ -652,7 +663,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
                                      chi2_continue=float(chi2_dist.isf(st.polish_continue_p, len(stepped))),
                                      keep_last=averaged_point_count(st.polish_steps, st.polish_average_from),
                                      settled_spp_factor=st.polish_settled_spp, one_sided=st.polish_one_sided,
-                                     jacobians_out=polish_jacobians)
+                                     jacobians_out=polish_jacobians, damped=st.polish_damped)
     # After the polish, the drift is its last step: what the fit still moved by at the end
     # (and `drifting` those parameters whose last step exceeds their uncertainty); when its
     # later points are averaged, their mean step and the mean's standard error instead.

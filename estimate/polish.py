@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Collection, Mapping, Sequence
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -26,8 +27,20 @@ from estimate.transforms import Transform
 
 __all__ = ["averaged_point_count", "first_averaged_point", "gn_polish", "lm_polish", "polish_average"]
 
+#: the Gauss-Newton matrix's own damping (`gn_inverse`'s default), the polish's least
+GN_DAMPING = 1e-3
+#: `damped` polish: the damping's factor after a step whose loss rose (its inverse after one
+#: that did not), and the tries per step
+DAMPING_UP = 10.0
+DAMPED_TRIES = 4
+
 #: a render kept as the base of one-sided differences: (profiles, seed, spp)
 Base = tuple[np.ndarray, int, int]
+
+
+def _chi2(dz: np.ndarray, cov: np.ndarray) -> float:
+    """dz^T cov^+ dz (pseudo-inverse: the covariance may be singular along solved directions)."""
+    return float(dz @ np.linalg.pinv(cov, rcond=1e-10, hermitian=True) @ dz)
 
 
 def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], names: Sequence[str],
@@ -187,7 +200,7 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
               scale_guess: float | None = None, jacobian_every: int = 1, gross: float = 1.0,
               cross: bool = False, max_steps: int | None = None, chi2_continue: float = math.inf,
               keep_last: int = 3, settled_spp_factor: int = 1, one_sided: bool = False,
-              jacobians_out: list[list[dict[str, np.ndarray]]] | None = None
+              jacobians_out: list[list[dict[str, np.ndarray]]] | None = None, damped: bool = False
               ) -> tuple[dict[str, float], list[dict[str, Any]], tuple[np.ndarray, np.ndarray] | None]:
     """Full Gauss-Newton steps on the delta-averaged log loss at high samples per pixel, from
     the end of the stochastic iterations.
@@ -242,6 +255,30 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
     steps (2.7 % high; four steps' mean 3.0 % low): on its flat valley the steps scatter more
     than this noise model says.
 
+    Since session 27 a step after the first is tested against its own noise plus that of the
+    point it starts from (`c_point`: the covariance of the step that brought the polish there,
+    shrunk with it): that point is the optimum plus that step's noise, and a full step from it
+    undoes that noise too, so at the noise floor a step scatters by both. With its own noise
+    alone, noise-sized steps read chi^2 11-51 on the benchmark (5 parameters) and the polish
+    ran to 8 steps whenever one of three in a row passed 20.5; with the start point's noise
+    they read 3-23 (session 27, seeds 0-3). The trace keeps both (`step_chi2`, `step_chi2_own`).
+    Still about twice the parameter count: the matrix's own noise (a valley eigenvalue off by
+    its noise scales the correction of the start point's noise) stays out of the model.
+
+    Damped steps (`damped`, the fit's default since session 27): a step whose loss without
+    render noise rises by more than 2 standard errors of the difference is retried from the
+    same matrix and gradient with 10x the Levenberg-Marquardt damping (`DAMPING_UP`, up to
+    `DAMPED_TRIES` tries), which turns it towards a short, scaled gradient step; after a step
+    that did not rise the damping falls back by 10x, to the matrix's own (`GN_DAMPING`) at
+    least. Undamped, the benchmark's seed 0 (iterations ending at sigma_t 2.6, b3 3.5 for
+    truth 2.0 / 0.5) bounced across the sigma_t / phase valley: losses 4.3e-4 -> 7.5e-4 ->
+    1.5e-3 -> 5.2e-4 -> 9.7e-4 -> 1.1e-3 -> 1.8e-4 in its first six steps, all kept by the
+    lenient test, and still walking after eight (step chi^2 146). Damped, with the fit's
+    per-parameter caps widened from 5 to 15 of Adam's last learning rates (`polish_cap_lr`;
+    the phase coefficients' 0.75 cap had let b3 fall by at most 0.75 a step), it reached the
+    noise floor in three steps (sigma_t 2.54 -> 2.26 -> 2.08, b3 2.0 -> 1.2 -> 0.3). A retry
+    costs the new point's renders only (2 of a step's 7 renders' worth).
+
     Settled steps (`settled_spp_factor` > 1): after a step whose chi^2 is at most
     `chi2_continue` (the point moved by no more than its noise), the new point's renders are
     taken at `settled_spp_factor` x `spp`, and the next step keeps the last Jacobians instead
@@ -269,10 +306,16 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
     forward and a backward difference is the central one, and the cross product of the two
     keeps the central difference's O(h^2) error. A one-sided Jacobian's noise is correlated
     with its base's (with common random numbers the perturbed render repeats the base's
-    paths), so the gradient pairs each with the other render's residuals.
+    paths), so the gradient pairs each with the other render's residuals. At a `jacobian_spp`
+    below `spp` each render is the mean of as many at the Jacobians' half spp as it takes, the
+    first its Jacobian's base (`FitSettings.polish_jacobian_spp`; off by default: at 512 the
+    benchmark's seed 0 walked the valley at half the pace, 2.50 -> 2.44 -> 2.36 -> 2.20, and
+    ended 6.3 % high, session 27).
 
-    Returns the parameters, per step {loss, loss_new, accepted, halvings, step (x units),
-    step_chi2 (of the full step, before caps and halvings), jacobians (new Jacobians
+    Returns the parameters, per step {loss, loss_new, accepted, halvings (retries: halvings,
+    or damping increases), damping (of the step tried last), step (x units), step_chi2 (of
+    the full step, before caps, halvings and damping; step_chi2_own against its own noise
+    alone), jacobians (new Jacobians
     rendered for it), spp (of its gradient's renders), and when accepted, point: the stepped
     and solved parameters after it, and noise_sd}, and the last pair of renders (A, B; with
     the solved additive terms) at the returned parameters. `jacobians_out` receives the
@@ -291,11 +334,16 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
         p = dict(p_in)
         bases: list[Base] = []
         if one_sided and spp_k >= 2:
-            # Each render the mean of two at half the spp (the same noise as one at spp_k).
-            half_k = spp_k // 2
-            halves = [fm.render_profiles(p, angles, spp=half_k, seed=seed + 2_000 + 4 * k + i) for i in range(4)]
-            pa, pb = 0.5 * (halves[0] + halves[1]), 0.5 * (halves[2] + halves[3])
-            bases = [(halves[0], seed + 2_000 + 4 * k, half_k), (halves[2], seed + 2_000 + 4 * k + 2, half_k)]
+            # Each render the mean of `n_part` at the Jacobians' spp (the same noise as one at
+            # spp_k), so that its first part can be their base: two at half the spp when the
+            # Jacobians' halves are at spp / 2 (the default), more when they are cheaper.
+            jac_half = max(1, jacobian_spp // 2)
+            n_part = spp_k // jac_half if jac_half < spp_k and spp_k % jac_half == 0 else 2
+            part_k = spp_k // n_part
+            seeds = [seed + 2_000 + 4 * k + i if i < 4 else seed + 200_000 + 64 * k + i for i in range(2 * n_part)]
+            parts = [fm.render_profiles(p, angles, spp=part_k, seed=s_) for s_ in seeds]
+            pa, pb = np.mean(parts[:n_part], axis=0), np.mean(parts[n_part:], axis=0)
+            bases = [(parts[0], seeds[0], part_k), (parts[n_part], seeds[n_part], part_k)]
         else:
             pa = fm.render_profiles(p, angles, spp=spp_k, seed=seed + 2 * k)
             pb = fm.render_profiles(p, angles, spp=spp_k, seed=seed + 2 * k + 1)
@@ -339,6 +387,8 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
     trace: list[dict[str, Any]] = []
     jac: dict[str, np.ndarray] = {}
     jac_b: dict[str, np.ndarray] | None = None
+    lam = GN_DAMPING
+    c_point: np.ndarray | None = None
     for k in range(max_steps):
         if k >= steps:
             recent = [e for e in trace if e["accepted"]][-max(1, keep_last):]
@@ -390,45 +440,74 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
             else:
                 g += 2.0 * (A.T @ (0.5 * (ra + rb)).ravel()) / n_v / len(dls)
             u += 2.0 * A * (0.5 * (ra - rb)).ravel()[:, None] / n_v / len(dls)
-        h_inv = gn_inverse(jac_a, names, tr, z, problem, mean, dls, m, fixed_scale is None,
-                           profiled_columns=cols_out, smooth_px=smooth_px, exact=exact, jac_cross=jac_b)
-        dz = -(h_inv @ g)
-        c_dz = h_inv @ (u.T @ u) @ h_inv.T
-        step_chi2 = float(dz @ np.linalg.pinv(c_dz, rcond=1e-10, hermitian=True) @ dz)
-        if caps is not None:
-            dz = np.clip(dz, -caps, caps)
+
+        # The matrix's inverse at a given damping (this step's Jacobians and point).
+        inverse = partial(gn_inverse, jac_a, names, tr, z, problem, mean, dls, m, fixed_scale is None,
+                          profiled_columns=cols_out, smooth_px=smooth_px, exact=exact, jac_cross=jac_b)
+        h_inv = inverse(damping=GN_DAMPING)
+        s_u = u.T @ u
+        dz_full = -(h_inv @ g)
+        c_dz = h_inv @ s_u @ h_inv.T
+        # The current point is itself the optimum plus the noise of the step that brought it
+        # there (`c_point`), and a full step from it undoes that noise too: at the noise floor
+        # a step scatters by both.
+        c_step = c_dz if c_point is None else c_dz + c_point
+        step_chi2 = _chi2(dz_full, c_step)
         entry: dict[str, Any] = {"loss": loss, "loss_new": float("nan"), "accepted": False, "halvings": 0,
-                                 "step": {}, "step_chi2": step_chi2, "jacobians": new_jacobians, "spp": spp_now}
+                                 "step": {}, "step_chi2": step_chi2, "step_chi2_own": _chi2(dz_full, c_dz),
+                                 "jacobians": new_jacobians, "spp": spp_now}
         trace.append(entry)
-        for halving in range(3):
+        tries = DAMPED_TRIES if damped else 3
+        lam_try = lam
+        for attempt in range(tries):
+            if damped:
+                h_try = h_inv if lam_try <= GN_DAMPING else inverse(damping=lam_try)
+                shrink = 1.0
+            else:
+                h_try, shrink = h_inv, 0.5 ** attempt
+            dz = -(h_try @ g)
+            if caps is not None:
+                dz = np.clip(dz, -caps, caps)
+            dz = shrink * dz
             z_new = np.array([t.clamp_z(float(zz + d_)) for t, zz, d_ in zip(tr, z, dz)])
             p_try = dict(p)
             p_try.update({n: t.to_x(float(zz)) for n, t, zz in zip(names, tr, z_new)})
-            dz = 0.5 * dz
             try:
                 p_try = fm.validate(p_try)
             except ModelParameterError:
+                lam_try *= DAMPING_UP
                 continue
             # The new point's renders: at the settled spp when this step is noise-sized (the
             # next one will be a settled step), else at `spp`.
             spp_new = spp * settled_spp_factor if noise_sized(step_chi2, spp_now) else spp
             p_new, pa_n, pb_n, sc_n, (loss_n, se_n), bases_n = state(p_try, k + 1, spp_new)
-            entry.update(loss_new=loss_n, halvings=halving)
-            # Undone (halved, twice at most) only when the rise exceeds the polish's starting
-            # loss plus 3 standard errors of the difference: the estimator scatters by about
-            # the loss itself near the optimum, and can be negative there.
-            if loss_n - loss <= gross * max(loss_start, 0.0) + 3.0 * math.hypot(se, se_n):
+            entry.update(loss_new=loss_n, halvings=attempt, damping=lam_try if damped else GN_DAMPING)
+            if damped:
+                # Levenberg-Marquardt: a step whose loss rises by more than 2 standard errors
+                # of the difference is retried with more damping (towards a short, scaled
+                # gradient step) from the same matrix and gradient.
+                ok = loss_n - loss <= 2.0 * math.hypot(se, se_n)
+            else:
+                # Undone (halved, twice at most) only when the rise exceeds the polish's
+                # starting loss plus 3 standard errors of the difference: the estimator
+                # scatters by about the loss itself near the optimum, and can be negative there.
+                ok = loss_n - loss <= gross * max(loss_start, 0.0) + 3.0 * math.hypot(se, se_n)
+            if ok:
                 # The point's own Monte Carlo scatter: a full Gauss-Newton step lands at the
-                # optimum plus the step's noise, whose z-space covariance is c_dz (halved with
-                # the step), taken to x units at the new point.
-                sd_z = np.sqrt(np.clip(np.diag(c_dz), 0.0, None)) * 0.5 ** halving
+                # optimum plus the step's noise, whose z-space covariance is that of the
+                # step taken (shrunk with it), taken to x units at the new point.
+                c_try = c_dz if h_try is h_inv else h_try @ s_u @ h_try.T
+                sd_z = np.sqrt(np.clip(np.diag(c_try), 0.0, None)) * shrink
                 entry.update(accepted=True, step={n: float(p_new[n] - p[n]) for n in names},
                              point={n: float(v) for n, v in p_new.items() if n in names or n in solved},
                              noise_sd={n: float(sd * abs(t.dx_dz(float(zz))))
                                        for n, t, sd, zz in zip(names, tr, sd_z, z_new)})
                 p, pa, pb, sc, loss, se, spp_now, bases = p_new, pa_n, pb_n, sc_n, loss_n, se_n, spp_new, bases_n
                 scale_guess = sc
+                lam = max(GN_DAMPING, lam_try / DAMPING_UP)
+                c_point = c_try * shrink ** 2
                 break
+            lam_try *= DAMPING_UP
         if not entry["accepted"]:
             break
     return p, trace, (pa, pb)

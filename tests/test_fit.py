@@ -683,12 +683,13 @@ def _polish_setup(problem):
     return fm, names, tr, scale
 
 
-@pytest.mark.parametrize(("cross", "one_sided"), [(False, False), (True, False), (True, True)])
-def test_gn_polish_walks_towards_the_truth_and_reports_its_steps(problem, cross, one_sided):
+@pytest.mark.parametrize(("cross", "one_sided", "damped"),
+                         [(False, False, False), (True, False, False), (True, True, False), (True, True, True)])
+def test_gn_polish_walks_towards_the_truth_and_reports_its_steps(problem, cross, one_sided, damped):
     """From a start 15 % high in sigma_t, the polish's full Gauss-Newton steps at a fixed,
     moderate spp bring sigma_t within a third of that and lower the loss without render
     noise, with one Jacobian's matrix, two half-spp Jacobians' cross product, or two
-    one-sided ones against half of each gradient render."""
+    one-sided ones against half of each gradient render (also with Levenberg-Marquardt damping)."""
     from estimate.polish import gn_polish
 
     fm, names, tr, scale = _polish_setup(problem)
@@ -697,7 +698,7 @@ def test_gn_polish_walks_towards_the_truth_and_reports_its_steps(problem, cross,
     start["sigma_t"] = 3.45
     out, trace, renders = gn_polish(fm, problem, start, names, tr, steps=3, spp=512, jacobian_spp=512, seed=5,
                                     delta_nodes=[0.02, 0.1], reference_delta_rel=0.045, fixed_scale=scale,
-                                    cross=cross, one_sided=one_sided)
+                                    cross=cross, one_sided=one_sided, damped=damped)
     assert renders is not None and renders[0].shape == problem.measured.shape
     assert trace and trace[0]["accepted"]
     assert abs(out["sigma_t"] - 3.0) < 0.15, out
@@ -804,6 +805,14 @@ def test_one_sided_polish_jacobians_reuse_half_of_each_render(problem, monkeypat
     points = 1 + trace[0]["halvings"] + 1
     assert len(calls) == 4 * points + 2 * (1 + len(names))   # a base of its own per Jacobian at 128 spp
     assert sum(s == 128 for s, _ in calls) == 2 * (1 + len(names))
+    # Cheaper Jacobians (halves at 32 spp): each render the mean of four at 32, the first its base.
+    calls.clear()
+    _, trace, _ = polish_mod.gn_polish(fm, problem, at, names, tr, spp=128, jacobian_spp=64, steps=1,
+                                       **{k: v for k, v in kw.items() if k != "steps"})
+    points = 1 + trace[0]["halvings"] + 1
+    assert sorted({s for s, _ in calls}) == [32]
+    assert len(calls) == 8 * points + 2 * len(names)
+    assert len({sd for _, sd in calls[:8]}) == 8                # the parts' seeds all differ
 
 
 def test_an_extended_polish_averages_as_many_last_points_as_planned():
@@ -837,3 +846,52 @@ def test_gn_polish_undoes_a_step_that_makes_the_fit_grossly_worse(problem, monke
     assert len(trace) == 1 and not trace[0]["accepted"] and trace[0]["halvings"] == 2
     assert trace[0]["loss_new"] > trace[0]["loss"]
     assert all(out[n] == start[n] for n in names)
+
+
+def test_a_damped_polish_retries_a_rising_step_with_more_damping(problem, monkeypatch):
+    """With `damped`, a step whose loss rises beyond its noise is retried from the same
+    matrix and gradient with 10x the damping (no new Jacobians) until one does not rise;
+    the next step starts from a tenth of the damping that worked."""
+    import estimate.polish as polish_mod
+
+    fm, names, tr, scale = _polish_setup(problem)
+    real = polish_mod.gn_inverse
+    asked: list[float] = []
+
+    def uphill_unless_damped(*a, **k):
+        asked.append(k["damping"])
+        # Uphill (forced) at the matrix's own damping and at 10x it; the real matrix beyond.
+        return -1e4 * np.eye(len(names)) if k["damping"] < 0.05 else real(*a, **k)
+
+    monkeypatch.setattr(polish_mod, "gn_inverse", uphill_unless_damped)
+    jacobians: list[int] = []
+    real_jac = fm.jacobian
+    monkeypatch.setattr(fm, "jacobian", lambda *a, **k: jacobians.append(1) or real_jac(*a, **k))
+    start = {**fm.default_parameters(), **TRUTH, "sigma_t": 3.45}
+    out, trace, _ = polish_mod.gn_polish(fm, problem, start, names, tr, steps=1, spp=128, jacobian_spp=128, seed=5,
+                                         delta_nodes=[0.045], reference_delta_rel=0.045, fixed_scale=scale,
+                                         caps=np.full(len(names), 1.0), cross=True, one_sided=True, damped=True,
+                                         chi2_continue=math.inf)
+    assert len(trace) == 1 and trace[0]["accepted"]
+    assert trace[0]["halvings"] == 2 and trace[0]["damping"] == pytest.approx(0.1)
+    assert asked[:3] == pytest.approx([1e-3, 1e-2, 1e-1])
+    assert len(jacobians) == 2                           # one pair, for all three tries
+    assert out["sigma_t"] < 3.45
+
+
+def test_a_later_polish_step_counts_the_noise_its_start_point_carries(problem):
+    """The first step's chi^2 is against its own gradient noise; a later step starts from a
+    point that is the optimum plus the previous step's noise, which it undoes too, so its
+    chi^2 is against both (smaller than against its own noise alone)."""
+    from estimate.polish import gn_polish
+
+    fm, names, tr, scale = _polish_setup(problem)
+    at = {**fm.default_parameters(), **TRUTH}
+    _, trace, _ = gn_polish(fm, problem, at, names, tr, steps=3, spp=128, jacobian_spp=128, seed=9,
+                            delta_nodes=[0.045], reference_delta_rel=0.045, fixed_scale=scale, cross=True,
+                            one_sided=True, chi2_continue=math.inf)
+    assert [e["accepted"] for e in trace] == [True] * 3
+    assert trace[0]["step_chi2"] == pytest.approx(trace[0]["step_chi2_own"])
+    for e in trace[1:]:
+        assert 0.0 < e["step_chi2"] < e["step_chi2_own"]
+
