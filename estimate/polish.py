@@ -200,8 +200,8 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
               scale_guess: float | None = None, jacobian_every: int = 1, gross: float = 1.0,
               cross: bool = False, max_steps: int | None = None, chi2_continue: float = math.inf,
               keep_last: int = 3, settled_spp_factor: int = 1, one_sided: bool = False,
-              jacobians_out: list[list[dict[str, np.ndarray]]] | None = None, damped: bool = False
-              ) -> tuple[dict[str, float], list[dict[str, Any]], tuple[np.ndarray, np.ndarray] | None]:
+              jacobians_out: list[list[dict[str, np.ndarray]]] | None = None, damped: bool = False,
+              start_point_noise: bool = True) -> tuple[dict[str, float], list[dict[str, Any]], tuple[np.ndarray, np.ndarray] | None]:
     """Full Gauss-Newton steps on the delta-averaged log loss at high samples per pixel, from
     the end of the stochastic iterations.
 
@@ -261,7 +261,8 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
     undoes that noise too, so at the noise floor a step scatters by both. With its own noise
     alone, noise-sized steps read chi^2 11-51 on the benchmark (5 parameters) and the polish
     ran to 8 steps whenever one of three in a row passed 20.5; with the start point's noise
-    they read 3-23 (session 27, seeds 0-3). The trace keeps both (`step_chi2`, `step_chi2_own`).
+    they read 3-23 (session 27, seeds 0-3). The trace keeps both (`step_chi2`, `step_chi2_own`);
+    `start_point_noise=False` tests against the step's own noise alone, as before.
     Still about twice the parameter count: the matrix's own noise (a valley eigenvalue off by
     its noise scales the correction of the start point's noise) stays out of the model.
 
@@ -451,7 +452,7 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
         # The current point is itself the optimum plus the noise of the step that brought it
         # there (`c_point`), and a full step from it undoes that noise too: at the noise floor
         # a step scatters by both.
-        c_step = c_dz if c_point is None else c_dz + c_point
+        c_step = c_dz if c_point is None or not start_point_noise else c_dz + c_point
         step_chi2 = _chi2(dz_full, c_step)
         entry: dict[str, Any] = {"loss": loss, "loss_new": float("nan"), "accepted": False, "halvings": 0,
                                  "step": {}, "step_chi2": step_chi2, "step_chi2_own": _chi2(dz_full, c_dz),

@@ -894,4 +894,8 @@ def test_a_later_polish_step_counts_the_noise_its_start_point_carries(problem):
     assert trace[0]["step_chi2"] == pytest.approx(trace[0]["step_chi2_own"])
     for e in trace[1:]:
         assert 0.0 < e["step_chi2"] < e["step_chi2_own"]
+    _, trace, _ = gn_polish(fm, problem, at, names, tr, steps=2, spp=128, jacobian_spp=128, seed=9,
+                            delta_nodes=[0.045], reference_delta_rel=0.045, fixed_scale=scale, cross=True,
+                            one_sided=True, chi2_continue=math.inf, start_point_noise=False)
+    assert all(e["step_chi2"] == pytest.approx(e["step_chi2_own"]) for e in trace)
 
