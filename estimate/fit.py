@@ -55,6 +55,16 @@ result and the loop; the stages' parts live beside it: `estimate.start` (1),
    they still drift (`iterate_drift`), the end of their linear trend instead, since their mean
    lags the last iterate by half the window's drift (session 16: 1.3-2.9 % of sigma_t on
    the benchmark);
+   Since session 28 the iterations hand over to the polish after `iterations_before_polish`
+   (10: the Adam steps alone) whenever there is a polish; the Gauss-Newton iterations and
+   the flattening test above run only without one (`polish_steps` = 0) or with
+   `iterations_before_polish` = None. On the benchmark (seed 0) the Gauss-Newton
+   iterations took 15 iterations (26 s) to end at sigma_t 2.6 (truth 2.0; the coarse start
+   had 2.0): the polish then needed eight steps. Started from the tenth Adam iterate, the
+   damped polish crossed the valley in as many or fewer steps: seeds 0-3 120, 96, 90 and
+   91 s a fit (session 27's recipe 82-143 s), sigma_t +2.0, -2.2, -0.2, -1.0 % (+1.8,
+   -2.1, -0.3, -2.2 %). The spp rises from 128 to `final_spp` when the Adam steps end,
+   and the polish's steps are then judged against their Monte Carlo noise;
 5. Gauss-Newton polish (`gn_polish`, `polish_steps` = 4): full, unshrunk Gauss-Newton steps
    at `final_spp` (two 1024-spp renders per step and a new matrix from the cross product of
    two 512-spp Jacobians, `polish_cross`; since session 25 forward and backward differences
@@ -95,8 +105,9 @@ result and the loop; the stages' parts live beside it: `estimate.start` (1),
    s * I_model, W = 1 / (var_meas + s^2 var_model), times the reduced chi^2 when > 1; kept
    in `FitResult.fisher_uncertainties`). The Fisher bound alone was 4-25x smaller than the
    real errors: the log loss is not the variance-weighted fit the bound describes, and the
-   residuals exceed the noise. The standard deviation of the averaged iterates (the stochastic
-   optimiser's own spread, `FitResult.optimizer_spread`) is added in quadrature, and so is
+   residuals exceed the noise. Without a polish, the standard deviation of the averaged
+   iterates (the stochastic optimiser's own spread, `FitResult.optimizer_spread`) is added
+   in quadrature (after a polish the result is not theirs; since session 28), and so is
    the last polish step (`FitResult.drift`; without a polish, the iterates' drift): the
    fit still moved that much at its end. When the polish's points are averaged, their mean
    step is the drift and their mean's standard error is added instead; the drift is then
@@ -177,6 +188,9 @@ class FitSettings:
     """Optimiser settings (defaults: the paper's exp3 fit within ~2 min on 2 cores)."""
 
     max_iterations: int = 80
+    #: with a polish (polish_steps > 0), the iterations hand over to it after this many
+    #: (None: only when the loss flattens at spp_max or max_iterations is reached)
+    iterations_before_polish: int | None = 10
     spp_start: int = 128
     spp_max: int = 128               # the iterations' largest spp (the polish and final evaluation: final_spp)
     final_spp: int = 1024
@@ -246,6 +260,9 @@ class FitSettings:
             elif f.name == "polish_max_steps":
                 if v is not None and not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
                     raise bad("a whole number >= 0 or null")
+            elif f.name == "iterations_before_polish":
+                if v is not None and not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
+                    raise bad("a whole number >= 1 or null (null: until the loss flattens)")
             elif f.name == "polish_jacobian_spp":
                 if v is not None and not (isinstance(v, int) and not isinstance(v, bool) and v >= 2):
                     raise bad("a whole number >= 2 or null (null: final_spp)")
@@ -539,6 +556,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     # Columns the Jacobian gets exactly (image-space parameters) carry no Monte Carlo noise to smooth away.
     exact_columns = {n for n in stepped if fm.derivative_kind(n) == "image"}
     gn_nodes = [math.exp(lo + (k + 0.5) / st.gn_delta_nodes * (hi - lo)) for k in range(st.gn_delta_nodes)]
+    hand_over = st.iterations_before_polish if st.polish_steps > 0 and stepped else None
     for it in range(1, st.max_iterations + 1):
         p = params_of(z)
         delta_rel = math.exp(rng.uniform(lo, hi))
@@ -626,6 +644,9 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             progress(it, curve_loss, spp)
         if st.time_limit_s is not None and time.monotonic() - t0 > st.time_limit_s:
             stop = "time_limit"
+            break
+        if hand_over is not None and it >= hand_over:
+            stop = f"handed to the polish after {it} iterations"
             break
         if since_change >= 3 * st.window and _flattened(curve[-since_change:], st.window):
             if spp >= st.spp_max:
@@ -729,7 +750,12 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         # iterates, added in quadrature. The curvature-based intervals describe the
         # minimum of the loss; along the sigma_t / phase valley the iterates wander by more
         # than that (synthetic benchmark: sandwich 0.006 /mm, error 0.057 /mm).
-        xs = window_scatter(x_history[-n_avg:], trend)
+        # Once a polish step was taken the result is the polish's, not the iterations', and
+        # the polish points' own scatter stands in for it (`polish_se`, `drift`): the
+        # iterates' spread is left out. Handed over after 10 Adam iterations (session 28),
+        # the iterates still walk from the coarse start, and their scatter about their
+        # trend (sigma_t 0.16-0.26 /mm on the benchmark, truth 2.0) swamped the fit's own.
+        xs = window_scatter(x_history[-n_avg:], trend) if not accepted else np.zeros((0, len(names)))
         it_cov = np.cov(xs, rowvar=False, ddof=2 if trend else 1).reshape(len(names), len(names)) \
             if len(xs) > 2 else np.zeros((len(names), len(names)))
         for i, n in enumerate(names):

@@ -9,7 +9,7 @@ import pytest
 from scipy.stats import chi2 as chi2_dist
 from synth_session import make_session
 
-from estimate.errors import DataError
+from estimate.errors import DataError, ModelParameterError
 from estimate.fit import FitSettings, fit_channel, loss_at, sandwich_uncertainties
 from estimate.loss import (
     DEFAULT_CALIBRATION_ND,
@@ -308,6 +308,29 @@ def test_fixed_parameters_stay(problem):
     assert r.scale_mode == "free" and r.scale_calibration is None
     assert r.parameters["phase.g_backward"] == -0.2 and r.parameters["phase.w_forward"] == 0.95
     assert r.start["sigma_t"] == 3.0 and r.iterations == 6 and r.stop_reason == "max_iterations"
+
+
+def test_with_a_polish_the_iterations_hand_over_after_their_count(problem):
+    """With a polish the stochastic iterations stop after `iterations_before_polish`, and the
+    uncertainties leave their spread out (the result is the polish's); without one they run
+    on (here to max_iterations) and their spread is part of the interval."""
+    base = dict(seed=5, max_iterations=7, spp_start=16, spp_max=16, final_spp=32, window=3, lm_iterations=0,
+                scale="free", uncertainty_spp=32, iterations_before_polish=4)
+    r = fit_channel(problem, "exp3", start={"sigma_t": 3.0, "albedo": 0.85},
+                    settings=FitSettings(**base, polish_steps=1, polish_max_steps=1))
+    assert r.iterations == 4 and r.stop_reason == "handed to the polish after 4 iterations"
+    assert any(e["accepted"] for e in r.polish)
+    assert set(r.optimizer_spread) >= {"sigma_t", "albedo"} and not any(r.optimizer_spread.values())
+    r0 = fit_channel(problem, "exp3", start={"sigma_t": 3.0, "albedo": 0.85},
+                     settings=FitSettings(**base, polish_steps=0))
+    assert r0.iterations == 7 and r0.stop_reason == "max_iterations" and not r0.polish
+    assert r0.optimizer_spread["sigma_t"] > 0.0
+
+
+def test_iterations_before_polish_setting_is_checked():
+    assert FitSettings.from_dict({"iterations_before_polish": None}).iterations_before_polish is None
+    with pytest.raises(ModelParameterError, match="iterations_before_polish"):
+        FitSettings.from_dict({"iterations_before_polish": 0}, where="results.yaml")
 
 
 def _toy_problem(x, meas):

@@ -34,7 +34,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--columns", type=int, default=None, help="profile window width in pixels (256)")
     p.add_argument("--extensions", default="", help="forward-model extensions to include, comma separated")
     p.add_argument("--allow-partial", action="store_true", help="fit the stacks present when some are missing")
-    p.add_argument("--max-iterations", type=int, default=None, help="optimiser iterations at most (80: 10 Adam, then Gauss-Newton)")
+    p.add_argument("--max-iterations", type=int, default=None, help="stochastic optimiser iterations before the Gauss-Newton polish (default 10, Adam); "
+                   "with --polish-steps 0, at most this many (default 80: 10 Adam, then Gauss-Newton)")
     p.add_argument("--spp-max", type=int, default=None, help="largest samples per pixel of the optimiser's iterations (128); with it set, the "
                    "Gauss-Newton polish and the final evaluation use twice that (else 1024) and the uncertainties at most that")
     p.add_argument("--polish-steps", type=int, default=None,
@@ -92,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
     settings = FitSettings(seed=args.seed, scale=args.scale)
     if args.max_iterations is not None:
         settings.max_iterations = args.max_iterations
+        settings.iterations_before_polish = args.max_iterations
     if args.polish_steps is not None:
         settings.polish_steps = args.polish_steps
     if args.spp_max is not None:
