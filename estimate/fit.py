@@ -98,8 +98,9 @@ result and the loop; the stages' parts live beside it: `estimate.start` (1),
 7. uncertainties: the sandwich covariance of the log-loss estimator
    (`sandwich_uncertainties`: Gauss-Newton curvature of the log loss, the sensor and render
    noise propagated through it, times the log-space reduced chi^2 when > 1; the curvature
-   from the cross products of independent Jacobians, one at the final point and the
-   polish's last ones, since one Monte Carlo Jacobian's own noise fakes curvature along the
+   from the cross products of independent Jacobians, the polish's last ones (since session
+   28; before, and still when the polish averaged fewer than two points, one more at the
+   final point), since one Monte Carlo Jacobian's own noise fakes curvature along the
    sigma_t / phase valley and narrowed sigma_t's interval up to 20x there), never below
    the linear Fisher bound (`fisher_uncertainties`: F = J^T W J with J the Jacobian of
    s * I_model, W = 1 / (var_meas + s^2 var_model), times the reduced chi^2 when > 1; kept
@@ -223,6 +224,9 @@ class FitSettings:
     polish_damped: bool = True       # Levenberg-Marquardt damping of polish steps whose loss rises (see gn_polish)
     polish_cap_lr: float = 15.0      # the polish's per-parameter step cap (z), in Adam's last learning rates
     uncertainty_spp: int = 512       # the uncertainties' Jacobian at the final point (two without a polish)
+    #: render a central Jacobian at the final point for the uncertainties even when the
+    #: polish's last ones (two steps' or more) are there
+    uncertainty_final_jacobian: bool = False
     decorrelated: bool = True
     #: solve additive parameters (stray-light offset and slope) exactly at every iteration
     #: instead of stepping them (decorrelated mode only; see fit_channel)
@@ -729,8 +733,16 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         # coefficients are 10x noisier), and the polish's last ones, as many steps' as points
         # were averaged (near the final point, within its noise; their solved additive
         # columns, which carry no render noise, from the final point's), or a second one.
-        jac = gn_jacobian(fm, problem, final, names, spp=st.uncertainty_spp, seed=st.seed * 100_003 + 60_000)
-        more = [{**jac, **j} for js in polish_jacobians[-n_polish_avg:] for j in js] if n_polish_avg else []
+        # Since session 28 the polish's Jacobians alone when it averaged two points or more
+        # (four or more Jacobians, each within the points' noise of the final point, the
+        # solved additive columns exact): the central one at the final point cost ~7 s of
+        # the benchmark's 2 min (`uncertainty_final_jacobian` renders it still).
+        last = [j for js in polish_jacobians[-n_polish_avg:] for j in js] if n_polish_avg else []
+        if len(last) >= 4 and not st.uncertainty_final_jacobian:
+            jac, *more = [{**solved_cols, **j} for j in last]
+        else:
+            jac = gn_jacobian(fm, problem, final, names, spp=st.uncertainty_spp, seed=st.seed * 100_003 + 60_000)
+            more = [{**jac, **j} for j in last]
         if not more:
             more = [gn_jacobian(fm, problem, final, names, spp=st.uncertainty_spp, seed=st.seed * 100_003 + 65_000)]
         fisher, _ = fisher_uncertainties(fm, problem, final, names, ev["scale"], ev["model_variance"],

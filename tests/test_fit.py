@@ -310,17 +310,27 @@ def test_fixed_parameters_stay(problem):
     assert r.start["sigma_t"] == 3.0 and r.iterations == 6 and r.stop_reason == "max_iterations"
 
 
-def test_with_a_polish_the_iterations_hand_over_after_their_count(problem):
+def test_with_a_polish_the_iterations_hand_over_after_their_count(problem, monkeypatch):
     """With a polish the stochastic iterations stop after `iterations_before_polish`, and the
-    uncertainties leave their spread out (the result is the polish's); without one they run
-    on (here to max_iterations) and their spread is part of the interval."""
-    base = dict(seed=5, max_iterations=7, spp_start=16, spp_max=16, final_spp=32, window=3, lm_iterations=0,
-                scale="free", uncertainty_spp=32, iterations_before_polish=4)
-    r = fit_channel(problem, "exp3", start={"sigma_t": 3.0, "albedo": 0.85},
-                    settings=FitSettings(**base, polish_steps=1, polish_max_steps=1))
+    uncertainties leave their spread out (the result is the polish's) and take the polish's
+    last Jacobians without rendering one at the final point; without a polish the iterations
+    run on (here to max_iterations) and their spread is part of the interval."""
+    import estimate.fit as fit_mod
+
+    central: list[int] = []
+    real = fit_mod.gn_jacobian
+    monkeypatch.setattr(fit_mod, "gn_jacobian", lambda *a, **k: central.append(1) or real(*a, **k))
+    base = {"seed": 5, "max_iterations": 7, "spp_start": 16, "spp_max": 16, "final_spp": 32, "window": 3,
+            "lm_iterations": 0, "scale": "free", "uncertainty_spp": 32, "iterations_before_polish": 4}
+    polish = {"polish_steps": 2, "polish_max_steps": 2, "polish_average_from": 1}
+    r = fit_channel(problem, "exp3", start={"sigma_t": 3.0, "albedo": 0.85}, settings=FitSettings(**base, **polish))
     assert r.iterations == 4 and r.stop_reason == "handed to the polish after 4 iterations"
-    assert any(e["accepted"] for e in r.polish)
+    assert sum(e["accepted"] for e in r.polish) == 2 and not central
     assert set(r.optimizer_spread) >= {"sigma_t", "albedo"} and not any(r.optimizer_spread.values())
+    assert all(np.isfinite(v) and v > 0 for v in r.uncertainties.values())
+    fit_channel(problem, "exp3", start={"sigma_t": 3.0, "albedo": 0.85},
+                settings=FitSettings(**base, **polish, uncertainty_final_jacobian=True))
+    assert len(central) == 1
     r0 = fit_channel(problem, "exp3", start={"sigma_t": 3.0, "albedo": 0.85},
                      settings=FitSettings(**base, polish_steps=0))
     assert r0.iterations == 7 and r0.stop_reason == "max_iterations" and not r0.polish
