@@ -24,7 +24,7 @@ step "rig capture --sim --angles 10 --filters rgb   (HDR stack per angle and fil
 
 step "rig estimate   (sigma_t, albedo, exponential phase function per channel)"
 # The full default fit (2-3.5 min per channel on 2 slow CPU cores, session 25; far less on a GPU);
-# DEMO_ESTIMATE_ARGS="--max-iterations 30 --polish-steps 1" for a quicker, rougher look
+# DEMO_ESTIMATE_ARGS="--polish-steps 2" for a quicker, rougher look (at most 4 polish steps instead of 8)
 "$RIG" estimate "$RUN/session" ${DEMO_ESTIMATE_ARGS:-}
 
 step "rig report"
