@@ -50,7 +50,8 @@ __all__ = ["MAX_DIRECT_TILT_DEG", "RenderedScene", "raw_nonlinearity"]
 MAX_DIRECT_TILT_DEG = 10.0
 #: Angles closer than this share one render (stage resolution is 0.0025 deg).
 ANGLE_KEY_DECIMALS = 6
-_CACHE_VERSION = "rendered-scene/1"
+# 2: every (angle, filter, row tier) renders with its own seed (1 used one seed for all)
+_CACHE_VERSION = "rendered-scene/2"
 
 
 def raw_nonlinearity(world: World, full_well_e: float) -> Callable[[np.ndarray], np.ndarray] | None:
@@ -249,12 +250,22 @@ class RenderedScene:
         params = self._params(filter_name)
         cols_n, rows_n = self.sensor_px
         img = np.zeros((rows_n, cols_n))
-        seed = self.world.render.seed
         angle = ((phys_deg + 180.0) % 360.0) - 180.0
         for i, (r0, r1, spp) in enumerate(self.row_tiers()):
             img[r0:r1] = model.render(params, [angle], columns=(0, cols_n), rows=(r0, r1), spp=spp,
-                                      seed=seed * 16 + i)[0]
+                                      seed=self.image_seed(phys_deg, filter_name, i))[0]
         return img
+
+    def image_seed(self, phys_deg: float, filter_name: str, tier: int) -> int:
+        """Render seed of one image's row tier, distinct per (angle, filter, tier).
+
+        Each image is rendered on its own, as angle 0 of its call, so one world seed for
+        all of them would replay the same random numbers in every pixel of every image:
+        the recording's frozen Monte Carlo noise would then be correlated across angles
+        and filters, where a real camera's frames are independent.
+        """
+        text = f"{self.world.render.seed}|{filter_name}|{round(phys_deg, ANGLE_KEY_DECIMALS):.6f}|{tier}"
+        return int.from_bytes(hashlib.blake2s(text.encode(), digest_size=4).digest(), "little") % (2 ** 31)
 
     def slab_image(self, phys_deg: float, filter_name: str) -> np.ndarray:
         """e-/s per pixel of the lit slab, full frame (image effects applied)."""

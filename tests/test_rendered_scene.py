@@ -44,6 +44,22 @@ def test_render_is_cached_in_memory_and_on_disk(tmp_path):
     assert other.cache_key(45.4, "r") != fresh.cache_key(45.4, "r")
 
 
+def test_each_image_has_its_own_render_noise(tmp_path):
+    # r and g the same material: with one seed for every image their renders were identical
+    d = {"materials": {f: {"sigma_t": 2.0, "albedo": 0.9, "phase": {"type": "hg", "g": 0.5}} for f in "rg"}}
+    s = RenderedScene(_world(tmp_path, **d), magnification=0.3)
+    r0, r1 = s.profile_rows()
+    a, b = s.radiance(45.0, "r")[r0:r1], s.radiance(45.0, "g")[r0:r1]
+    assert not np.array_equal(a, b)
+    assert a.sum() == pytest.approx(b.sum(), rel=0.1)  # the same radiance, other noise
+    seeds = {s.image_seed(p, f, i) for p in (30.0, 45.0) for f in "rg" for i in range(3)}
+    assert len(seeds) == 12
+    assert s.image_seed(45.0, "r", 0) == s.image_seed(45.0 + 1e-9, "r", 0)  # one stage position, one seed
+    reseeded = RenderedScene(_world(tmp_path, render={**_world(tmp_path).raw["render"], "seed": 5}),
+                             magnification=0.3)
+    assert reseeded.image_seed(45.0, "r", 0) != s.image_seed(45.0, "r", 0)
+
+
 def test_a_lens_blur_widens_the_profile_quality_rows(tmp_path):
     plain = RenderedScene(_world(tmp_path), magnification=0.3)
     blurred = RenderedScene(_world(tmp_path, effects={"lens_blur": {"core_sigma_px": 1.5, "tail_fraction": 0.02}}),
