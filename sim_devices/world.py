@@ -127,7 +127,8 @@ class RenderSettings:
         spp_band: samples per pixel on the band around them.
         band_halfwidth_rows: rows on each side of the axis row rendered at spp_band.
         spp_outside: samples per pixel for the rest of the frame (0: left dark).
-        seed: base Mitsuba seed.
+        seed: base seed; each image's row tiers render with seeds drawn from it
+            (`RenderedScene.image_seed`).
         cache_dir: disk cache of radiance images; None = $RIG_SIM_CACHE or ~/.cache/rig/sim-renders.
         mie_degree: degree of the exponential phase fitted to a Mie table.
         max_depth: path length limit.
