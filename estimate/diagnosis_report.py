@@ -115,7 +115,7 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                    if final else "dropped: its signature was borrowed from the effect added after it")
             print(f"  backward check ({'estimator' if final else 'refit'}): {e['effect']} set to absent in the model "
                   f"with {', '.join(e['with'])} raises chi2 by {e['chi2_rise']:.1f}, "
-                  f"{'less than' if e['dropped'] else 'more than'} the {e['needed']:.1f} adding it needs -> "
+                  f"{'less than' if e['dropped'] else 'more than'} its BIC price {e['needed']:.1f} (k ln n) -> "
                   f"{why if e['dropped'] else 'kept'}", file=out)
         imp = d.get("importance") or {}
         if len(imp) >= 2:

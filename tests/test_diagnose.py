@@ -535,6 +535,48 @@ def test_backward_check_drops_an_earlier_effect_that_the_later_one_explains(conc
     assert fin_rises["stray_light"] > fin_rises["lens_blur"] == fin[0]["chi2_rise"]
 
 
+@pytest.mark.parametrize("rise_over_price, dropped", [(-0.5, True), (0.5, False), (1.2, False)])
+def test_a_named_effect_stays_while_it_pays_its_bic_price(monkeypatch, rise_over_price, dropped):
+    """Stepwise hysteresis: entering needs k ln n + BIC_STRONG, staying only k ln n. A rise
+    between the two (the bench pair's blur in the final fit: 19.9 against 15.2 and 25.2) keeps
+    the effect named; one below its price drops it."""
+    import estimate.diagnose as dg
+    from estimate.diagnose import BIC_STRONG, _bic_bar, _bic_exit_bar
+
+    n_obs = 2000
+    price = _bic_exit_bar("lens_blur", n_obs)
+    assert price == pytest.approx(_bic_penalty("lens_blur", n_obs))
+    assert _bic_bar("lens_blur", n_obs) == pytest.approx(price + BIC_STRONG)
+    rise = price + rise_over_price * BIC_STRONG
+
+    class Res:
+        def __init__(self, chi2: float) -> None:
+            self.chi2_adjusted = chi2
+            self.r = np.zeros(n_obs)
+
+    class Ev:
+        def __init__(self, chi2: float) -> None:
+            self.residuals = Res(chi2)
+
+    def fake_evaluate(model, params, problem, n_params, **kw):
+        # the model with one effect put back to absent: that effect's rise over the joint fit
+        if params.get("stray_light.offset") == 0.0:
+            return Ev(2000.0 + 5000.0)
+        if params.get("lens_blur.core_sigma_px") == 0.0:
+            return Ev(2000.0 + rise)
+        return Ev(2000.0)
+
+    monkeypatch.setattr(dg, "evaluate", fake_evaluate)
+    monkeypatch.setattr(dg, "_yardstick", lambda problem, before: None)
+    monkeypatch.setattr(dg, "_neutral_magnitudes", lambda model, params, e: {
+        **params, **({"stray_light.offset": 0.0} if e == "stray_light" else {"lens_blur.core_sigma_px": 0.0})})
+    params = {"stray_light.offset": 0.003, "lens_blur.core_sigma_px": 1.0}
+    out, rises = dg._prune_final(None, None, params, ["stray_light", "lens_blur"], None, spp=1, seed=0, repeats=1)
+    assert rises == {"stray_light": pytest.approx(5000.0), "lens_blur": pytest.approx(rise)}
+    assert [(e["effect"], e["dropped"]) for e in out] == [("lens_blur", dropped)]
+    assert out[0]["needed"] == pytest.approx(price)
+
+
 def test_named_effects_are_ranked_by_the_chi2_each_carries_in_the_final_model():
     """The rounds' order follows the screening at the base fit; the names follow what each
     effect carries in the model that explains the data, and the summary says both."""
