@@ -227,6 +227,10 @@ class FitSettings:
     #: render a central Jacobian at the final point for the uncertainties even when the
     #: polish's last ones (two steps' or more) are there
     uncertainty_final_jacobian: bool = False
+    #: when the result is the mean of polish points, the sandwich's meat holds the data's
+    #: noise alone (`sandwich_uncertainties(data_meat=True)`); the points' standard error
+    #: carries the render noise. False: the render noise in both (session 29's recipe)
+    uncertainty_data_meat: bool = True
     decorrelated: bool = True
     #: solve additive parameters (stray-light offset and slope) exactly at every iteration
     #: instead of stepping them (decorrelated mode only; see fit_channel)
@@ -750,11 +754,14 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
                                          fit_scale=fixed_scale is None,
                                          jac={n: np.mean([j[n] for j in (jac, *more)], axis=0) for n in names})
         sandwich_cov: dict[str, dict[str, float]] = {}
+        # The result averaged polish points whose scatter (`polish_se`) is their render noise:
+        # the meat then holds the data's noise alone, or that noise would be counted twice.
+        data_meat = st.uncertainty_data_meat and bool(polish_se)
         unc, s_unc, _ = sandwich_uncertainties(problem, final, names, ev["scale"], ev["profiles"],
                                                ev["model_variance"], jac, delta_rel=d_ref,
                                                fit_scale=fixed_scale is None,
                                                render_variance_factor=2.0 * st.final_spp / max(1, st.lm_spp),
-                                               covariance_out=sandwich_cov, jac_more=more)
+                                               covariance_out=sandwich_cov, jac_more=more, data_meat=data_meat)
         sandwich = dict(unc)
         # never below the ideal linear-chi^2 bound
         unc = {k: max(v, fisher.get(k, 0.0)) for k, v in unc.items()}

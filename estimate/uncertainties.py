@@ -22,7 +22,7 @@ from estimate.forward import ForwardModel
 from estimate.gauss_newton import bounded_cross
 from estimate.problem import Problem
 
-__all__ = ["DRIFT_T", "UNCERTAINTY_CROSS_FLOOR", "combined_covariance", "combined_uncertainties",
+__all__ = ["DRIFT_T", "UNCERTAINTY_CROSS_FLOOR", "combined_covariance", "combined_uncertainties", "data_noise_variance",
            "fisher_uncertainties", "iterate_drift", "sandwich_uncertainties", "window_estimate", "window_scatter"]
 
 
@@ -58,7 +58,8 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
                            *, delta_rel: float, fit_scale: bool, render_variance_factor: float = 2.0,
                            covariance_out: dict[str, dict[str, float]] | None = None,
                            jac_more: Sequence[Mapping[str, np.ndarray]] = (),
-                           cross_floor: float = UNCERTAINTY_CROSS_FLOOR
+                           cross_floor: float = UNCERTAINTY_CROSS_FLOOR,
+                           data_meat: bool = False
                            ) -> tuple[dict[str, float], float, float]:
     """1-sigma uncertainties of the log-loss estimator (sandwich), its scale's, and the
     log-space reduced chi^2. With `covariance_out`, the full covariance of `names` (the
@@ -96,8 +97,18 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
     3 % off. With `jac_more` its meat is the cross products A_i^T diag(r^2) A_j too: the
     Jacobians' mean carries their noise's Gram matrix, weighted by the large residuals,
     on top of a curvature that the cross products have freed of that noise.
+
+    `data_meat`: the meat holds the data's noise alone (`data_noise_variance`: the
+    variance channel's and any excess, sized from the residuals, less the evaluation
+    render's own noise), for a result that is the mean of polish points whose scatter
+    (`polish_se`, added by `combined_uncertainties`) carries the render noise; no further
+    inflation or robust choice. Otherwise the render noise is counted twice: on the
+    one-channel benchmark's truth the residuals are almost all the evaluation render's
+    noise (r^2 / (v_sensor + v_eval) 0.5-1.9 per angle) and the intervals were 1.4-2.2x too
+    wide (14 noise draws, session 30, `benchmarks/coverage_variants.py`;
+    `docs/estimation-log.md`).
     """
-    valid = problem.valid
+    valid = np.asarray(problem.valid, dtype=bool)
     m = problem.measured / scale
     dl = max(delta_rel * float(np.max(np.where(valid, m, -np.inf))), 1e-30)
     mm = np.clip(m, -0.5 * dl, None)
@@ -133,6 +144,15 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
         Hi = np.linalg.pinv(H, rcond=1e-12)
     except np.linalg.LinAlgError:
         return {k: float("nan") for k in names}, float("nan"), red
+    if data_meat:
+        v_data, _ = data_noise_variance(r, (problem.variance / scale ** 2) / (mm + dl) ** 2,
+                                        model_variance / (ip + dl) ** 2, valid)
+        cov = Hi @ gram(v_data.ravel()) @ Hi
+        if covariance_out is not None:
+            covariance_out.update({a: {b: float(cov[i, j]) for j, b in enumerate(names)} for i, a in enumerate(names)})
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        return ({k: float(sd[i]) for i, k in enumerate(names)}, float(sd[-1]) * scale if fit_scale else float("nan"),
+                red)
     cov = Hi @ meat @ Hi * max(1.0, red)
     if covariance_out is not None:
         covariance_out.update({a: {b: float(cov[i, j]) for j, b in enumerate(names)} for i, a in enumerate(names)})
@@ -145,6 +165,29 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     s_unc = float(sd[-1]) * scale if fit_scale else float("nan")
     return {k: float(sd[i]) for i, k in enumerate(names)}, s_unc, red
+
+
+def data_noise_variance(r: np.ndarray, v_sensor: np.ndarray, v_eval: np.ndarray, valid: np.ndarray
+                        ) -> tuple[np.ndarray, float]:
+    """The data's noise variance per pixel in the residuals' units, from the residuals r =
+    data - evaluation render, and the share b of it that the variance channel does not hold.
+
+    E r^2 = v_sensor + b v_eval + v_eval: the variance channel's noise, an excess shaped like
+    the render's (a simulated truth's frozen Monte Carlo noise, or model error that follows
+    the signal), and the evaluation render's own noise, which does not move the estimate.
+    b = max(0, sum(r^2 - v_sensor - v_eval) / sum(v_eval)) over the valid pixels: one
+    number from thousands of pixels. Per pixel, r^2 less v_eval was useless: where the
+    render noise dominates (the one-channel benchmark: r^2 / (v_sensor + v_eval) 0.5-1.9
+    per angle, the excess about 1/16 of v_eval) the difference of two one-sample variances
+    is mostly noise, and pooled over 15 pixels it still gave one benchmark draw's albedo an
+    interval 1/50 of the others'. A weighted fit of b was no better: v_eval, a two-seed
+    estimate, is near 0 in some pixels, which then dominated it (session 30).
+    Returns (v_sensor + b v_eval, b).
+    """
+    ok = valid & np.isfinite(r) & np.isfinite(v_sensor) & np.isfinite(v_eval)
+    total = float(np.sum(v_eval[ok]))
+    b = max(0.0, float(np.sum(r[ok] ** 2 - v_sensor[ok] - v_eval[ok])) / total) if total > 0 else 0.0
+    return np.where(ok, v_sensor + b * v_eval, 0.0), b
 
 
 #: Drift t-statistic above which a parameter counts as still moving when the fit stopped.

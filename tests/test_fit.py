@@ -174,6 +174,46 @@ def test_sandwich_uncertainties_match_scatter():
 
 
 
+def test_data_meat_leaves_the_evaluation_renders_noise_out():
+    """Data with unreported noise (3x the variance channel: frozen render noise of a simulated
+    truth), fitted exactly; the sandwich sees the residual against a noisy evaluation render
+    (variance 4x the data's, as `model_variance` says). With `data_meat` the interval matches
+    the estimates' scatter: the render noise is left out (the polish points' scatter carries
+    it in a fit). Without, it is counted as data noise and the interval is ~2x too wide."""
+    from scipy.optimize import least_squares
+
+    x = np.linspace(0.0, 3.0, 90)
+    a, b, s_true = 1.0, 1.2, 50.0
+    model = a * np.exp(-b * x)
+    var = 1e-4 * s_true * model * s_true + 0.002          # 1 % at the peak, as reported
+    true_var = 9.0 * var                                   # sd 3x what the variance channel says
+    mv = 4.0 * true_var / s_true ** 2                      # the evaluation render's, unit-power units
+    rng = np.random.default_rng(3)
+    dl = 0.03
+    est, with_dm, without = [], [], []
+    for _ in range(60):
+        meas = (s_true * model + rng.normal(0.0, np.sqrt(true_var)))[None, :]
+
+        def res(th, meas=meas):
+            m = meas[0] / s_true
+            d = dl * m.max()
+            return np.log(np.clip(m, -0.5 * d, None) + d) - np.log(th[0] * np.exp(-th[1] * x) + d)
+
+        th = least_squares(res, [0.9, 1.0]).x
+        exact = (th[0] * np.exp(-th[1] * x))[None, :]
+        rendered = exact + rng.normal(0.0, np.sqrt(mv))[None, :]
+        pb = Problem(np.array([0.0]), x, meas, var[None, :], None, None, "t", None)  # type: ignore[arg-type]
+        jac = {"a": exact / th[0], "b": -x * exact}
+        for out, dm in ((with_dm, True), (without, False)):
+            u, _, _ = sandwich_uncertainties(pb, {"a": th[0], "b": th[1]}, ["a", "b"], s_true, rendered,
+                                             mv[None, :], jac, delta_rel=dl, fit_scale=False, data_meat=dm)
+            out.append([u["a"], u["b"]])
+        est.append(th)
+    spread = np.std(np.array(est), axis=0, ddof=1)
+    assert np.all(np.abs(np.mean(with_dm, axis=0) / spread - 1.0) < 0.3), (np.mean(with_dm, axis=0), spread)
+    assert np.all(np.mean(without, axis=0) / spread > 1.6), (np.mean(without, axis=0), spread)
+
+
 def test_sandwich_curvature_from_cross_products_of_noisy_jacobians():
     """Along a weak direction one Monte Carlo Jacobian's A^T A is inflated by its noise's
     Gram matrix, so its sandwich is too narrow there; the cross products of independent

@@ -1,0 +1,159 @@
+"""Benchmark tool: the uncertainty recipe's parts against independent noise draws, offline.
+
+`bench_coverage.py` measures one recipe per run (about 2 min a draw). This script fits the same
+draws (synthetic sessions of `bench_estimate.py`'s truth, one noise seed each) once with the
+defaults and keeps what the uncertainty stage saw: the arguments of
+`estimate.uncertainties.sandwich_uncertainties` (the final point's residuals and every
+Jacobian) and of `combined_uncertainties` (the polish points' standard error and drift). The
+interval recipes are then recomputed from those inputs without re-fitting, so variants (the
+cross-product floor, the meat, the polish's standard error) are compared on the same fits.
+
+    .venv/bin/python benchmarks/coverage_variants.py capture --seeds 10-15 --dir /tmp/covvar
+    .venv/bin/python benchmarks/coverage_variants.py analyse --dir /tmp/covvar
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import pickle
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_coverage import CHANNEL, MODEL, SCALE, TRUTH_SPP
+from bench_estimate import ANGLES, TRUTH
+
+
+def _seeds(text: str) -> list[int]:
+    if "-" in text:
+        a, b = text.split("-")
+        return list(range(int(a), int(b) + 1))
+    return [int(s) for s in text.split(",")]
+
+
+def capture(seed: int, out: Path) -> None:
+    """Fit draw `seed` with the defaults; pickle the uncertainty stage's inputs and the result."""
+    from synth_session import make_session
+
+    from estimate import fit
+    from estimate.problem import load_problem
+
+    kept: dict[str, Any] = {}
+    real_sandwich, real_combined = fit.sandwich_uncertainties, fit.combined_uncertainties
+
+    def sandwich(problem, params, names, scale, profiles, model_variance, jac, **kw):
+        kept["sandwich"] = {
+            "problem": SimpleNamespace(measured=np.asarray(problem.measured), variance=np.asarray(problem.variance),
+                                       valid=np.asarray(problem.valid)),
+            "params": dict(params), "names": list(names), "scale": float(scale),
+            "profiles": np.asarray(profiles), "model_variance": np.asarray(model_variance),
+            "jac": {k: np.asarray(v) for k, v in jac.items()},
+            "kw": {k: v for k, v in kw.items() if k != "covariance_out"},
+        }
+        kept["sandwich"]["kw"]["jac_more"] = [{k: np.asarray(v) for k, v in j.items()} for j in kw.get("jac_more", ())]
+        return real_sandwich(problem, params, names, scale, profiles, model_variance, jac, **kw)
+
+    def combined(base, spread, polish_se, drift, polish_sd, *, polished):
+        kept["combined"] = {"base": dict(base), "spread": dict(spread), "polish_se": dict(polish_se),
+                            "drift": dict(drift), "polish_sd": dict(polish_sd), "polished": polished}
+        return real_combined(base, spread, polish_se, drift, polish_sd, polished=polished)
+
+    fit.sandwich_uncertainties, fit.combined_uncertainties = sandwich, combined
+    tmp = Path(tempfile.mkdtemp(prefix=f"covvar_{seed}_"))
+    try:
+        session = make_session(tmp / "s", {CHANNEL: TRUTH}, angles=ANGLES, spp=TRUTH_SPP, width=320,
+                               scale=SCALE, seed=seed)
+        t0 = time.monotonic()
+        r = fit.fit_channel(load_problem(session, CHANNEL), MODEL,
+                            settings=fit.FitSettings(seed=seed, scale="calibrated"))
+        wall = time.monotonic() - t0
+    finally:
+        fit.sandwich_uncertainties, fit.combined_uncertainties = real_sandwich, real_combined
+        shutil.rmtree(tmp, ignore_errors=True)
+    kept.update(seed=seed, wall_s=wall, parameters=dict(r.parameters), uncertainties=dict(r.uncertainties),
+                polish=[dict(e) for e in r.polish])
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"draw{seed}.pkl").write_bytes(pickle.dumps(kept))
+    print(f"draw {seed}: {wall:.0f} s; " + ", ".join(f"{k} {r.parameters[k]:.4g} +- {r.uncertainties[k]:.2g}"
+                                                     for k in TRUTH), flush=True)
+
+
+def analyse(d: Path) -> None:
+    from estimate.uncertainties import combined_uncertainties, sandwich_uncertainties
+
+    draws = [pickle.loads(p.read_bytes()) for p in sorted(d.glob("draw*.pkl"))]
+    if not draws:
+        raise SystemExit(f"no draws in {d}: run `capture` first")
+
+    def recipe(k: dict[str, Any], **over: Any) -> dict[str, float]:
+        s = k["sandwich"]
+        kw = dict(s["kw"])
+        use_se = over.pop("polish_se", True)
+        kw.update(over)
+        unc, _, _ = sandwich_uncertainties(s["problem"], s["params"], s["names"], s["scale"], s["profiles"],
+                                           s["model_variance"], s["jac"], **kw)
+        c = k["combined"]
+        se = c["polish_se"] if use_se else {}
+        out, _ = combined_uncertainties(unc, c["spread"], se, c["drift"], c["polish_sd"], polished=c["polished"])
+        return out
+
+    variants = {
+        "as fitted": {},
+        "session 29's recipe (render noise in the meat too)": {"data_meat": False},
+        "data meat (session 30's default)": {"data_meat": True},
+        "data meat, cross floor 0.01": {"data_meat": True, "cross_floor": 0.01},
+        "data meat, cross floor 0.3": {"data_meat": True, "cross_floor": 0.3},
+        "data meat, without the polish s.e.": {"data_meat": True, "polish_se": False},
+        "session 29's, mean Jacobian only": {"data_meat": False, "jac_more": ()},
+        "session 29's, without the polish s.e.": {"data_meat": False, "polish_se": False},
+    }
+    worst = max(abs(recipe(k)[p] / k["uncertainties"][p] - 1.0) for k in draws for p in TRUTH)
+    print(f"recomputed 'as fitted' against the fits' own intervals: largest relative difference {worst:.2g}")
+    print(f"{len(draws)} draws (seeds {', '.join(str(k['seed']) for k in draws)}); RMS z per parameter "
+          "(1 when the intervals are right), the share within 1 sigma (68 % expected) and the largest |z|")
+    print("| recipe | " + " | ".join(TRUTH) + " |")
+    print("|---|" + "---|" * len(TRUTH))
+    for name, over in variants.items():
+        zs = {p: [] for p in TRUTH}
+        for k in draws:
+            u = recipe(k, **dict(over))
+            for p in TRUTH:
+                if u.get(p, 0) > 0 and math.isfinite(u[p]):
+                    zs[p].append((k["parameters"][p] - TRUTH[p]) / u[p])
+        print(f"| {name} | " + " | ".join(
+            f"{math.sqrt(np.mean(np.square(v))):.2f} ({100 * np.mean(np.abs(v) <= 1):.0f} %, max {np.max(np.abs(v)):.1f})"
+            if v else "-" for v in zs.values()) + " |")
+    print("| RMS error | " + " | ".join(f"{math.sqrt(np.mean([(k['parameters'][p] - TRUTH[p]) ** 2 for k in draws])):.3g}"
+                                        for p in TRUTH) + " |")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("what", choices=("capture", "analyse"))
+    ap.add_argument("--seeds", default="10-13", help="noise seeds, e.g. 10-15 or 3,5")
+    ap.add_argument("--dir", type=Path, default=Path(tempfile.gettempdir()) / "covvar")
+    a = ap.parse_args()
+    if a.what == "capture":
+        for s in _seeds(a.seeds):
+            if (a.dir / f"draw{s}.pkl").is_file():
+                continue
+            capture(s, a.dir)
+    else:
+        analyse(a.dir)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
