@@ -46,8 +46,9 @@ SCALE = "calibrated"  # intensity scale of the fits (--scale); as rig estimate's
 #: points since session 17; the screened coarse grid and the polish's noise test since 18; the
 #: uncertainties' cross-product curvature since 20; the polish's one-sided Jacobians and
 #: iterations to 128 spp since 25; the damped polish with wider caps since 27; the hand-over
-#: to the polish after the Adam steps and the polish's Jacobians for the uncertainties since 28).
-RECIPE = "jointgrid-smoothgn-davg-polish-cross-chi2-crossunc-onesided128-damped-handover"
+#: to the polish after the Adam steps and the polish's Jacobians for the uncertainties since 28;
+#: the sandwich's data-only meat since 30).
+RECIPE = "jointgrid-smoothgn-davg-polish-cross-chi2-crossunc-onesided128-damped-handover-datameat"
 
 WORLD_TEMPLATE = """\
 # Paper section 4 simulation case: poly-disperse Mie, mean diameter {d} um, sigma_t {s} /mm.

@@ -214,6 +214,29 @@ def test_data_meat_leaves_the_evaluation_renders_noise_out():
     assert np.all(np.mean(without, axis=0) / spread > 1.6), (np.mean(without, axis=0), spread)
 
 
+def test_correlation_factor_counts_noise_shared_between_neighbouring_pixels():
+    """White noise: a sum over pixels has the sum of their variances (factor ~1). Noise
+    averaged over 3 neighbouring pixels (a render's reconstruction filter): a smooth sum
+    has ~3x that variance, which a diagonal meat would miss."""
+    from scipy import ndimage
+
+    from estimate.uncertainties import correlation_factor
+
+    rng = np.random.default_rng(8)
+    white = rng.standard_normal((10, 400))
+    valid = np.ones(white.shape, bool)
+    smooth = ndimage.uniform_filter1d(rng.standard_normal((10, 400)), 3, axis=-1)
+    v = np.ones(white.shape)
+    assert 1.0 <= correlation_factor(white, v, valid) < 1.15
+    k3 = correlation_factor(smooth, v / 3.0, valid)
+    assert 2.5 < k3 < 3.2, k3
+    # only the correlation counts, not the level, and invalid pixels are left out
+    assert correlation_factor(5.0 * smooth, 25.0 * v, valid) == pytest.approx(k3)
+    holes = valid.copy()
+    holes[:, ::7] = False
+    assert 2.3 < correlation_factor(smooth, v, holes) < 3.2
+
+
 def test_sandwich_curvature_from_cross_products_of_noisy_jacobians():
     """Along a weak direction one Monte Carlo Jacobian's A^T A is inflated by its noise's
     Gram matrix, so its sandwich is too narrow there; the cross products of independent
