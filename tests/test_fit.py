@@ -139,11 +139,18 @@ def test_calibrated_scale_from_beam_power_and_lens(problem, tmp_path):
         calibrated_scale(problem.session_path, "r", 1.0e6)
 
 
+def _toy_log_fit(m: np.ndarray, x: np.ndarray, dl: float) -> np.ndarray:
+    """(a, b) of the log-loss fit of a exp(-b x) to the unit-scale profile m, delta dl x its peak."""
+    from scipy.optimize import least_squares
+
+    d = dl * m.max()
+    lm = np.log(np.clip(m, -0.5 * d, None) + d)
+    return least_squares(lambda th: lm - np.log(th[0] * np.exp(-th[1] * x) + d), [0.9, 1.0]).x
+
+
 def test_sandwich_uncertainties_match_scatter():
     """A toy log-loss fit (I = a exp(-b x), no renders) over many noise draws: the sandwich
     1-sigma matches the scatter of the estimates; the scale, when fitted, is profiled."""
-    from scipy.optimize import least_squares
-
     x = np.linspace(0.0, 3.0, 60)
     a, b, s_true = 1.0, 1.2, 50.0
     model = a * np.exp(-b * x)
@@ -153,13 +160,7 @@ def test_sandwich_uncertainties_match_scatter():
     est, pred = [], []
     for _ in range(60):
         meas = (s_true * model + rng.normal(0.0, np.sqrt(var)))[None, :]
-
-        def res(th, meas=meas):
-            m = meas[0] / s_true
-            d = dl * m.max()
-            return np.log(np.clip(m, -0.5 * d, None) + d) - np.log(th[0] * np.exp(-th[1] * x) + d)
-
-        th = least_squares(res, [0.9, 1.0]).x
+        th = _toy_log_fit(meas[0] / s_true, x, dl)
         prof = (th[0] * np.exp(-th[1] * x))[None, :]
         pb = Problem(np.array([0.0]), x, meas, var[None, :], None, None, "t", None)  # type: ignore[arg-type]
         jac = {"a": prof / th[0], "b": -x * prof}
@@ -180,8 +181,6 @@ def test_data_meat_leaves_the_evaluation_renders_noise_out():
     (variance 4x the data's, as `model_variance` says). With `data_meat` the interval matches
     the estimates' scatter: the render noise is left out (the polish points' scatter carries
     it in a fit). Without, it is counted as data noise and the interval is ~2x too wide."""
-    from scipy.optimize import least_squares
-
     x = np.linspace(0.0, 3.0, 90)
     a, b, s_true = 1.0, 1.2, 50.0
     model = a * np.exp(-b * x)
@@ -193,13 +192,7 @@ def test_data_meat_leaves_the_evaluation_renders_noise_out():
     est, with_dm, without = [], [], []
     for _ in range(60):
         meas = (s_true * model + rng.normal(0.0, np.sqrt(true_var)))[None, :]
-
-        def res(th, meas=meas):
-            m = meas[0] / s_true
-            d = dl * m.max()
-            return np.log(np.clip(m, -0.5 * d, None) + d) - np.log(th[0] * np.exp(-th[1] * x) + d)
-
-        th = least_squares(res, [0.9, 1.0]).x
+        th = _toy_log_fit(meas[0] / s_true, x, dl)
         exact = (th[0] * np.exp(-th[1] * x))[None, :]
         rendered = exact + rng.normal(0.0, np.sqrt(mv))[None, :]
         pb = Problem(np.array([0.0]), x, meas, var[None, :], None, None, "t", None)  # type: ignore[arg-type]
