@@ -97,7 +97,10 @@ result and the loop; the stages' parts live beside it: `estimate.start` (1),
    scale, loss at the reference delta, chi^2 with var_meas + s^2 var_model;
 7. uncertainties: the sandwich covariance of the log-loss estimator
    (`sandwich_uncertainties`: Gauss-Newton curvature of the log loss, the sensor and render
-   noise propagated through it, times the log-space reduced chi^2 when > 1; the curvature
+   noise propagated through it, times the log-space reduced chi^2 when > 1; since session
+   30, when the result averaged polish points, the data's noise alone, its excess sized from
+   the residuals and times their pixel correlation (`uncertainty_data_meat`), because the
+   points' standard error below carries the render noise; the curvature
    from the cross products of independent Jacobians, the polish's last ones (since session
    28; before, and still when the polish averaged fewer than two points, one more at the
    final point), since one Monte Carlo Jacobian's own noise fakes curvature along the
