@@ -106,8 +106,8 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
     inflation or robust choice, but multiplied by the residuals' pixel-to-pixel correlation
     (`correlation_factor`). Otherwise the render noise is counted twice: on the
     one-channel benchmark's truth the residuals are almost all the evaluation render's
-    noise (r^2 / (v_sensor + v_eval) 0.5-1.9 per angle) and the intervals were 1.4-2.2x too
-    wide (14 noise draws, session 30, `benchmarks/coverage_variants.py`;
+    noise (r^2 / (v_sensor + v_eval) 0.5-1.9 per angle) and the intervals were 1.5-2.2x too
+    wide (18 noise draws, session 30, `benchmarks/coverage_variants.py`;
     `docs/estimation-log.md`).
     """
     valid = np.asarray(problem.valid, dtype=bool)
