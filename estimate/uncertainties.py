@@ -137,7 +137,7 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
         cross = sum(a.T @ (b * w[:, None]) + b.T @ (a * w[:, None]) for a, b in pairs) / (2 * len(pairs))
         return bounded_cross(cross, mean_gram, cross_floor)
 
-    H, meat = gram(np.ones(A.shape[0])), gram(var_r.ravel())
+    H = gram(np.ones(A.shape[0]))
     n = int(valid.sum())
     dof = max(1, n - A.shape[1])
     c2 = float(np.sum(np.where(var_r > 0, r * r / np.where(var_r > 0, var_r, 1.0), 0.0)))
@@ -149,22 +149,16 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
     if data_meat:
         v_sensor, v_eval = (problem.variance / scale ** 2) / (mm + dl) ** 2, model_variance / (ip + dl) ** 2
         v_data, _ = data_noise_variance(r, v_sensor, v_eval, valid)
-        kappa = correlation_factor(r, v_sensor + v_eval, valid)
-        cov = kappa * (Hi @ gram(v_data.ravel()) @ Hi)
-        if covariance_out is not None:
-            covariance_out.update({a: {b: float(cov[i, j]) for j, b in enumerate(names)} for i, a in enumerate(names)})
-        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-        return ({k: float(sd[i]) for i, k in enumerate(names)}, float(sd[-1]) * scale if fit_scale else float("nan"),
-                red)
-    cov = Hi @ meat @ Hi * max(1.0, red)
+        cov = correlation_factor(r, v_sensor + v_eval, valid) * (Hi @ gram(v_data.ravel()) @ Hi)
+    else:
+        modelled = Hi @ gram(var_r.ravel()) @ Hi
+        cov = modelled * max(1.0, red)
     if covariance_out is not None:
         covariance_out.update({a: {b: float(cov[i, j]) for j, b in enumerate(names)} for i, a in enumerate(names)})
-    if red > 1.0:
+    if not data_meat and red > 1.0:
         robust = Hi @ gram(r.ravel() ** 2) @ Hi
-        modelled = Hi @ meat @ Hi
         # never below the noise-only sandwich, never above the uniformly inflated one
-        d = np.clip(np.diag(robust), np.diag(modelled), np.diag(cov))
-        cov = np.diag(d)
+        cov = np.diag(np.clip(np.diag(robust), np.diag(modelled), np.diag(cov)))
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     s_unc = float(sd[-1]) * scale if fit_scale else float("nan")
     return {k: float(sd[i]) for i, k in enumerate(names)}, s_unc, red
