@@ -71,6 +71,16 @@ def _red(region: dict[str, Any]) -> str:
     return "-" if v is None or region.get("pixels", 0) == 0 else f"{v:.2f}"
 
 
+def _exit_bar_text(e: Mapping[str, Any]) -> str:
+    """The rise a backward check needed, in words: the BIC price, and the dispersion it was
+    multiplied by where the joint model's reduced chi^2 exceeds 1."""
+    disp = float(e.get("dispersion", 1.0))
+    if disp > 1.0 and "price" in e:
+        return (f"its BIC price {e['price']:.1f} (k ln n) x {disp:.2f} (the reduced chi2 the model with every named "
+                f"effect leaves) = {e['needed']:.1f}")
+    return f"its BIC price {e['needed']:.1f} (k ln n)"
+
+
 def summary_text(doc: Mapping[str, Any]) -> str:
     """Plain-language summary of a diagnosis document (terminal and HTML report)."""
     import io
@@ -115,7 +125,7 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                    if final else "dropped: its signature was borrowed from the effect added after it")
             print(f"  backward check ({'estimator' if final else 'refit'}): {e['effect']} set to absent in the model "
                   f"with {', '.join(e['with'])} raises chi2 by {e['chi2_rise']:.1f}, "
-                  f"{'less than' if e['dropped'] else 'more than'} its BIC price {e['needed']:.1f} (k ln n) -> "
+                  f"{'less than' if e['dropped'] else 'more than'} {_exit_bar_text(e)} -> "
                   f"{why if e['dropped'] else 'kept'}", file=out)
         imp = d.get("importance") or {}
         if len(imp) >= 2:
