@@ -923,7 +923,10 @@ def _screen(problem: Any, current: Evaluation, exts: Sequence[str], make_model: 
     # 2.8 beyond the fit).
     base_cols = [current.scale * jac[n] for n in free] + [base_render]
     cols: dict[str, list[np.ndarray]] = {}
-    image = [n for n in names if EXTENSIONS[n].kind == "image"]
+    # Image-space candidates act on the base render, except a lens blur where the beam map was
+    # imaged through the lens: that one is rendered with the map deblurred (`ForwardModel.deblurs_beam`).
+    image = [n for n in names if EXTENSIONS[n].kind == "image"
+             and not (n == "lens_blur" and getattr(m0.beam_profile, "through_lens", False))]
     if image:
         cols.update(candidate_columns(m0, current.parameters, angles, base_render, image, spp=spp, seed=seed))
     for n in names:

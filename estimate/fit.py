@@ -564,8 +564,10 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     g_avg: np.ndarray | None = None
     gn_grads: list[np.ndarray] = []
     gn_trace: list[list[float]] = []
-    # Columns the Jacobian gets exactly (image-space parameters) carry no Monte Carlo noise to smooth away.
-    exact_columns = {n for n in stepped if fm.derivative_kind(n) == "image"}
+    # Columns of image-space parameters are not smoothed: exact ones carry no Monte Carlo noise
+    # to smooth away, and a blur's column changes sign within a few pixels (rendered, with a
+    # deblurred beam map: `ForwardModel.deblurs_beam`, common random numbers keep it sharp).
+    exact_columns = {n for n in stepped if fm.acts_in_image(n)}
     gn_nodes = [math.exp(lo + (k + 0.5) / st.gn_delta_nodes * (hi - lo)) for k in range(st.gn_delta_nodes)]
     hand_over = st.iterations_before_polish if st.polish_steps > 0 and stepped else None
     for it in range(1, st.max_iterations + 1):

@@ -39,6 +39,7 @@ from estimate.extensions import EXTENSIONS, IMAGE_ORDER, check_value, get_extens
 from estimate.extensions.base import ImageExtension, ParameterSpec
 from estimate.extensions.filter_bandwidth import band_nodes
 from estimate.extensions.lens_blur import TRUNCATION_PX as LENS_BLUR_RADIUS
+from estimate.extensions.lens_blur import psf_2d
 from estimate.extensions.refractive_boundary import INTERNAL_REFLECTIONS
 from estimate.geometry import PixelWindow, RigGeometry
 from estimate.mitsuba_env import init_mitsuba
@@ -129,6 +130,18 @@ class ForwardModel:
             for name in ("sigma_t", "filter_bandwidth.spread"):
                 if name in self.specs:
                     self.specs[name] = replace(self.specs[name], derivative="fd")
+        #: The beam map was imaged through the lens (a calibration frame) and the model blurs
+        #: the image by the lens's PSF: the slab is lit by the map with that PSF taken out
+        #: (`beam_for`), so the blur acts once. The blur's parameters then also change the
+        #: scene, and are differentiated by finite differences of whole renders (common
+        #: random numbers; the render is linear in the map, so those differences carry
+        #: little Monte Carlo noise).
+        self.deblurs_beam = "lens_blur" in self.extensions and bool(getattr(beam, "through_lens", False))
+        if self.deblurs_beam:
+            for p in EXTENSIONS["lens_blur"].parameters:
+                name = f"lens_blur.{p.name}"
+                self.specs[name] = replace(self.specs[name], derivative="fd")
+        self._beams: dict[tuple[float, ...], BeamProfile] = {}
         self.mi = init_mitsuba(variant)
         import drjit as dr
 
@@ -153,6 +166,37 @@ class ForwardModel:
     def derivative_kind(self, name: str) -> str:
         """"ad", "image" or "fd": how `vjp` / `jacobian` differentiate this parameter."""
         return self._spec(name).derivative
+
+    def acts_in_image(self, name: str) -> bool:
+        """Whether the parameter belongs to an image-space extension (a blur, stray light,
+        sensor compression): its derivative columns have pixel-scale structure that must not
+        be smoothed, whether they are exact ("image") or, with `deblurs_beam`, rendered."""
+        ext = name.split(".", 1)[0]
+        return ext in self.extensions and EXTENSIONS[ext].kind == "image"
+
+    def beam_for(self, values: Mapping[str, float]) -> BeamProfile:
+        """The beam map that lights the slab at these parameter values: the calibrated one,
+        or with `deblurs_beam` the calibrated one with the lens's PSF at the values' blur
+        taken out (`estimate.beam.BeamProfile.deblurred`; the map itself at no blur)."""
+        if not self.deblurs_beam:
+            return self.beam_profile
+        v = {p.name: float(values.get(f"lens_blur.{p.name}", p.neutral)) for p in EXTENSIONS["lens_blur"].parameters}
+        if v["core_sigma_px"] == 0 and v["tail_fraction"] == 0:
+            return self.beam_profile
+        key = tuple(v[k] for k in sorted(v))
+        hit = self._beams.get(key)
+        if hit is None:
+            # One sample of the map is one sensor pixel of the calibration frame; the PSF is in
+            # sensor pixels.
+            if not math.isclose(self.beam_profile.pitch_mm, self.geometry.pixel_mm, rel_tol=1e-6):
+                raise ModelParameterError(
+                    f"the beam map's pitch {self.beam_profile.pitch_mm:.6g} mm is not the sensor's pixel "
+                    f"{self.geometry.pixel_mm:.6g} mm; the lens blur cannot be taken out of it")
+            hit = self.beam_profile.deblurred(psf_2d(v))
+            if len(self._beams) >= 16:  # a fit visits many points; keep the recent ones
+                self._beams.pop(next(iter(self._beams)))
+            self._beams[key] = hit
+        return hit
 
     def _spec(self, name: str) -> ParameterSpec:
         try:
@@ -670,6 +714,8 @@ class _SceneBundle:
         self.scene = mi.load_dict(scene_dict)
         beam = next(iter(self.scene.emitters()))
         beam.set_profile(model.beam_profile)
+        self.beam_emitter = beam
+        self.beam_installed = model.beam_profile
         self.params = mi.traverse(self.scene)
         keys = list(self.params.keys())
 
@@ -746,6 +792,11 @@ class _SceneBundle:
         model = self.model
         dr = model.dr
         mi = model.mi
+        if model.deblurs_beam:
+            prof = model.beam_for(values)
+            if prof is not self.beam_installed:
+                self.beam_emitter.set_profile(prof)
+                self.beam_installed = prof
 
         def val(name: str) -> Any:
             if name in leaves:

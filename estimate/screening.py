@@ -61,6 +61,9 @@ PROBES: dict[str, list[dict[str, float]]] = {
     "beam_halo": [{"beam_halo.fraction": 0.02, "beam_halo.sigma_mm": 0.5},
                   {"beam_halo.fraction": 0.02, "beam_halo.sigma_mm": 2.0}],
     "filter_bandwidth": [{"filter_bandwidth.spread": 0.3}],
+    # Rendered only where the beam map was imaged through the lens (`ForwardModel.deblurs_beam`):
+    # the blur then also reshapes the map the slab is lit by. The same probes as `image_columns`.
+    "lens_blur": [{"lens_blur.core_sigma_px": 1.5}, {"lens_blur.tail_fraction": 0.02}],
 }
 
 
@@ -157,12 +160,16 @@ def candidate_columns(model: Any, params: Mapping[str, float], angles_deg: Seque
 
     `model` is a ForwardModel factory result with every scene candidate switched on
     (extensions at neutral values reproduce the base model); `base` its render at `params`
-    with the same `spp` and `seed` (common random numbers for the secants).
+    with the same `spp` and `seed` (common random numbers for the secants). The lens blur's
+    columns are rendered too when `model` includes it with a beam map imaged through the lens
+    (`ForwardModel.deblurs_beam`): the calibration frame carries that blur already, and what
+    the recording shows of it is only where the slab's image does not repeat the map's (the
+    oblique footprint, the scattered light).
     """
     out: dict[str, list[np.ndarray]] = {}
     pm = model.geometry.pixel_mm
     for name in names:
-        if EXTENSIONS[name].kind == "image":
+        if EXTENSIONS[name].kind == "image" and not (name == "lens_blur" and getattr(model, "deblurs_beam", False)):
             out[name] = image_columns(name, base, pm, model.y_shape_for(angles_deg) if name == "lens_blur" else None)
             continue
         cols = []

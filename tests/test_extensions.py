@@ -242,6 +242,83 @@ def test_forward_model_blurs_profiles_with_the_recorded_y_shape() -> None:
         assert grads[name] == pytest.approx(float((j * cot).sum()), rel=1e-3, abs=1e-9), name
 
 
+def _camera_map(blur: dict[str, float] | None) -> tuple[BeamProfile, BeamProfile]:
+    """A Gaussian beam (sigma 0.15 mm) sampled at GEOM's pixels, and the map a calibration
+    frame gives of it: blurred by the lens's PSF, marked as imaged through the lens."""
+    from scipy import signal
+
+    from estimate.extensions.lens_blur import psf_2d
+
+    true = BeamProfile.gaussian(0.3, pitch_mm=GEOM.pixel_mm)
+    e = true.irradiance
+    if blur is not None:
+        e = signal.fftconvolve(e, psf_2d(blur), mode="same")
+    n = e.shape[0]
+    frame = BeamProfile.from_camera_image(e[::-1, :], GEOM.pixel_mm, ((n - 1) / 2, (n - 1) / 2))
+    return true, frame
+
+
+def test_deblurring_a_map_imaged_through_the_lens_restores_the_beam() -> None:
+    from estimate.extensions.lens_blur import psf_2d
+
+    blur = {"core_sigma_px": 1.5, "tail_fraction": 0.02, "tail_scale_px": 20.0}
+    true, frame = _camera_map(blur)
+    assert frame.through_lens and not true.through_lens
+    assert frame.rms_width_mm() > 1.1 * true.rms_width_mm()  # the calibration frame reads wider
+    back = frame.deblurred(psf_2d(blur))
+    assert not back.through_lens and back.shape == frame.shape
+    assert np.all(back.irradiance >= 0) and back.power() == pytest.approx(frame.power(), rel=1e-12)
+    assert back.rms_width_mm() == pytest.approx(true.rms_width_mm(), rel=0.02)
+    peak = np.unravel_index(np.argmax(true.irradiance), true.shape)
+    assert back.irradiance[peak] == pytest.approx(true.irradiance[peak] * frame.power() / true.power(), rel=0.03)
+    # no blur: the map itself (Wiener's 1 / (1 + lambda) is undone by keeping the power)
+    delta = psf_2d({"core_sigma_px": 0.0, "tail_fraction": 0.0, "tail_scale_px": 20.0})
+    assert np.allclose(frame.deblurred(delta).irradiance, frame.irradiance, rtol=1e-9, atol=1e-12)
+    with pytest.raises(ModelParameterError, match="odd square"):
+        frame.deblurred(np.ones((4, 4)) / 16)
+
+
+def test_a_model_with_lens_blur_lights_the_slab_with_the_map_deblurred() -> None:
+    """A calibration frame images the beam through the same lens: a model that blurs the
+    slab's image must not light it with the blurred map too, or the blur acts twice."""
+    blur = {"core_sigma_px": 1.5, "tail_fraction": 0.02, "tail_scale_px": 20.0}
+    _, frame = _camera_map(blur)
+    exts = ["lens_blur", "stray_light"]
+    model = ForwardModel(GEOM, frame, phase="exp1", extensions=exts)
+    assert model.deblurs_beam and model.derivative_kind("lens_blur.core_sigma_px") == "fd"
+    assert model.acts_in_image("lens_blur.tail_fraction") and not model.acts_in_image("sigma_t")
+    p = {**BASE, "phase.b1": 1.0, **{f"lens_blur.{k}": v for k, v in blur.items()}, "stray_light.offset": 0.001}
+    angles = [40.0, 140.0]
+    from estimate.extensions.lens_blur import psf_2d
+
+    plain_map = BeamProfile(frame.irradiance, frame.pitch_mm, frame.u0_mm, frame.v0_mm)
+    by_hand = ForwardModel(GEOM, plain_map.deblurred(psf_2d(blur)), phase="exp1", extensions=exts)
+    assert not by_hand.deblurs_beam
+    got = model.render_profiles(p, angles, spp=64, seed=2)
+    assert np.allclose(got, by_hand.render_profiles(p, angles, spp=64, seed=2), rtol=1e-6, atol=1e-12)
+    # without blur the map is used as it is
+    p0 = {**p, "lens_blur.core_sigma_px": 0.0, "lens_blur.tail_fraction": 0.0}
+    base = ForwardModel(GEOM, plain_map, phase="exp1", extensions=["stray_light"])
+    assert np.allclose(model.render_profiles(p0, angles, spp=64, seed=2),
+                       base.render_profiles({k: v for k, v in p0.items() if not k.startswith("lens_blur.")},
+                                            angles, spp=64, seed=2), rtol=1e-6, atol=1e-12)
+    # the blur's derivatives include its action on the map: rendered differences, and the
+    # reverse-mode gradient agrees with them
+    names = ["lens_blur.core_sigma_px", "lens_blur.tail_fraction"]
+    jac = model.jacobian(p, angles, names, spp=64, seed=2)
+    image_only = by_hand.jacobian(p, angles, names, spp=64, seed=2)
+    for n in names:
+        assert not np.allclose(jac[n], image_only[n], rtol=0.05), n
+    cot = np.random.default_rng(4).random((2, N_PIX))
+    grads = model.vjp(p, angles, cot, spp=64, seed=2)
+    for n in names:
+        assert grads[n] == pytest.approx(float((jac[n] * cot).sum()), rel=1e-6), n
+    # the map and the sensor must share their pixel for the PSF to apply to both
+    coarse = BeamProfile(frame.irradiance, 2 * frame.pitch_mm, frame.u0_mm, frame.v0_mm, through_lens=True)
+    with pytest.raises(ModelParameterError, match="pitch"):
+        ForwardModel(GEOM, coarse, phase="exp1", extensions=exts).render_profiles(p, angles, spp=4, seed=0)
+
+
 def test_filter_bandwidth_zero_spread_matches_single_wavelength(base_model: ForwardModel) -> None:
     model = ForwardModel(GEOM, BEAM, phase="exp1", extensions=["filter_bandwidth"])
     a = model.render_profiles({**BASE, "phase.b1": 1.0}, [40.0], spp=4096, seed=7)
