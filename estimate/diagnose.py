@@ -309,12 +309,19 @@ def _magnitude_z(fit: RefitResult, ext: str) -> float:
     correlated magnitudes (a blur's core width and its tail fraction) are each uncertain
     alone yet jointly far from absent. At least the largest single |d|/sigma.
     """
+    return _wald_z(fit.parameters, fit.uncertainties, fit.covariance, ext)
+
+
+def _wald_z(parameters: Mapping[str, float], uncertainties: Mapping[str, float],
+            covariance: Mapping[tuple[str, str], float], ext: str) -> float:
+    """`_magnitude_z` from plain values: parameters, their 1-sigma uncertainties and
+    covariance {(a, b): cov} (a refit's, or an estimator fit's flattened)."""
     spec = {p.name: p for p in EXTENSIONS[ext].parameters}
-    names = [n for n in MAGNITUDE_PARAMETERS[ext] if n in fit.parameters]
+    names = [n for n in MAGNITUDE_PARAMETERS[ext] if n in parameters]
     joint = 0.0
-    if names and all((a, b) in fit.covariance for a in names for b in names):
-        d = np.array([fit.parameters[n] - spec[n.split(".", 1)[1]].neutral for n in names])
-        c = np.array([[fit.covariance[(a, b)] for b in names] for a in names])
+    if names and all((a, b) in covariance for a in names for b in names):
+        d = np.array([parameters[n] - spec[n.split(".", 1)[1]].neutral for n in names])
+        c = np.array([[covariance[(a, b)] for b in names] for a in names])
         if np.all(np.isfinite(c)) and np.all(np.diag(c) > 0):
             sd = np.sqrt(np.diag(c))
             z = d / sd
@@ -323,10 +330,10 @@ def _magnitude_z(fit: RefitResult, ext: str) -> float:
             joint = float(-stats.norm.ppf(0.5 * math.exp(logp))) if logp > -700 else math.sqrt(w)
     best = joint
     for full in MAGNITUDE_PARAMETERS[ext]:
-        u = fit.uncertainties.get(full)
-        if not u or not math.isfinite(u) or u <= 0:
+        u = uncertainties.get(full)
+        if not u or not math.isfinite(u) or u <= 0 or full not in parameters:
             continue
-        best = max(best, abs(fit.parameters[full] - spec[full.split(".", 1)[1]].neutral) / u)
+        best = max(best, abs(parameters[full] - spec[full.split(".", 1)[1]].neutral) / u)
     return best
 
 
@@ -703,14 +710,24 @@ def _by_importance(confirmed: Sequence[str], rises: Mapping[str, float], stage: 
 
 
 def _prune_final(problem: Any, model: Any, params: Mapping[str, float], confirmed: Sequence[str],
-                 before: Evaluation, *, spp: int, seed: int, repeats: int, renders: np.ndarray | None = None
+                 before: Evaluation, *, spp: int, seed: int, repeats: int, renders: np.ndarray | None = None,
+                 uncertainties: Mapping[str, float] | None = None,
+                 covariance: Mapping[str, Mapping[str, float]] | None = None,
                  ) -> tuple[list[dict[str, Any]], dict[str, float]]:
     """The backward check (`_prune`) at the estimator's final fit: each confirmed effect put
     back to absent, chi^2 at the same seeds in the base fit's noise metric. The effect that
     carries the most is kept whatever its figure; another whose rise falls short of its BIC
     price k ln n times the final fit's dispersion (`_bic_exit_bar`) is dropped (the final fit
     has no further use for it). `renders`: the fit's own `render_stack` at these seeds, when
-    the caller has it."""
+    the caller has it.
+
+    With the fit's `uncertainties` and `covariance`, such an effect must also lie more than
+    `MAGNITUDE_SIGMA` from absent by them (`_wald_z`), as it had to in its confirmation. The
+    rise holds the other parameters where the fit left them, so it overstates what an effect
+    carries that they can stand in for: on the bench's refractive-boundary session a glare
+    tail confirmed before the boundary ended at 0.6 +- 2.7 % (core 0 +- 2.9 px) in the final
+    fit, 0.2 sigma from absent, yet setting it to absent alone raised chi^2 by 55 against a
+    bar of 38."""
     yd = _yardstick(problem, before)
     ref = evaluate(model, params, problem, 0, spp=spp, seed=seed, repeats=repeats, noise_variance=yd,
                    renders=renders)
@@ -722,14 +739,21 @@ def _prune_final(problem: Any, model: Any, params: Mapping[str, float], confirme
                       noise_variance=yd)
         rises[e] = float(ev.residuals.chi2_adjusted - ref.residuals.chi2_adjusted)
     top = max(rises, key=lambda k: rises[k])
+    cov = {(a, b): float(v) for a, row in (covariance or {}).items() for b, v in row.items()}
     out = []
     for e in confirmed:
         if e == top:
             continue
         needed = _bic_exit_bar(e, n_obs, disp)
-        out.append({"effect": e, "stage": "final fit", "chi2_rise": rises[e], "needed": needed,
-                    "price": _bic_penalty(e, n_obs), "dispersion": disp,
-                    "dropped": bool(rises[e] < needed), "with": [c for c in confirmed if c != e]})
+        entry: dict[str, Any] = {"effect": e, "stage": "final fit", "chi2_rise": rises[e], "needed": needed,
+                                 "price": _bic_penalty(e, n_obs), "dispersion": disp,
+                                 "dropped": bool(rises[e] < needed), "with": [c for c in confirmed if c != e]}
+        if uncertainties:
+            z = _wald_z(params, uncertainties, cov, e)
+            entry["magnitude_sigma"] = z
+            entry["magnitude_needed"] = MAGNITUDE_SIGMA
+            entry["dropped"] = bool(entry["dropped"] or z <= MAGNITUDE_SIGMA)
+        out.append(entry)
     return out, rises
 
 
@@ -880,10 +904,12 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
         # 0.04 px core, though its 0.27 % wide tail still counts). One that no longer carries
         # its BIC bar stays in the fitted model at its fitted value but is no longer named.
         checks, rises = _prune_final(problem, m, fr.parameters, d.confirmed, d.before, spp=spp, seed=seed,
-                                     repeats=repeats, renders=stack)
+                                     repeats=repeats, renders=stack, uncertainties=fr.uncertainties,
+                                     covariance=fr.covariance)
         for e in checks:
             say(f"  {e['effect']} in the final fit: setting it to absent raises chi2 by {e['chi2_rise']:.1f} "
-                f"(needs {e['needed']:.1f})" + (" -> dropped" if e["dropped"] else " -> kept"))
+                f"(needs {e['needed']:.1f}), its magnitude {e.get('magnitude_sigma', math.nan):.1f} sigma from "
+                f"absent (needs {MAGNITUDE_SIGMA:g})" + (" -> dropped" if e["dropped"] else " -> kept"))
         d.pruned = list(d.pruned) + checks
         d.confirmed = [c for c in d.confirmed if not any(e["effect"] == c and e["dropped"] for e in checks)]
         d.importance = {}

@@ -125,8 +125,10 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                    if final else "dropped: its signature was borrowed from the effect added after it")
             print(f"  backward check ({'estimator' if final else 'refit'}): {e['effect']} set to absent in the model "
                   f"with {', '.join(e['with'])} raises chi2 by {e['chi2_rise']:.1f}, "
-                  f"{'less than' if e['dropped'] else 'more than'} {_exit_bar_text(e)} -> "
-                  f"{why if e['dropped'] else 'kept'}", file=out)
+                  f"{'less than' if e['chi2_rise'] < e['needed'] else 'more than'} {_exit_bar_text(e)}"
+                  + (f"; its fitted magnitude is {e['magnitude_sigma']:.1f} sigma from absent (needs more than "
+                     f"{e['magnitude_needed']:g})" if "magnitude_sigma" in e else "")
+                  + f" -> {why if e['dropped'] else 'kept'}", file=out)
         imp = d.get("importance") or {}
         if len(imp) >= 2:
             order = d.get("confirmed_order") or []

@@ -628,6 +628,56 @@ def test_the_bar_to_stay_scales_with_the_dispersion_the_joint_model_leaves(monke
     assert ("x 4.17 (the reduced chi2" in text) is dropped and f"{e['needed']:.1f}" in text
 
 
+@pytest.mark.parametrize("tail, tail_sd, dropped", [(0.0063, 0.027, True), (0.02, 0.004, False)])
+def test_an_effect_the_final_fit_leaves_within_its_noise_of_absent_is_not_named(monkeypatch, tail, tail_sd,
+                                                                                dropped):
+    """The bench's refractive-boundary session: a glare tail confirmed before the boundary
+    ended at 0.63 +- 2.7 % in the estimator's final fit (core 0 +- 2.9 px), yet setting it to
+    absent alone (every other parameter held) raised chi^2 by 55, above its bar of 38. Its
+    magnitude, 0.2 sigma from absent by the fit's own intervals, drops it; a tail 5 sigma
+    out with the same rise stays."""
+    import estimate.diagnose as dg
+    from estimate.diagnose import MAGNITUDE_SIGMA
+
+    n_obs = 2000
+
+    class Res:
+        def __init__(self, chi2: float) -> None:
+            self.chi2_adjusted = chi2
+            self.r = np.zeros(n_obs)
+
+    class Ev:
+        def __init__(self, chi2: float) -> None:
+            self.residuals = Res(chi2)
+
+    def fake_evaluate(model, params, problem, n_params, **kw):
+        if params.get("refractive_boundary.n") == 1.0:
+            return Ev(2000.0 + 11000.0)
+        if params.get("lens_blur.tail_fraction") == 0.0:
+            return Ev(2000.0 + 55.0)
+        return Ev(2000.0)
+
+    monkeypatch.setattr(dg, "evaluate", fake_evaluate)
+    monkeypatch.setattr(dg, "_yardstick", lambda problem, before: None)
+    params = {"sigma_t": 2.0, "refractive_boundary.n": 1.332, "lens_blur.core_sigma_px": 0.0,
+              "lens_blur.tail_fraction": tail}
+    monkeypatch.setattr(dg, "_neutral_magnitudes", lambda model, p, e: {
+        **p, **({"refractive_boundary.n": 1.0} if e == "refractive_boundary"
+                else {"lens_blur.core_sigma_px": 0.0, "lens_blur.tail_fraction": 0.0})})
+    unc = {"sigma_t": 0.05, "refractive_boundary.n": 0.0066, "lens_blur.core_sigma_px": 2.9,
+           "lens_blur.tail_fraction": tail_sd}
+    cov = {a: {b: (unc[a] ** 2 if a == b else 0.0) for b in unc} for a in unc}
+    cov["lens_blur.core_sigma_px"]["lens_blur.tail_fraction"] = cov["lens_blur.tail_fraction"][
+        "lens_blur.core_sigma_px"] = -0.3 * 2.9 * tail_sd
+    without, _ = dg._prune_final(None, None, params, ["lens_blur", "refractive_boundary"], None, spp=1, seed=0,
+                                 repeats=1)
+    assert not without[0]["dropped"] and "magnitude_sigma" not in without[0]  # the rise alone keeps it
+    (e,), _ = dg._prune_final(None, None, params, ["lens_blur", "refractive_boundary"], None, spp=1, seed=0,
+                              repeats=1, uncertainties=unc, covariance=cov)
+    assert e["effect"] == "lens_blur" and e["chi2_rise"] > e["needed"]
+    assert e["dropped"] is dropped and (e["magnitude_sigma"] <= MAGNITUDE_SIGMA) is dropped, e
+
+
 def test_named_effects_are_ranked_by_the_chi2_each_carries_in_the_final_model():
     """The rounds' order follows the screening at the base fit; the names follow what each
     effect carries in the model that explains the data, and the summary says both."""
@@ -653,6 +703,13 @@ def test_named_effects_are_ranked_by_the_chi2_each_carries_in_the_final_model():
     doc.update(material_fixed_seed_after={"sigma_t": 1.93, "albedo": 0.851, "phase.g": 0.49})
     text = summary_text({"channels": {"g": doc}, "run_id": "x", "refit_run": None})
     assert "decorrelated chi^2 of two render seeds" in text and "sigma_t 1.93, albedo 0.851)" in text
+    doc.update(pruned=[{"effect": "lens_blur", "stage": "final fit", "chi2_rise": 54.7, "needed": 38.0,
+                        "price": 15.2, "dispersion": 2.49, "dropped": True, "with": ["refractive_boundary"],
+                        "magnitude_sigma": 0.23, "magnitude_needed": 1.0}])
+    text = summary_text({"channels": {"g": doc}, "run_id": "x", "refit_run": None})
+    assert ("lens_blur set to absent in the model with refractive_boundary raises chi2 by 54.7, more than its BIC "
+            "price 15.2 (k ln n) x 2.49 (the reduced chi2 the model with every named effect leaves) = 38.0; its "
+            "fitted magnitude is 0.2 sigma from absent (needs more than 1) -> dropped") in text
     assert "without --quick" in text
     doc.update(final_fit={"kept": True, "iterations": 3, "time_s": 1.0},
                refit_lm={"reduced_chi2_adjusted": 1.0, "material": {"sigma_t": 2.0, "albedo": 0.9}})
