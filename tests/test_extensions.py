@@ -319,6 +319,25 @@ def test_a_model_with_lens_blur_lights_the_slab_with_the_map_deblurred() -> None
         ForwardModel(GEOM, coarse, phase="exp1", extensions=exts).render_profiles(p, angles, spp=4, seed=0)
 
 
+def test_screening_renders_the_lens_blur_where_the_map_was_imaged_through_the_lens() -> None:
+    from estimate.screening import PROBES, candidate_columns, image_columns
+
+    blur = {"core_sigma_px": 1.5, "tail_fraction": 0.02, "tail_scale_px": 20.0}
+    _, frame = _camera_map(blur)
+    p = {**BASE, "phase.b1": 1.0}
+    angles = [40.0, 140.0]
+    model = ForwardModel(GEOM, frame, phase="exp1", extensions=["lens_blur"])
+    base = model.render_profiles(p, angles, spp=64, seed=3)
+    cols = candidate_columns(model, p, angles, base, ["lens_blur"], spp=64, seed=3)["lens_blur"]
+    want = [model.render_profiles({**p, **probe}, angles, spp=64, seed=3) - base for probe in PROBES["lens_blur"]]
+    assert len(cols) == 2 and all(np.allclose(c, w, rtol=1e-9, atol=1e-15) for c, w in zip(cols, want))
+    # where the map is the beam itself (an analytic map), the blur acts on the base render
+    analytic = ForwardModel(GEOM, BEAM, phase="exp1", extensions=["lens_blur"])
+    b2 = analytic.render_profiles(p, angles, spp=64, seed=3)
+    got = candidate_columns(analytic, p, angles, b2, ["lens_blur"], spp=64, seed=3)["lens_blur"]
+    assert all(np.allclose(c, w) for c, w in zip(got, image_columns("lens_blur", b2, GEOM.pixel_mm, None)))
+
+
 def test_filter_bandwidth_zero_spread_matches_single_wavelength(base_model: ForwardModel) -> None:
     model = ForwardModel(GEOM, BEAM, phase="exp1", extensions=["filter_bandwidth"])
     a = model.render_profiles({**BASE, "phase.b1": 1.0}, [40.0], spp=4096, seed=7)
