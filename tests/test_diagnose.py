@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import ClassVar
 
 import numpy as np
@@ -535,6 +536,26 @@ def test_backward_check_drops_an_earlier_effect_that_the_later_one_explains(conc
     assert fin_rises["stray_light"] > fin_rises["lens_blur"] == fin[0]["chi2_rise"]
 
 
+def _fake_final_fit(monkeypatch, base: float, absent: dict[str, tuple[str, float, float]]) -> None:
+    """Stands in for the renders of `_prune_final`: chi^2 `base` at the fit, and base + rise with
+    effect e put back to absent (absent[e] = (its magnitude parameter, neutral value, rise))."""
+    import estimate.diagnose as dg
+
+    class Ev:
+        def __init__(self, chi2: float) -> None:
+            self.residuals = SimpleNamespace(chi2_adjusted=chi2, r=np.zeros(2000))
+
+    def fake_evaluate(model, params, problem, n_params, **kw):
+        for name, neutral, rise in absent.values():
+            if params.get(name) == neutral:
+                return Ev(base + rise)
+        return Ev(base)
+
+    monkeypatch.setattr(dg, "evaluate", fake_evaluate)
+    monkeypatch.setattr(dg, "_yardstick", lambda problem, before: None)
+    monkeypatch.setattr(dg, "_neutral_magnitudes", lambda model, p, e: {**p, absent[e][0]: absent[e][1]})
+
+
 @pytest.mark.parametrize("rise_over_price, dropped", [(-0.5, True), (0.5, False), (1.2, False)])
 def test_a_named_effect_stays_while_it_pays_its_bic_price(monkeypatch, rise_over_price, dropped):
     """Stepwise hysteresis: entering needs k ln n + BIC_STRONG, staying only k ln n. A rise
@@ -548,28 +569,8 @@ def test_a_named_effect_stays_while_it_pays_its_bic_price(monkeypatch, rise_over
     assert price == pytest.approx(_bic_penalty("lens_blur", n_obs))
     assert _bic_bar("lens_blur", n_obs) == pytest.approx(price + BIC_STRONG)
     rise = price + rise_over_price * BIC_STRONG
-
-    class Res:
-        def __init__(self, chi2: float) -> None:
-            self.chi2_adjusted = chi2
-            self.r = np.zeros(n_obs)
-
-    class Ev:
-        def __init__(self, chi2: float) -> None:
-            self.residuals = Res(chi2)
-
-    def fake_evaluate(model, params, problem, n_params, **kw):
-        # the model with one effect put back to absent: that effect's rise over the joint fit
-        if params.get("stray_light.offset") == 0.0:
-            return Ev(2000.0 + 5000.0)
-        if params.get("lens_blur.core_sigma_px") == 0.0:
-            return Ev(2000.0 + rise)
-        return Ev(2000.0)
-
-    monkeypatch.setattr(dg, "evaluate", fake_evaluate)
-    monkeypatch.setattr(dg, "_yardstick", lambda problem, before: None)
-    monkeypatch.setattr(dg, "_neutral_magnitudes", lambda model, params, e: {
-        **params, **({"stray_light.offset": 0.0} if e == "stray_light" else {"lens_blur.core_sigma_px": 0.0})})
+    _fake_final_fit(monkeypatch, 2000.0, {"stray_light": ("stray_light.offset", 0.0, 5000.0),
+                                          "lens_blur": ("lens_blur.core_sigma_px", 0.0, rise)})
     params = {"stray_light.offset": 0.003, "lens_blur.core_sigma_px": 1.0}
     out, rises = dg._prune_final(None, None, params, ["stray_light", "lens_blur"], None, spp=1, seed=0, repeats=1)
     assert rises == {"stray_light": pytest.approx(5000.0), "lens_blur": pytest.approx(rise)}
@@ -582,38 +583,18 @@ def test_a_named_effect_stays_while_it_pays_its_bic_price(monkeypatch, rise_over
 @pytest.mark.parametrize("joint_chi2_per_pixel, dropped", [(1.0, False), (4.16, True)])
 def test_the_bar_to_stay_scales_with_the_dispersion_the_joint_model_leaves(monkeypatch, joint_chi2_per_pixel,
                                                                              dropped):
-    """The bench's refractive-boundary session: with the boundary in, a faint glare tail
-    confirmed in round 1 raised the final fit's chi^2 by 50 when set to absent, above its
-    price k ln n = 15.2, but that model leaves chi^2 4.16 per pixel (render noise in the
-    recording, correlated over a few pixels; the truth scores 4.33). In likelihood units the
-    rise is 50 / 4.16 = 12 < 15.2: the tail is not named. Where the joint model fits, the
-    same rise keeps it."""
+    """The bench's refractive-boundary session (session 30): with the boundary in, a faint
+    glare tail confirmed in round 1 raised the final fit's chi^2 by 50 when set to absent,
+    above its price k ln n = 15.2. Where that model leaves chi^2 4.16 per pixel (noise the
+    yardstick does not hold), the rise is 50 / 4.16 = 12 < 15.2 in likelihood units: the tail
+    is not named. Where the joint model fits, the same rise keeps it."""
     import estimate.diagnose as dg
     from estimate.diagnose import _bic_exit_bar
 
     n_obs = 2000
     base = joint_chi2_per_pixel * n_obs
-
-    class Res:
-        def __init__(self, chi2: float) -> None:
-            self.chi2_adjusted = chi2
-            self.r = np.zeros(n_obs)
-
-    class Ev:
-        def __init__(self, chi2: float) -> None:
-            self.residuals = Res(chi2)
-
-    def fake_evaluate(model, params, problem, n_params, **kw):
-        if params.get("refractive_boundary.n") == 1.0:
-            return Ev(base + 11000.0)
-        if params.get("lens_blur.tail_fraction") == 0.0:
-            return Ev(base + 50.0)
-        return Ev(base)
-
-    monkeypatch.setattr(dg, "evaluate", fake_evaluate)
-    monkeypatch.setattr(dg, "_yardstick", lambda problem, before: None)
-    monkeypatch.setattr(dg, "_neutral_magnitudes", lambda model, params, e: {
-        **params, **({"refractive_boundary.n": 1.0} if e == "refractive_boundary" else {"lens_blur.tail_fraction": 0.0})})
+    _fake_final_fit(monkeypatch, base, {"refractive_boundary": ("refractive_boundary.n", 1.0, 11000.0),
+                                        "lens_blur": ("lens_blur.tail_fraction", 0.0, 50.0)})
     params = {"refractive_boundary.n": 1.333, "lens_blur.tail_fraction": 0.0044}
     out, _ = dg._prune_final(None, None, params, ["lens_blur", "refractive_boundary"], None, spp=1, seed=0,
                              repeats=1)
@@ -639,31 +620,10 @@ def test_an_effect_the_final_fit_leaves_within_its_noise_of_absent_is_not_named(
     import estimate.diagnose as dg
     from estimate.diagnose import MAGNITUDE_SIGMA
 
-    n_obs = 2000
-
-    class Res:
-        def __init__(self, chi2: float) -> None:
-            self.chi2_adjusted = chi2
-            self.r = np.zeros(n_obs)
-
-    class Ev:
-        def __init__(self, chi2: float) -> None:
-            self.residuals = Res(chi2)
-
-    def fake_evaluate(model, params, problem, n_params, **kw):
-        if params.get("refractive_boundary.n") == 1.0:
-            return Ev(2000.0 + 11000.0)
-        if params.get("lens_blur.tail_fraction") == 0.0:
-            return Ev(2000.0 + 55.0)
-        return Ev(2000.0)
-
-    monkeypatch.setattr(dg, "evaluate", fake_evaluate)
-    monkeypatch.setattr(dg, "_yardstick", lambda problem, before: None)
+    _fake_final_fit(monkeypatch, 2000.0, {"refractive_boundary": ("refractive_boundary.n", 1.0, 11000.0),
+                                          "lens_blur": ("lens_blur.tail_fraction", 0.0, 55.0)})
     params = {"sigma_t": 2.0, "refractive_boundary.n": 1.332, "lens_blur.core_sigma_px": 0.0,
               "lens_blur.tail_fraction": tail}
-    monkeypatch.setattr(dg, "_neutral_magnitudes", lambda model, p, e: {
-        **p, **({"refractive_boundary.n": 1.0} if e == "refractive_boundary"
-                else {"lens_blur.core_sigma_px": 0.0, "lens_blur.tail_fraction": 0.0})})
     unc = {"sigma_t": 0.05, "refractive_boundary.n": 0.0066, "lens_blur.core_sigma_px": 2.9,
            "lens_blur.tail_fraction": tail_sd}
     cov = {a: {b: (unc[a] ** 2 if a == b else 0.0) for b in unc} for a in unc}
@@ -721,8 +681,6 @@ def test_final_fit_under_a_calibrated_scale_starts_from_the_refit_carried_to_tha
     """The LM refit fits a free scale, which trades with the albedo; the estimator's final fit
     may hold the calibrated scale. Its start takes the refit's stray light in the calibrated
     scale's units, and the better (by the log loss) of the refit's and the coarse grid's material."""
-    from types import SimpleNamespace
-
     from estimate.diagnose import _final_fit_start
     from estimate.loss import ScaleCalibration
 
