@@ -64,6 +64,7 @@ def beam_frame(phi_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 #: Wiener regularisation of `BeamProfile.deblurred` (noise-to-signal, relative to |OTF(0)|^2).
 DEBLUR_REGULARISATION = 1e-3
 
+
 @dataclass(frozen=True)
 class BeamProfile:
     """Calibrated beam irradiance in its cross-section plane.

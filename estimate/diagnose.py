@@ -664,14 +664,13 @@ def _bic_exit_bar(effect: str, n_obs: int, dispersion: float = 1.0) -> float:
     the dispersion c = max(1, reduced chi^2 of the model with every named effect).
 
     c is the quasi-likelihood correction (QAIC / QBIC): where the model that holds all the
-    named effects still leaves chi^2 per pixel above 1, the data's noise is wider than the
-    yardstick says (the simulated bench's recordings carry render noise correlated over a
-    few pixels, which the per-angle white-noise floor does not take: its refractive-boundary
-    session's truth scores 4.33 per pixel), and every chi^2 difference is that much larger
-    than its likelihood-ratio value. On that session a faint glare tail confirmed in round 1
-    (lens_blur, core 0, tail 0.44 +- 1.5 %) carried a rise of 50 in the final fit, above its
-    price 15.2 and below 15.2 x 4.16. The entry bar takes no such factor: before the effect
-    is in, the excess is the mismatch it is meant to explain.
+    named effects still leaves chi^2 per pixel above 1 in the yardstick's metric, the data's
+    noise is wider than the yardstick says (the simulated bench's recordings carry render
+    noise correlated over a few pixels, which the per-angle white-noise floor does not take),
+    and every chi^2 difference is that much larger than its likelihood-ratio value. On the
+    bench's refractive-boundary session (session 31) c was 5.45 in the LM refit and 2.5-2.6
+    in the estimator's final fit. The entry bar takes no such factor: before the effect is in,
+    the excess is the mismatch it is meant to explain.
 
     Entry is strict and staying is plain BIC, as in stepwise regression, where the bar to
     enter is above the bar to stay (otherwise an effect near the bar is added in one pass
@@ -768,9 +767,10 @@ def _prune(problem: Any, make_model: ModelFactory, confirmed: Sequence[str], ext
     the boundary; in the estimator's final fit of both, its core went to 0.04 px). So each
     earlier effect is put back to absent in the joint refit (`full`, all angles) and the
     chi^2 rise at the same seed is compared with the effect's BIC price k ln n, times the
-    joint refit's reduced chi^2 where that exceeds 1 (`_bic_exit_bar`). The rise with the other parameters held is at least the rise with them
-    re-optimised (the profile), so an effect whose conditional rise falls short of its price
-    does not pay for itself in the joint model: it is dropped. `model_variance` must be the
+    joint refit's reduced chi^2 where that exceeds 1 (`_bic_exit_bar`). The rise with the
+    other parameters held is at least the rise with them re-optimised (the profile), so an
+    effect whose conditional rise falls short of its price does not pay for itself in the
+    joint model: it is dropped. `model_variance` must be the
     one `full` was fitted with, so that the two chi^2 are paired.
 
     Returns the checks and every confirmed effect's chi^2 rise (the last one's too: it
