@@ -583,11 +583,10 @@ def test_a_named_effect_stays_while_it_pays_its_bic_price(monkeypatch, rise_over
 @pytest.mark.parametrize("joint_chi2_per_pixel, dropped", [(1.0, False), (4.16, True)])
 def test_the_bar_to_stay_scales_with_the_dispersion_the_joint_model_leaves(monkeypatch, joint_chi2_per_pixel,
                                                                              dropped):
-    """The bench's refractive-boundary session (session 30): with the boundary in, a faint
-    glare tail confirmed in round 1 raised the final fit's chi^2 by 50 when set to absent,
-    above its price k ln n = 15.2. Where that model leaves chi^2 4.16 per pixel (noise the
-    yardstick does not hold), the rise is 50 / 4.16 = 12 < 15.2 in likelihood units: the tail
-    is not named. Where the joint model fits, the same rise keeps it."""
+    """A rise of 50 (the bench boundary session's glare tail in session 30's final fit) against
+    a price k ln n = 15.2: where the joint model leaves chi^2 4.16 per pixel in the yardstick's
+    metric (noise the yardstick does not hold), that is 50 / 4.16 = 12 < 15.2 in likelihood
+    units and the effect is not named; where the joint model fits, the same rise keeps it."""
     import estimate.diagnose as dg
     from estimate.diagnose import _bic_exit_bar
 
