@@ -493,6 +493,9 @@ def main() -> int:
                     help="synthetic: frozen white pixel noise, in units of the variance channel (default 30)")
     ap.add_argument("--channel", default="g", help="bench: the filter")
     ap.add_argument("--time-budget", type=float, default=None, metavar="S", help="stop starting cases after S s")
+    ap.add_argument("--label", default=None,
+                    help="suffix of the written table and JSON entry (a spot check of a few cases, say, "
+                         "without overwriting the whole suite's table)")
     args = ap.parse_args()
     os.environ.setdefault("DRJIT_LIBLLVM_PATH", "/usr/lib/x86_64-linux-gnu/libLLVM-19.so")
     if args.spp is None:
@@ -554,6 +557,8 @@ def main() -> int:
     label = args.source if args.source == "bench" else f"synthetic-excess{args.excess:g}-spp{args.spp}"
     if args.limits:
         label += "_limits"
+    if args.label:
+        label += f"_{args.label}"
     (RESULTS / f"bench_diagnose_{label}.md").write_text(text + "\n")
     jpath = RESULTS / "bench_diagnose.json"
     doc = json.loads(jpath.read_text()) if jpath.is_file() else {}

@@ -462,16 +462,24 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
     last_full: tuple[RefitResult, np.ndarray] | None = None
 
     def settle(exts: list[str], start: Mapping[str, float], mv: np.ndarray) -> tuple[RefitResult, Evaluation]:
-        """The model with `exts` refitted on all angles (FINAL_SPP_FACTOR x spp) and evaluated."""
+        """The model with `exts` refitted on all angles (FINAL_SPP_FACTOR x spp) and evaluated;
+        without uncertainties: only the last model's are wanted, and they are added after the rounds."""
         m = make_model(exts)
         free = _free_names(m, exts)
         p0 = {k: v for k, v in start.items() if k in m.parameter_names}
         full = refit(m, problem, p0, free, spp=FINAL_SPP_FACTOR * spp, seed=seed + 303, iterations=iterations,
-                     model_variance=mv, noise_scale=floor, decorrelate=True)
+                     model_variance=mv, noise_scale=floor, uncertainties=False)
         ev = evaluate(m, full.parameters, problem, len(free) + 1, spp=spp, seed=seed, repeats=repeats)
         say(f"  with {', '.join(confirmed)}: reduced chi2 {ev.residuals.reduced_chi2:.3f} (HDR), "
             f"{ev.residuals.reduced_chi2_adjusted:.3f} at the noise floor")
         return full, ev
+
+    def finish(exts: list[str], fit: RefitResult, mv: np.ndarray) -> RefitResult:
+        """A settle's refit with its uncertainties and decorrelated step added: the same
+        optimum, seed, spp and weights, so the same chi^2."""
+        m = make_model(exts)
+        return refit(m, problem, fit.parameters, _free_names(m, exts), spp=FINAL_SPP_FACTOR * spp, seed=seed + 303,
+                     iterations=0, model_variance=mv, noise_scale=floor, decorrelate=True)
     brightest = float(np.max(before.model))
     # The smooth-structure test cannot see a mismatch that changes sign within a few pixels
     # (a blur moves light across the edge of the spot); the score tests of the catalogue
@@ -503,7 +511,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         # parameters and would otherwise take the credit for it.
         ctrl = refit(cur_model, problem, current.parameters, _free_names(cur_model, current_exts), angle_idx=train,
                      spp=spp, seed=seed + 202, iterations=iterations, model_variance=current.model_variance * repeats,
-                     noise_scale=floor)
+                     noise_scale=floor, uncertainties=False)
         ctrl_tr = evaluate(cur_model, ctrl.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats,
                            angle_idx=train, noise_variance=yardstick)
         # Candidates are judged against the control in pairs: same seed, spp, angles,
@@ -548,7 +556,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             z_wald = _magnitude_z(fit, cand.name)
             neutral = refit(m, problem, _neutral_magnitudes(m, fit.parameters, cand.name), free,
                             angle_idx=train, spp=spp, seed=seed + 202, iterations=0,
-                            model_variance=current.model_variance * repeats, noise_scale=floor)
+                            model_variance=current.model_variance * repeats, noise_scale=floor,
+                            uncertainties=False)
             z_lr = _magnitude_lr_z(fit, ctrl.chi2, neutral.chi2, n_train, len(free) + 1, cand.name)
             z = max(z_wald, z_lr)
             entry["magnitude_sigma"] = z
@@ -597,24 +606,33 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
     pruned: list[dict[str, Any]] = []
     confirmed_order = list(confirmed)
     importance: dict[str, dict[str, Any]] = {}
+    finished = False
     if len(confirmed) >= 2 and last_full is not None:
-        pruned, rises = _prune(problem, make_model, confirmed, current_exts, last_full[0], spp=spp, seed=seed,
+        full = finish(current_exts, full, last_full[1])
+        finished = True
+        pruned, rises = _prune(problem, make_model, confirmed, current_exts, full, spp=spp, seed=seed,
                                model_variance=last_full[1], floor=floor,
                                n_obs=int(np.sum(np.isfinite(current.residuals.r))))
         drop = [e["effect"] for e in pruned if e["dropped"]]
         for e in pruned:
             say(f"  {e['effect']} with the others in the model: setting it to absent raises chi2 by "
-                f"{e['chi2_rise']:.1f} (needs {e['needed']:.1f})" + (" -> dropped" if e["dropped"] else " -> kept"))
+                f"{e['chi2_rise']:.1f} (needs {e['needed']:.1f})"
+                + (f", magnitude {e['magnitude_sigma']:.1f} sigma from absent (needs > {MAGNITUDE_SIGMA:g})"
+                   if "magnitude_sigma" in e else "") + (" -> dropped" if e["dropped"] else " -> kept"))
         if drop:
             confirmed = [c for c in confirmed if c not in drop]
             current_exts = [c for c in current_exts if c not in drop]
             full, current = settle(current_exts, last_full[0].parameters, last_full[1])
+            finished = False
         if len(confirmed) >= 2:
             confirmed, importance = _by_importance(confirmed, rises, "refit")
             say("  named by the chi2 each carries in the refit: "
                 + ", ".join(f"{e} {importance[e]['chi2_rise']:.0f}" for e in confirmed))
     fixed_seed: dict[str, float] = {}
     if last_full is not None:
+        # The last model's uncertainties and decorrelated step (the rounds' settles skip them).
+        if not finished:
+            full = finish(current_exts, full, last_full[1])
         current_unc = full.uncertainties
         current_cov = {a: {b: v for (a2, b), v in full.covariance.items() if a2 == a} for a in full.uncertainties}
         if confirmed and full.decorrelated is not None and full.decorrelated != full.parameters:
@@ -773,6 +791,13 @@ def _prune(problem: Any, make_model: ModelFactory, confirmed: Sequence[str], ext
     joint model: it is dropped. `model_variance` must be the
     one `full` was fitted with, so that the two chi^2 are paired.
 
+    With `full`'s uncertainties (a refit that computed them), such an effect must also lie
+    more than `MAGNITUDE_SIGMA` from absent by the joint refit's Wald test (`_magnitude_z`),
+    as in its confirmation and in `_prune_final`: the rise holds the other parameters, so it
+    overstates what an effect carries that they can stand in for (the bench boundary
+    session's glare tail, confirmed before the boundary, was kept by the rise alone and
+    named by `--quick`).
+
     Returns the checks and every confirmed effect's chi^2 rise (the last one's too: it
     ranks the named effects, `_by_importance`).
     """
@@ -785,15 +810,21 @@ def _prune(problem: Any, make_model: ModelFactory, confirmed: Sequence[str], ext
     for e in confirmed:
         neutral = refit(m, problem, _neutral_magnitudes(m, full.parameters, e), free,
                         spp=FINAL_SPP_FACTOR * spp, seed=seed + 303, iterations=0,
-                        model_variance=model_variance, noise_scale=floor)
+                        model_variance=model_variance, noise_scale=floor, uncertainties=False)
         rises[e] = float(neutral.chi2 - full.chi2)
         if e == confirmed[-1]:
             continue  # the last one passed its bar in the model with all the others
         needed = _bic_exit_bar(e, n_obs, disp)
         later = list(confirmed[confirmed.index(e) + 1:])
-        out.append({"effect": e, "stage": "refit", "chi2_rise": rises[e], "needed": needed,
-                    "price": _bic_penalty(e, n_obs), "dispersion": disp,
-                    "dropped": bool(rises[e] < needed), "with": later})
+        entry: dict[str, Any] = {"effect": e, "stage": "refit", "chi2_rise": rises[e], "needed": needed,
+                                 "price": _bic_penalty(e, n_obs), "dispersion": disp,
+                                 "dropped": bool(rises[e] < needed), "with": later}
+        if full.uncertainties:
+            z = _magnitude_z(full, e)
+            entry["magnitude_sigma"] = z
+            entry["magnitude_needed"] = MAGNITUDE_SIGMA
+            entry["dropped"] = bool(entry["dropped"] or z <= MAGNITUDE_SIGMA)
+        out.append(entry)
     return out, rises
 
 

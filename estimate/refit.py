@@ -14,6 +14,7 @@ optimum's render-noise bias.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -35,6 +36,9 @@ from estimate.uncertainties import UNCERTAINTY_CROSS_FLOOR
 __all__ = ["DEFAULT_REPEATS", "DEFAULT_SEED", "MAX_GLARE_FRACTION", "Evaluation", "RefitResult", "best_scale",
            "cross_covariance", "decorrelated_step", "evaluate", "independent_residuals", "parameter_bounds",
            "recording_variance", "refit", "render_stack", "smoothed_variance"]
+
+
+_log = logging.getLogger(__name__)
 
 
 #: The refit's second Jacobian, for its uncertainties' cross-product curvature, is rendered
@@ -320,7 +324,7 @@ def decorrelated_step(render: Callable[[dict[str, float]], tuple[np.ndarray, np.
 def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[str], *,
           angle_idx: Sequence[int] | None = None, spp: int = 256, seed: int = 2000, iterations: int = 12,
           model_variance: np.ndarray | None = None, noise_scale: np.ndarray | None = None,
-          decorrelate: bool = False) -> RefitResult:
+          decorrelate: bool = False, uncertainties: bool = True) -> RefitResult:
     """Levenberg-Marquardt fit of `free` parameters (and the scale) with a fixed render seed.
 
     `noise_scale` (f per angle of the whole problem, `estimate.residuals.noise_floor`)
@@ -331,6 +335,12 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
     With `decorrelate`, one Gauss-Newton step on the two seeds' decorrelated chi^2 from the
     LM optimum (`decorrelated_step`, two renders a try) gives `RefitResult.decorrelated`:
     the LM's fixed-seed chi^2 leans towards parameters with quieter renders.
+
+    `uncertainties=False` skips the uncertainties' render and Jacobians (and returns no
+    covariance) where only the optimum and its chi^2 are wanted; `decorrelate` needs them
+    and overrides it. With `iterations=0` the refit evaluates `start`: its chi^2 and scale,
+    and its uncertainties (and decorrelated step) unless `uncertainties=False`; so a
+    refit's uncertainties can be added later, from its optimum, at the same cost.
     """
     idx = list(range(len(problem.angles_deg))) if angle_idx is None else list(angle_idx)
     angles = [float(problem.angles_deg[i]) for i in idx]
@@ -364,6 +374,9 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
         # with common random numbers a render is not a smooth function of sigma_t or the
         # phase (a free flight crossing the slab boundary flips), and small-step columns
         # differed between seeds by up to 2x, so LM saw no descent towards the optimum.
+        # Central: forward differences against the render at theta (half the renders) were
+        # tried in session 32 and stalled after one step on the simulated bench's pair session
+        # (docs/diagnosis-log.md).
         A = refit_columns(model.jacobian(theta, angles, free, spp=spp, seed=seed,
                                           steps=secant_steps(model, theta, free)), f, s, sig)
         a_at = dict(theta)
@@ -393,35 +406,35 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
                 improved = True
                 break
             lam *= 4.0
+        _log.debug("LM iteration %d: chi2 %.3f (%s), lambda %.1e", it, chi2, "step" if improved else "no step", lam)
         if not improved or rel < 1e-4:
             break
-    unc: dict[str, float] = {}
-    if A is not None:
-        # The curvature from two Jacobians with independent render noise (this seed's and
-        # another's): one Monte Carlo Jacobian's A^T A carries the noise's own Gram matrix,
-        # which dominates the weakly constrained directions and narrows their intervals
-        # (estimate.fit.sandwich_uncertainties). The refit itself stays at one seed.
-        steps = secant_steps(model, theta, free)
-        seed_b = seed + UNCERTAINTY_SEED_OFFSET
-        f_b = model.render_profiles(theta, angles, spp=spp, seed=seed_b)
-        # The loop's last Jacobian is this seed's at the final point unless a step moved it since.
-        a_own = A if a_at == theta else refit_columns(
-            model.jacobian(theta, angles, free, spp=spp, seed=seed, steps=steps), f, s, sig)
-        As = [a_own, refit_columns(model.jacobian(theta, angles, free, spp=spp, seed=seed_b, steps=steps),
-                                   f_b, s, sig)]
-        n_obs = int(np.sum(np.isfinite(sig)))
-        red = chi2 / max(1, n_obs - len(free) - 1)
-        cov = cross_covariance(As[0], As[1]) * max(1.0, red)
-        unc = {n: float(math.sqrt(max(cov[j, j], 0.0))) if np.isfinite(cov[j, j]) else float("nan")
-               for j, n in enumerate(free)}
-        covd = {(a, b): float(cov[i, j]) for i, a in enumerate(free) for j, b in enumerate(free)}
-        dec: dict[str, float] | None = None
-        dec_s: float | None = None
-        if decorrelate:
-            def both(th: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
-                return (model.render_profiles(th, angles, spp=spp, seed=seed),
-                        model.render_profiles(th, angles, spp=spp, seed=seed_b))
+    if not (uncertainties or decorrelate):
+        return RefitResult(theta, s, {}, chi2, it)
+    # The curvature from two Jacobians with independent render noise (this seed's and
+    # another's): one Monte Carlo Jacobian's A^T A carries the noise's own Gram matrix,
+    # which dominates the weakly constrained directions and narrows their intervals
+    # (estimate.fit.sandwich_uncertainties). The refit itself stays at one seed.
+    steps = secant_steps(model, theta, free)
+    seed_b = seed + UNCERTAINTY_SEED_OFFSET
+    f_b = model.render_profiles(theta, angles, spp=spp, seed=seed_b)
+    # The loop's last Jacobian is this seed's at the final point unless a step moved it since.
+    a_own = A if A is not None and a_at == theta else refit_columns(
+        model.jacobian(theta, angles, free, spp=spp, seed=seed, steps=steps), f, s, sig)
+    As = [a_own, refit_columns(model.jacobian(theta, angles, free, spp=spp, seed=seed_b, steps=steps),
+                               f_b, s, sig)]
+    n_obs = int(np.sum(np.isfinite(sig)))
+    red = chi2 / max(1, n_obs - len(free) - 1)
+    cov = cross_covariance(As[0], As[1]) * max(1.0, red)
+    unc = {n: float(math.sqrt(max(cov[j, j], 0.0))) if np.isfinite(cov[j, j]) else float("nan")
+           for j, n in enumerate(free)}
+    covd = {(a, b): float(cov[i, j]) for i, a in enumerate(free) for j, b in enumerate(free)}
+    dec: dict[str, float] | None = None
+    dec_s: float | None = None
+    if decorrelate:
+        def both(th: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
+            return (model.render_profiles(th, angles, spp=spp, seed=seed),
+                    model.render_profiles(th, angles, spp=spp, seed=seed_b))
 
-            dec, dec_s = decorrelated_step(both, meas, sig, theta, s, f, f_b, As[0], As[1], free, bounds)
-        return RefitResult(theta, s, unc, chi2, it, covd, dec, dec_s)
-    return RefitResult(theta, s, unc, chi2, it)
+        dec, dec_s = decorrelated_step(both, meas, sig, theta, s, f, f_b, As[0], As[1], free, bounds)
+    return RefitResult(theta, s, unc, chi2, it, covd, dec, dec_s)

@@ -12,6 +12,7 @@ under a minute.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -513,7 +514,7 @@ def test_backward_check_drops_an_earlier_effect_that_the_later_one_explains(conc
     spp, seed = 128, 40
     # The joint refit as the forward rounds leave it, at the seed and spp _prune pairs with.
     full = refit(m, rec, params, _free_names(m, exts), spp=2 * spp, seed=seed + 303, iterations=0,
-                 model_variance=mv, noise_scale=floor)
+                 model_variance=mv, noise_scale=floor, uncertainties=False)
     out, rises = _prune(rec, make_model, ["lens_blur", "stray_light"], exts, full, spp=spp, seed=seed,
                         model_variance=mv, floor=floor, n_obs=rec.measured.size)
     assert [e["effect"] for e in out] == ["lens_blur"]  # the last effect was tested against the others already
@@ -522,10 +523,22 @@ def test_backward_check_drops_an_earlier_effect_that_the_later_one_explains(conc
     e = out[0]
     assert e["with"] == ["stray_light"]
     assert e["dropped"] is expect_dropped, e
+    assert "magnitude_sigma" not in e  # a refit without uncertainties: the rise alone
     if expect_dropped:
         assert abs(e["chi2_rise"]) < e["needed"]
     else:
         assert e["chi2_rise"] > 10 * e["needed"]
+        # With the joint refit's intervals the magnitude must also stand clear of absent:
+        # the same rise, kept with tight intervals, dropped with intervals that reach absent.
+        names = _free_names(m, exts)
+        for rel_sd, dropped in ((0.05, False), (20.0, True)):
+            unc = {n: rel_sd * max(1.0, abs(full.parameters[n])) for n in names}
+            cov = {(a, b): unc[a] ** 2 if a == b else 0.0 for a in names for b in names}
+            joint = dataclasses.replace(full, uncertainties=unc, covariance=cov)
+            (e2,), _ = _prune(rec, make_model, ["lens_blur", "stray_light"], exts, joint, spp=spp, seed=seed,
+                              model_variance=mv, floor=floor, n_obs=rec.measured.size)
+            assert e2["chi2_rise"] == e["chi2_rise"] and e2["magnitude_needed"] == 1.0
+            assert e2["dropped"] is dropped and (e2["magnitude_sigma"] < 1.0) is dropped, e2
     # The same check at the estimator's final fit, in the base fit's noise metric.
     from estimate.diagnose import _prune_final, evaluate
 
@@ -735,6 +748,7 @@ class _NoisyWidth:
     prefers narrower profiles, as the slab's renders prefer quieter (lower) albedos."""
 
     x = np.linspace(-4.0, 4.0, 200)
+    jacobian_renders = 0
     specs: ClassVar[dict[str, ParameterSpec]] = {
         "toy.w": ParameterSpec("w", 1.0, 0.2, 5.0, "mm", "fd", 0.01, "width"),
         "toy.c": ParameterSpec("c", 0.0, -1.0, 1.0, "", "fd", 0.01, "tilt")}
@@ -751,6 +765,7 @@ class _NoisyWidth:
         return self.mean(th) * (1.0 + 0.3 * th["toy.w"] * eps / math.sqrt(spp / 64))
 
     def jacobian(self, th, angles, free, *, spp, seed, steps):
+        self.jacobian_renders += 2 * len(free)
         out = {}
         for n in free:
             hi, lo = dict(th), dict(th)
@@ -788,6 +803,36 @@ def test_decorrelated_step_removes_the_fixed_seed_refits_render_noise_bias():
     # without the option the result is the LM's alone
     r = refit(toy, rec, truth, ["toy.w", "toy.c"], spp=64, seed=100, iterations=20, model_variance=(0.3 * mean) ** 2)
     assert r.decorrelated is None
+
+
+def test_a_refits_uncertainties_can_be_skipped_and_added_later_from_its_optimum():
+    """`uncertainties=False` returns the same optimum without the uncertainties' renders;
+    `iterations=0` from that optimum adds them (and the decorrelated step) as the full
+    refit would have: the diagnosis's rounds skip them and only the last model gets them."""
+    toy = _NoisyWidth()
+    truth = {"toy.w": 1.0, "toy.c": 0.2}
+    angles = [10.0, 20.0, 30.0]
+    mean = np.tile(toy.mean(truth), (3, 1))
+    rec = Recording(np.array(angles), toy.x, mean + np.random.default_rng(5).normal(0.0, 0.01, mean.shape),
+                    np.full(mean.shape, 1e-4), None, None)
+    kw = {"spp": 64, "seed": 100, "model_variance": (0.3 * mean) ** 2}
+    counts = []
+    fits = []
+    for unc in (True, False):
+        toy.jacobian_renders = 0
+        fits.append(refit(toy, rec, {"toy.w": 1.4, "toy.c": 0.0}, ["toy.w", "toy.c"], iterations=20,
+                          decorrelate=unc, uncertainties=unc, **kw))
+        counts.append(toy.jacobian_renders)
+    full, bare = fits
+    assert bare.parameters == full.parameters and bare.chi2 == full.chi2 and bare.iterations == full.iterations
+    assert bare.uncertainties == {} and bare.covariance == {} and bare.decorrelated is None
+    assert counts[1] < counts[0]
+    later = refit(toy, rec, bare.parameters, ["toy.w", "toy.c"], iterations=0, decorrelate=True, **kw)
+    assert later.parameters == full.parameters and later.chi2 == pytest.approx(full.chi2, rel=1e-12)
+    assert later.uncertainties == pytest.approx(full.uncertainties, rel=1e-9)
+    assert later.covariance == pytest.approx(full.covariance, rel=1e-9)
+    assert later.decorrelated == pytest.approx(full.decorrelated, rel=1e-12)
+    assert all(v > 0 for v in later.uncertainties.values())
 
 
 class _Fireflies:
