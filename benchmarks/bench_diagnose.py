@@ -95,7 +95,7 @@ TRUE = {"sigma_t": 2.0, "albedo": 0.9, "phase.g": 0.5}
 #: spp of the synthetic base fit.
 BASE_SPP = 1024
 #: Cache version of the synthetic cases (bumped when the recipe or the diagnosis changes).
-SYNTHETIC_VERSION = "v9"
+SYNTHETIC_VERSION = "v10"  # v10 (session 32): the refit path's backward check also asks the Wald test
 
 
 def synthetic_recording(case: dict[str, Any], excess: float = 0.0) -> tuple[Any, Callable[..., Any], dict[str, float]]:
