@@ -71,6 +71,7 @@ from estimate.refit import (
     RefitResult,
     evaluate,
     independent_residuals,
+    parameter_bounds,
     recording_variance,
     refit,
     render_stack,
@@ -96,6 +97,7 @@ __all__ = [
     "ChannelDiagnosis",
     "Evaluation",
     "RefitResult",
+    "bound_side",
     "diagnose_channel",
     "evaluate",
     "plot_diagnosis",
@@ -211,6 +213,9 @@ class ChannelDiagnosis:
     #: the final LM refit's own optimum (fixed render seed) where `after` is at the
     #: decorrelated Gauss-Newton step from it (`decorrelated_step`)
     fixed_seed_after: dict[str, float] = field(default_factory=dict)
+    #: the ranges the fits could move each named effect's parameters in (the refit's
+    #: `parameter_bounds` and the parameter's own): a value at one was stopped there, not measured
+    parameter_ranges: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
 
     @property
     def significant(self) -> bool:
@@ -224,6 +229,10 @@ class ChannelDiagnosis:
         for name in self.confirmed:
             eff[name] = {k: {"value": a.parameters[k], "uncertainty": self.uncertainties_after.get(k)}
                          for k in (a.parameters if a else {}) if k.startswith(name + ".")}
+            for k, entry in eff[name].items():
+                side = bound_side(entry["value"], self.parameter_ranges.get(k, ()))
+                if side:
+                    entry["at_bound"] = side
         return {
             "channel": self.channel,
             "significant": self.significant,
@@ -650,11 +659,30 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
     material = [k for k in before.parameters if k in ("sigma_t", "albedo") or k.startswith("phase.")]
     after = current if confirmed else None
     verdict = _verdict(before, loc, first_scores, confirmed, after, [e["effect"] for e in pruned if e["dropped"]])
+    final_model = make_model(current_exts)
+    ranges = {k: [parameter_bounds(final_model, k), (final_model.specs[k].lower, final_model.specs[k].upper)]
+              for e in confirmed for k in FREE_PARAMETERS[e] if k in final_model.specs}
     return ChannelDiagnosis(problem.channel, before, loc, first_scores, confirmations, confirmed, after,
                             current_unc if confirmed else {}, verdict, time.perf_counter() - t0, material,
                             dict(base.uncertainties), [float(a) for a in problem.angles_deg],
                             current_cov if confirmed else {}, pruned=pruned, confirmed_order=confirmed_order,
-                            importance=importance, fixed_seed_after=fixed_seed)
+                            importance=importance, fixed_seed_after=fixed_seed, parameter_ranges=ranges)
+
+
+def bound_side(value: float, ranges: Sequence[tuple[float, float]]) -> str | None:
+    """"lower" or "upper" where `value` sits at an end of one of `ranges` (within 0.1 % of
+    that range's width), else None. A fitted magnitude there was stopped by the range: its
+    interval is not a measurement (the glare tail at its 10 % bound in `--quick` on the bench's
+    refractive-boundary session stood in for light the base model could not place)."""
+    for lo, hi in ranges:
+        finite = math.isfinite(lo) and math.isfinite(hi) and hi > lo
+        for end, side in ((hi, "upper"), (lo, "lower")):
+            if not math.isfinite(end):
+                continue
+            tol = 1e-3 * (hi - lo) if finite else 1e-9 * max(1.0, abs(end))
+            if abs(value - end) <= tol:
+                return side
+    return None
 
 
 def _yardstick(problem: Any, before: Evaluation) -> np.ndarray:

@@ -137,7 +137,9 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                   + (f"; the rounds added them as {', '.join(order)}" if list(imp) != order[:len(imp)] else ""),
                   file=out)
         for name, ps in d["confirmed_effects"].items():
-            vals = ", ".join(f"{k.split('.', 1)[1]} = {_fmt(v['value'], v['uncertainty'])}" for k, v in ps.items())
+            vals = ", ".join(f"{k.split('.', 1)[1]} = {_fmt(v['value'], v['uncertainty'])}"
+                             + (f" (at the {v['at_bound']} end of its range: stopped there, not measured)"
+                                if v.get("at_bound") else "") for k, v in ps.items())
             print(f"  left-out physics: {name} ({vals})", file=out)
         if d["confirmed_effects"]:
             print(f"  reduced chi2 {d['reduced_chi2_before']:.3f} -> {d['reduced_chi2_after']:.3f} (HDR variance); "

@@ -25,11 +25,13 @@ import yaml
 
 from estimate.beam import BeamProfile
 from estimate.diagnose import (
+    FREE_PARAMETERS,
     BaseFit,
     _bic_penalty,
     _free_names,
     _magnitude_lr_z,
     _run_fit_settings,
+    bound_side,
     diagnose_channel,
     refine_channel,
     screen_candidates,
@@ -351,6 +353,16 @@ def test_final_fit_by_the_estimator_replaces_the_refit_of_a_confirmed_effect():
     assert doc["material_uncertainty_after"]["sigma_t"] == fr.uncertainties["sigma_t"]
     assert doc["confirmed_effects"]["stray_light"]["stray_light.offset"]["value"] == d.after.parameters[
         "stray_light.offset"]
+    # A named magnitude that the fit's range stopped is marked as such, in the JSON and the text.
+    from estimate.diagnose import summary_text
+
+    offset = d.after.parameters["stray_light.offset"]
+    assert set(d.parameter_ranges) == set(FREE_PARAMETERS["stray_light"])
+    assert "at_bound" not in doc["confirmed_effects"]["stray_light"]["stray_light.offset"]
+    pinned = dataclasses.replace(d, parameter_ranges={"stray_light.offset": [(-1.0, offset)]}).as_dict()
+    assert pinned["confirmed_effects"]["stray_light"]["stray_light.offset"]["at_bound"] == "upper"
+    assert "(at the upper end of its range: stopped there, not measured)" in summary_text(
+        {"channels": {"g": pinned}, "run_id": "x", "refit_run": None})
 
 
 def test_final_fit_settings_come_from_the_fit_run():
@@ -648,6 +660,16 @@ def test_an_effect_the_final_fit_leaves_within_its_noise_of_absent_is_not_named(
                               repeats=1, uncertainties=unc, covariance=cov)
     assert e["effect"] == "lens_blur" and e["chi2_rise"] > e["needed"]
     assert e["dropped"] is dropped and (e["magnitude_sigma"] <= MAGNITUDE_SIGMA) is dropped, e
+
+
+def test_a_value_at_an_end_of_its_range_is_told_apart():
+    assert bound_side(0.1, [(0.0, 0.1)]) == "upper" and bound_side(0.09995, [(0.0, 0.1)]) == "upper"
+    assert bound_side(0.0, [(0.0, 0.1)]) == "lower" and bound_side(0.05, [(0.0, 0.1)]) is None
+    assert bound_side(0.1, [(0.0, 0.1), (0.0, 1.0)]) == "upper"   # the refit's range, inside the parameter's
+    assert bound_side(0.5, [(0.0, 0.1), (0.0, 1.0)]) is None      # past it: the final fit's range allowed that
+    assert bound_side(1.0, [(0.0, 0.1), (0.0, 1.0)]) == "upper"
+    assert bound_side(0.0, [(0.0, math.inf)]) == "lower" and bound_side(1e-3, [(0.0, math.inf)]) is None
+    assert bound_side(5.0, [(-math.inf, math.inf)]) is None and bound_side(1.0, []) is None
 
 
 def test_named_effects_are_ranked_by_the_chi2_each_carries_in_the_final_model():
