@@ -34,7 +34,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=1000, help="base render seed (1000)")
     p.add_argument("--quick", action="store_true",
                    help="skip the estimator's final fit of the confirmed effects (2.5-8.5 min per channel on 2 cores); "
-                        "the Levenberg-Marquardt refit is then the final model")
+                        "the Levenberg-Marquardt refit is then the final model. It cannot walk a base fit that is far "
+                        "off (a left-out boundary: sigma_t 57 %% high) to the data, and may then name a stand-in "
+                        "effect first; the full run is the reference")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     p.add_argument("--json", action="store_true", help="print the diagnosis as JSON")
     p.add_argument("--no-progress", action="store_true",
