@@ -615,10 +615,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
     pruned: list[dict[str, Any]] = []
     confirmed_order = list(confirmed)
     importance: dict[str, dict[str, Any]] = {}
-    finished = False
     if len(confirmed) >= 2 and last_full is not None:
         full = finish(current_exts, full, last_full[1])
-        finished = True
         pruned, rises = _prune(problem, make_model, confirmed, current_exts, full, spp=spp, seed=seed,
                                model_variance=last_full[1], floor=floor,
                                n_obs=int(np.sum(np.isfinite(current.residuals.r))))
@@ -632,15 +630,15 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             confirmed = [c for c in confirmed if c not in drop]
             current_exts = [c for c in current_exts if c not in drop]
             full, current = settle(current_exts, last_full[0].parameters, last_full[1])
-            finished = False
         if len(confirmed) >= 2:
             confirmed, importance = _by_importance(confirmed, rises, "refit")
             say("  named by the chi2 each carries in the refit: "
                 + ", ".join(f"{e} {importance[e]['chi2_rise']:.0f}" for e in confirmed))
     fixed_seed: dict[str, float] = {}
     if last_full is not None:
-        # The last model's uncertainties and decorrelated step (the rounds' settles skip them).
-        if not finished:
+        # The last model's uncertainties and decorrelated step (a settle's refit has none;
+        # the joint one got them for the backward check).
+        if not full.uncertainties:
             full = finish(current_exts, full, last_full[1])
         current_unc = full.uncertainties
         current_cov = {a: {b: v for (a2, b), v in full.covariance.items() if a2 == a} for a in full.uncertainties}
@@ -794,10 +792,7 @@ def _prune_final(problem: Any, model: Any, params: Mapping[str, float], confirme
                                  "price": _bic_penalty(e, n_obs), "dispersion": disp,
                                  "dropped": bool(rises[e] < needed), "with": [c for c in confirmed if c != e]}
         if uncertainties:
-            z = _wald_z(params, uncertainties, cov, e)
-            entry["magnitude_sigma"] = z
-            entry["magnitude_needed"] = MAGNITUDE_SIGMA
-            entry["dropped"] = bool(entry["dropped"] or z <= MAGNITUDE_SIGMA)
+            _ask_magnitude(entry, _wald_z(params, uncertainties, cov, e))
         out.append(entry)
     return out, rises
 
@@ -848,12 +843,17 @@ def _prune(problem: Any, make_model: ModelFactory, confirmed: Sequence[str], ext
                                  "price": _bic_penalty(e, n_obs), "dispersion": disp,
                                  "dropped": bool(rises[e] < needed), "with": later}
         if full.uncertainties:
-            z = _magnitude_z(full, e)
-            entry["magnitude_sigma"] = z
-            entry["magnitude_needed"] = MAGNITUDE_SIGMA
-            entry["dropped"] = bool(entry["dropped"] or z <= MAGNITUDE_SIGMA)
+            _ask_magnitude(entry, _magnitude_z(full, e))
         out.append(entry)
     return out, rises
+
+
+def _ask_magnitude(entry: dict[str, Any], z: float) -> None:
+    """A backward check's second condition to stay: the magnitude more than `MAGNITUDE_SIGMA`
+    from absent (`z`, the joint Wald test); records it in the check's `entry`."""
+    entry["magnitude_sigma"] = z
+    entry["magnitude_needed"] = MAGNITUDE_SIGMA
+    entry["dropped"] = bool(entry["dropped"] or z <= MAGNITUDE_SIGMA)
 
 
 def _final_fit_start(problem: Any, model: Any, lm: Evaluation, settings: FitSettings,
