@@ -470,15 +470,20 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
     confirmed: list[str] = []
     last_full: tuple[RefitResult, np.ndarray] | None = None
 
-    def settle(exts: list[str], start: Mapping[str, float], mv: np.ndarray) -> tuple[RefitResult, Evaluation]:
-        """The model with `exts` refitted on all angles (FINAL_SPP_FACTOR x spp) and evaluated;
-        without uncertainties: only the last model's are wanted, and they are added after the rounds."""
+    def joint_refit(exts: list[str], start: Mapping[str, float], mv: np.ndarray, **how: Any) -> RefitResult:
+        """The model with `exts` refitted on all angles at FINAL_SPP_FACTOR x spp and the
+        joint seed (the one `_prune` pairs its chi^2 with); `how`: iterations and outputs."""
         m = make_model(exts)
-        free = _free_names(m, exts)
         p0 = {k: v for k, v in start.items() if k in m.parameter_names}
-        full = refit(m, problem, p0, free, spp=FINAL_SPP_FACTOR * spp, seed=seed + 303, iterations=iterations,
-                     model_variance=mv, noise_scale=floor, uncertainties=False)
-        ev = evaluate(m, full.parameters, problem, len(free) + 1, spp=spp, seed=seed, repeats=repeats)
+        return refit(m, problem, p0, _free_names(m, exts), spp=FINAL_SPP_FACTOR * spp, seed=seed + 303,
+                     model_variance=mv, noise_scale=floor, **how)
+
+    def settle(exts: list[str], start: Mapping[str, float], mv: np.ndarray) -> tuple[RefitResult, Evaluation]:
+        """`joint_refit`, evaluated; without uncertainties: only the last model's are wanted,
+        and `finish` adds them after the rounds."""
+        full = joint_refit(exts, start, mv, iterations=iterations, uncertainties=False)
+        m = make_model(exts)
+        ev = evaluate(m, full.parameters, problem, len(_free_names(m, exts)) + 1, spp=spp, seed=seed, repeats=repeats)
         say(f"  with {', '.join(confirmed)}: reduced chi2 {ev.residuals.reduced_chi2:.3f} (HDR), "
             f"{ev.residuals.reduced_chi2_adjusted:.3f} at the noise floor")
         return full, ev
@@ -486,9 +491,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
     def finish(exts: list[str], fit: RefitResult, mv: np.ndarray) -> RefitResult:
         """A settle's refit with its uncertainties and decorrelated step added: the same
         optimum, seed, spp and weights, so the same chi^2."""
-        m = make_model(exts)
-        return refit(m, problem, fit.parameters, _free_names(m, exts), spp=FINAL_SPP_FACTOR * spp, seed=seed + 303,
-                     iterations=0, model_variance=mv, noise_scale=floor, decorrelate=True)
+        return joint_refit(exts, fit.parameters, mv, iterations=0, decorrelate=True)
     brightest = float(np.max(before.model))
     # The smooth-structure test cannot see a mismatch that changes sign within a few pixels
     # (a blur moves light across the edge of the spot); the score tests of the catalogue
