@@ -6,7 +6,7 @@ DEMO_OUT ?= demo-out
 
 .PHONY: demo test bench setup clean
 
-$(STAMP): pyproject.toml scripts/setup.sh
+$(STAMP): pyproject.toml constraints.txt scripts/setup.sh
 	VENV=$(VENV) ./scripts/setup.sh
 
 setup: $(STAMP)

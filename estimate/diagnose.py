@@ -91,6 +91,7 @@ __all__ = [
     "CANDIDATES",
     "DEFAULT_REPEATS",
     "DEFAULT_SEED",
+    "DIAGNOSIS_STAGES",
     "FREE_PARAMETERS",
     "HOLDOUT_EVERY",
     "BaseFit",
@@ -216,6 +217,8 @@ class ChannelDiagnosis:
     #: the ranges the fits could move each named effect's parameters in (the refit's
     #: `parameter_bounds` and the parameter's own): a value at one was stopped there, not measured
     parameter_ranges: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
+    #: wall time in seconds by stage (`DIAGNOSIS_STAGES`); their sum is `time_s`
+    stage_times_s: dict[str, float] = field(default_factory=dict)
 
     @property
     def significant(self) -> bool:
@@ -258,6 +261,7 @@ class ChannelDiagnosis:
             "verdict": self.verdict,
             "unconverged": _unconverged(self.before),
             "time_s": self.time_s,
+            "time_by_stage_s": {k: self.stage_times_s[k] for k in DIAGNOSIS_STAGES if k in self.stage_times_s},
             "refit_lm": ({"parameters": _plain(self.lm_after.parameters), "scale": self.lm_after.scale,
                           "reduced_chi2": self.lm_after.residuals.reduced_chi2,
                           "reduced_chi2_adjusted": self.lm_after.residuals.reduced_chi2_adjusted,
@@ -270,6 +274,27 @@ class ChannelDiagnosis:
             "material_fixed_seed_after": ({k: self.fixed_seed_after[k] for k in self.material_names}
                                           if self.fixed_seed_after else None),
         }
+
+
+#: The stages of a diagnosis, as `ChannelDiagnosis.stage_times_s` names them: the fit's
+#: evaluation and localisation; the score tests; the confirming refits (control and candidates,
+#: with their held-out evaluations); the model with the confirmed effects (joint refits, the
+#: backward check, uncertainties, the decorrelated step); the estimator's final fit.
+DIAGNOSIS_STAGES: tuple[str, ...] = ("locate", "screening", "confirmation", "model", "final_fit")
+
+
+class _Laps:
+    """Wall time per stage, lap by lap: `laps("screening")` charges the time since the last
+    lap (or since construction) to that stage."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self._t = time.perf_counter()
+
+    def __call__(self, stage: str) -> None:
+        now = time.perf_counter()
+        self.seconds[stage] = self.seconds.get(stage, 0.0) + now - self._t
+        self._t = now
 
 
 def _plain(x: Any) -> Any:
@@ -440,6 +465,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         log: progress callback (one line per step).
     """
     t0 = time.perf_counter()
+    laps = _Laps()
     say = log or (lambda s: None)
     cands = [c for c in (candidates or CANDIDATES) if c not in base.extensions]
     for c in cands:
@@ -461,6 +487,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         f"(smooth structure as fitted p={before.residuals.p_value_smooth:.2g}; the test that decides comes "
         f"with the screening); {loc['summary']}")
     train, held = _holdout(n)
+    laps("locate")
     current = before
     current_exts = list(base.extensions)
     current_unc = dict(base.uncertainties)
@@ -502,6 +529,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         first_scores = _screen(problem, before, current_exts, make_model, cands, spp=spp, seed=seed + 101,
                                repeats=repeats)
         _targeted_significance(before, first_scores)
+    laps("screening")
     while before.residuals.significant and len(confirmed) < MAX_EFFECTS:
         remaining = [c for c in cands if c not in confirmed]
         if not remaining:
@@ -510,6 +538,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                   _screen(problem, current, current_exts, make_model, remaining, spp=spp, seed=seed + 101,
                            repeats=repeats))
         say("  screening: " + ", ".join(f"{c.name} {c.statistic:.0f}/{c.dof}" for c in scores[:4]))
+        laps("screening")
         leading = [c for c in scores if c.log10_p < SCREEN_LOG10_P][:MAX_CONFIRM]
         if not leading:
             break
@@ -603,6 +632,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                  if held else "") + (" (confirmed)" if ok else ""))
             if ok and (best is None or dbic > best[0]):
                 best = (dbic, cand.name, fit)
+        laps("confirmation")
         if best is None:
             break
         for e in confirmations:
@@ -615,6 +645,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         full_mv = current.model_variance * repeats / FINAL_SPP_FACTOR
         full, current = settle(current_exts, best[2].parameters, full_mv)
         last_full = (full, full_mv)
+        laps("model")
     pruned: list[dict[str, Any]] = []
     confirmed_order = list(confirmed)
     importance: dict[str, dict[str, Any]] = {}
@@ -657,6 +688,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                 + ", ".join(f"{k} {fixed_seed[k]:.4g} -> {full.decorrelated[k]:.4g}"
                             for k in ("sigma_t", "albedo") if k in fixed_seed)
                 + f"; reduced chi2 {current.residuals.reduced_chi2:.3f} (HDR)")
+    laps("model" if last_full is not None else "confirmation" if confirmations else "screening")
     material = [k for k in before.parameters if k in ("sigma_t", "albedo") or k.startswith("phase.")]
     after = current if confirmed else None
     verdict = _verdict(before, loc, first_scores, confirmed, after, [e["effect"] for e in pruned if e["dropped"]])
@@ -667,7 +699,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                             current_unc if confirmed else {}, verdict, time.perf_counter() - t0, material,
                             dict(base.uncertainties), [float(a) for a in problem.angles_deg],
                             current_cov if confirmed else {}, pruned=pruned, confirmed_order=confirmed_order,
-                            importance=importance, fixed_seed_after=fixed_seed, parameter_ranges=ranges)
+                            importance=importance, fixed_seed_after=fixed_seed, parameter_ranges=ranges,
+                            stage_times_s=dict(laps.seconds))
 
 
 def bound_side(value: float, ranges: Sequence[tuple[float, float]]) -> str | None:
@@ -950,6 +983,7 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
         "material": {k: fr.parameters[k] for k in d.material_names},
     }
     d.time_s += info["time_s"]
+    d.stage_times_s["final_fit"] = info["time_s"]
     d.final_fit = info
     if not kept:
         info["reason"] = (f"the estimator's fit ends at reduced chi2 {a.reduced_chi2_adjusted:.3g} at the noise floor, "

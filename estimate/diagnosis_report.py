@@ -81,6 +81,11 @@ def _exit_bar_text(e: Mapping[str, Any]) -> str:
     return f"its BIC price {e['needed']:.1f} (k ln n)"
 
 
+#: How the summary names the stages of `estimate.diagnose.DIAGNOSIS_STAGES`.
+STAGE_WORDS = {"locate": "evaluating the fit", "screening": "screening", "confirmation": "confirming refits",
+               "model": "the model with the confirmed effects", "final_fit": "the estimator's final fit"}
+
+
 def summary_text(doc: Mapping[str, Any]) -> str:
     """Plain-language summary of a diagnosis document (terminal and HTML report)."""
     import io
@@ -88,6 +93,10 @@ def summary_text(doc: Mapping[str, Any]) -> str:
     out = io.StringIO()
     for ch, d in doc["channels"].items():
         print(f"channel {ch}: {d['verdict']}", file=out)
+        stages = d.get("time_by_stage_s") or {}
+        if stages:
+            print(f"  time {d['time_s']:.0f} s: "
+                  + ", ".join(f"{STAGE_WORDS.get(k, k)} {v:.0f} s" for k, v in stages.items()), file=out)
         if not d["significant"]:
             continue
         loc = d["localisation"]

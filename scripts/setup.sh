@@ -50,6 +50,8 @@ if [ ! -x "$VENV/bin/python" ]; then
     fi
 fi
 "$VENV/bin/python" -m pip install -q --upgrade pip >/dev/null
-"$VENV/bin/python" -m pip install -q -e '.[test]'
+# constraints.txt pins every package to the versions the suite last passed with, so a fresh
+# machine installs what was tested rather than whatever PyPI has newest that day.
+"$VENV/bin/python" -m pip install -q -c constraints.txt -e '.[test]'
 touch "$VENV/.installed"
 echo "setup: ready ($VENV)"

@@ -353,6 +353,13 @@ def test_final_fit_by_the_estimator_replaces_the_refit_of_a_confirmed_effect():
     assert doc["material_uncertainty_after"]["sigma_t"] == fr.uncertainties["sigma_t"]
     assert doc["confirmed_effects"]["stray_light"]["stray_light.offset"]["value"] == d.after.parameters[
         "stray_light.offset"]
+    # Where the time went: every stage ran here, and the stages add up to the whole.
+    from estimate.diagnose import DIAGNOSIS_STAGES
+
+    assert list(doc["time_by_stage_s"]) == list(DIAGNOSIS_STAGES)
+    assert all(v > 0 for v in doc["time_by_stage_s"].values())
+    assert doc["time_by_stage_s"]["final_fit"] == d.final_fit["time_s"]
+    assert sum(doc["time_by_stage_s"].values()) == pytest.approx(d.time_s, rel=1e-3, abs=0.05)
     # A named magnitude that the fit's range stopped is marked as such, in the JSON and the text.
     from estimate.diagnose import summary_text
 
@@ -361,8 +368,9 @@ def test_final_fit_by_the_estimator_replaces_the_refit_of_a_confirmed_effect():
     assert "at_bound" not in doc["confirmed_effects"]["stray_light"]["stray_light.offset"]
     pinned = dataclasses.replace(d, parameter_ranges={"stray_light.offset": [(-1.0, offset)]}).as_dict()
     assert pinned["confirmed_effects"]["stray_light"]["stray_light.offset"]["at_bound"] == "upper"
-    assert "(at the upper end of its range: stopped there, not measured)" in summary_text(
-        {"channels": {"g": pinned}, "run_id": "x", "refit_run": None})
+    text = summary_text({"channels": {"g": pinned}, "run_id": "x", "refit_run": None})
+    assert "(at the upper end of its range: stopped there, not measured)" in text
+    assert f"time {d.time_s:.0f} s: evaluating the fit " in text and "the estimator's final fit" in text
 
 
 def test_final_fit_settings_come_from_the_fit_run():
