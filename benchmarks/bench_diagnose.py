@@ -521,6 +521,9 @@ def main() -> int:
                     help="suffix of the written table and JSON entry (a spot check of a few cases, say, "
                          "without overwriting the whole suite's table)")
     args = ap.parse_args()
+    if args.no_final_fit and args.source != "bench":
+        ap.error("--no-final-fit is for --source bench: the synthetic suite's final model is always the "
+                 "Levenberg-Marquardt refit")
     os.environ.setdefault("DRJIT_LIBLLVM_PATH", "/usr/lib/x86_64-linux-gnu/libLLVM-19.so")
     if args.spp is None:
         # At 128 spp the refits fitted their own render's Monte-Carlo noise: with the data's
