@@ -442,6 +442,7 @@ def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tup
     for r in rows:
         e = r["material_error"]
         sig = f"yes ({r.get('significant_by')})" if r["significant"] else "no"
+        sc = screen_confirm_s(r)
         lines.append(f"| {r['id']} | {', '.join(r['concealed']) or '-'} | {sig} | {r['screen_first']} | "
                      f"{', '.join(r['named']) or 'none'} | {'yes' if r['ok'] else 'NO'} | "
                      f"{r.get('noise_floor', 1.0):.2f} | "
@@ -452,7 +453,7 @@ def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tup
                      + " | "
                      f"{100 * e['before']['sigma_t_rel']:.1f}% -> {100 * e['after']['sigma_t_rel']:.1f}% | "
                      f"{_gain(r.get('detectability'))} | {(r['time_s'] or 0):.0f} | "
-                     + (f"{screen_confirm_s(r):.0f} |" if screen_confirm_s(r) is not None else "- |"))
+                     + (f"{sc:.0f} |" if sc is not None else "- |"))
     names = sorted({r["concealed"][0] for r in singles})
     cols = names + ["none"]
     lines += ["", "Confusion (single-effect cases: rows concealed, columns named first)", "",

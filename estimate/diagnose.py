@@ -464,7 +464,6 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         iterations: Levenberg-Marquardt iterations per refit.
         log: progress callback (one line per step).
     """
-    t0 = time.perf_counter()
     laps = _Laps()
     say = log or (lambda s: None)
     cands = [c for c in (candidates or CANDIDATES) if c not in base.extensions]
@@ -696,7 +695,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
     ranges = {k: [parameter_bounds(final_model, k), (final_model.specs[k].lower, final_model.specs[k].upper)]
               for e in confirmed for k in FREE_PARAMETERS[e] if k in final_model.specs}
     return ChannelDiagnosis(problem.channel, before, loc, first_scores, confirmations, confirmed, after,
-                            current_unc if confirmed else {}, verdict, time.perf_counter() - t0, material,
+                            current_unc if confirmed else {}, verdict, sum(laps.seconds.values()), material,
                             dict(base.uncertainties), [float(a) for a in problem.angles_deg],
                             current_cov if confirmed else {}, pruned=pruned, confirmed_order=confirmed_order,
                             importance=importance, fixed_seed_after=fixed_seed, parameter_ranges=ranges,
