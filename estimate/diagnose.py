@@ -38,7 +38,10 @@
    estimator. The Levenberg-Marquardt refit stays in the report (`refit_lm`); its point is the
    one Gauss-Newton step on the decorrelated chi^2 of two render seeds from its fixed-seed
    optimum (`decorrelated_step`), whose render-noise bias that step removes; the optimum
-   itself is reported as `material_fixed_seed_after`.
+   itself is reported as `material_fixed_seed_after`. When the final fit follows, the round
+   that adds the last effect skips that joint refit (`diagnose_channel`'s
+   `final_fit_follows`): the final fit starts from the candidate's refit and makes the
+   backward check itself; `model_stage` says which way the model was made.
 
 The evaluations and the Levenberg-Marquardt refits (a free linear scale, the large secant
 steps of `estimate.gauss_newton.secant_steps`) are in `estimate.refit`; the summary and
@@ -219,6 +222,11 @@ class ChannelDiagnosis:
     parameter_ranges: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
     #: wall time in seconds by stage (`DIAGNOSIS_STAGES`); their sum is `time_s`
     stage_times_s: dict[str, float] = field(default_factory=dict)
+    #: how the confirmed model was refitted before any final fit: "refit" (the joint
+    #: Levenberg-Marquardt refit on all angles, its backward check and decorrelated step),
+    #: "deferred" (left to the estimator's final fit: `after` is the last candidate's refit,
+    #: see `diagnose_channel`'s `final_fit_follows`); "" when nothing was confirmed
+    model_stage: str = ""
 
     @property
     def significant(self) -> bool:
@@ -262,6 +270,7 @@ class ChannelDiagnosis:
             "unconverged": _unconverged(self.before),
             "time_s": self.time_s,
             "time_by_stage_s": {k: self.stage_times_s[k] for k in DIAGNOSIS_STAGES if k in self.stage_times_s},
+            "model_stage": self.model_stage or None,
             "refit_lm": ({"parameters": _plain(self.lm_after.parameters), "scale": self.lm_after.scale,
                           "reduced_chi2": self.lm_after.residuals.reduced_chi2,
                           "reduced_chi2_adjusted": self.lm_after.residuals.reduced_chi2_adjusted,
@@ -451,7 +460,8 @@ def _targeted_significance(ev: Evaluation, scores: Sequence[CandidateScore]) -> 
 def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                      candidates: Sequence[str] | None = None, spp: int = 256, seed: int = DEFAULT_SEED,
                      repeats: int = DEFAULT_REPEATS, iterations: int = 12,
-                     log: Callable[[str], None] | None = None) -> ChannelDiagnosis:
+                     log: Callable[[str], None] | None = None,
+                     final_fit_follows: bool = False) -> ChannelDiagnosis:
     """Diagnose one channel.
 
     Args:
@@ -463,6 +473,14 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         spp, seed, repeats: rendering of evaluations, screening columns and refits.
         iterations: Levenberg-Marquardt iterations per refit.
         log: progress callback (one line per step).
+        final_fit_follows: the estimator's final fit (`refine_channel`) will refit the
+            confirmed model. Then the round that adds the last effect the rounds can add
+            (`MAX_EFFECTS`, or no candidate left) skips the joint Levenberg-Marquardt refit,
+            its uncertainties, decorrelated step and backward check: they would only feed
+            the final fit, which replaces them, starts from the better of the candidate's
+            refit and a coarse grid, and repeats the backward check on its own optimum
+            (`_prune_final`). `after` is then that candidate's refit (training angles,
+            fixed seed) evaluated on all angles, and `model_stage` says "deferred".
     """
     laps = _Laps()
     say = log or (lambda s: None)
@@ -495,6 +513,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
     confirmations: list[dict[str, Any]] = []
     confirmed: list[str] = []
     last_full: tuple[RefitResult, np.ndarray] | None = None
+    deferred: RefitResult | None = None
 
     def joint_refit(exts: list[str], start: Mapping[str, float], mv: np.ndarray, **how: Any) -> RefitResult:
         """The model with `exts` refitted on all angles at FINAL_SPP_FACTOR x spp and the
@@ -639,6 +658,19 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                 e["confirmed"] = False
         confirmed.append(best[1])
         current_exts = current_exts + [best[1]]
+        if final_fit_follows and (len(confirmed) >= MAX_EFFECTS or all(c in confirmed for c in cands)):
+            # No round follows to screen at the joint refit, and the final fit replaces it
+            # (on the simulated bench that refit and its backward check took 131-247 s of a
+            # 560-797 s diagnosis). Its start is the candidate's refit, on all angles.
+            deferred = best[2]
+            m = make_model(current_exts)
+            current = evaluate(m, deferred.parameters, problem, len(_free_names(m, current_exts)) + 1, spp=spp,
+                               seed=seed, repeats=repeats)
+            say(f"  with {', '.join(confirmed)}: reduced chi2 {current.residuals.reduced_chi2:.3f} (HDR), "
+                f"{current.residuals.reduced_chi2_adjusted:.3f} at the noise floor (the candidate's refit; "
+                "the final fit models it)")
+            laps("model")
+            break
         # The final model's parameters carry the Monte-Carlo error of the fixed-seed
         # refit: render it with FINAL_SPP_FACTOR x the samples.
         full_mv = current.model_variance * repeats / FINAL_SPP_FACTOR
@@ -648,7 +680,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
     pruned: list[dict[str, Any]] = []
     confirmed_order = list(confirmed)
     importance: dict[str, dict[str, Any]] = {}
-    if len(confirmed) >= 2 and last_full is not None:
+    if len(confirmed) >= 2 and last_full is not None and deferred is None:
         full = finish(current_exts, full, last_full[1])
         pruned, rises = _prune(problem, make_model, confirmed, current_exts, full, spp=spp, seed=seed,
                                model_variance=last_full[1], floor=floor,
@@ -668,7 +700,11 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             say("  named by the chi2 each carries in the refit: "
                 + ", ".join(f"{e} {importance[e]['chi2_rise']:.0f}" for e in confirmed))
     fixed_seed: dict[str, float] = {}
-    if last_full is not None:
+    if deferred is not None:
+        current_unc = dict(deferred.uncertainties)
+        current_cov = {a: {b: v for (a2, b), v in deferred.covariance.items() if a2 == a}
+                       for a in deferred.uncertainties}
+    elif last_full is not None:
         # The last model's uncertainties and decorrelated step (a settle's refit has none;
         # the joint one got them for the backward check).
         if not full.uncertainties:
@@ -687,7 +723,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                 + ", ".join(f"{k} {fixed_seed[k]:.4g} -> {full.decorrelated[k]:.4g}"
                             for k in ("sigma_t", "albedo") if k in fixed_seed)
                 + f"; reduced chi2 {current.residuals.reduced_chi2:.3f} (HDR)")
-    laps("model" if last_full is not None else "confirmation" if confirmations else "screening")
+    laps("model" if last_full is not None or deferred is not None
+         else "confirmation" if confirmations else "screening")
     material = [k for k in before.parameters if k in ("sigma_t", "albedo") or k.startswith("phase.")]
     after = current if confirmed else None
     verdict = _verdict(before, loc, first_scores, confirmed, after, [e["effect"] for e in pruned if e["dropped"]])
@@ -699,7 +736,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                             dict(base.uncertainties), [float(a) for a in problem.angles_deg],
                             current_cov if confirmed else {}, pruned=pruned, confirmed_order=confirmed_order,
                             importance=importance, fixed_seed_after=fixed_seed, parameter_ranges=ranges,
-                            stage_times_s=dict(laps.seconds))
+                            stage_times_s=dict(laps.seconds),
+                            model_stage="deferred" if deferred is not None else "refit" if confirmed else "")
 
 
 def bound_side(value: float, ranges: Sequence[tuple[float, float]]) -> str | None:
@@ -988,6 +1026,14 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
         info["reason"] = (f"the estimator's fit ends at reduced chi2 {a.reduced_chi2_adjusted:.3g} at the noise floor, "
                           f"above the base fit's {b.reduced_chi2_adjusted:.3g}: the Levenberg-Marquardt refit is kept")
         say(f"  {info['reason']}")
+        if d.model_stage == "deferred" and len(d.confirmed) >= 2:
+            # The joint refit's backward check was left to the final fit; the refit kept
+            # instead gets it now.
+            _name_after_check(problem, d, m, lm.parameters, "refit", spp=spp, seed=seed, repeats=repeats,
+                              renders=None, uncertainties=d.uncertainties_after, covariance=d.covariance_after,
+                              say=say)
+            d.verdict = _verdict(d.before, d.localisation, d.candidates, d.confirmed, lm,
+                                 [e["effect"] for e in d.pruned if e["dropped"]])
         return None
     d.lm_after = lm
     d.after = ev
@@ -998,26 +1044,38 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
         # (the bench's refractive-boundary session: the blur confirmed in round 1 ends with a
         # 0.04 px core, though its 0.27 % wide tail still counts). One that no longer carries
         # its BIC bar stays in the fitted model at its fitted value but is no longer named.
-        checks, rises = _prune_final(problem, m, fr.parameters, d.confirmed, d.before, spp=spp, seed=seed,
-                                     repeats=repeats, renders=stack, uncertainties=fr.uncertainties,
-                                     covariance=fr.covariance)
-        for e in checks:
-            say(f"  {e['effect']} in the final fit: setting it to absent raises chi2 by {e['chi2_rise']:.1f} "
-                f"(needs {e['needed']:.1f}), its magnitude {e.get('magnitude_sigma', math.nan):.1f} sigma from "
-                f"absent (needs {MAGNITUDE_SIGMA:g})" + (" -> dropped" if e["dropped"] else " -> kept"))
-        d.pruned = list(d.pruned) + checks
-        d.confirmed = [c for c in d.confirmed if not any(e["effect"] == c and e["dropped"] for e in checks)]
-        d.importance = {}
-        if len(d.confirmed) >= 2:
-            d.confirmed, d.importance = _by_importance(d.confirmed, rises, "final fit")
-            say("  named by the chi2 each carries in the final fit: "
-                + ", ".join(f"{e} {d.importance[e]['chi2_rise']:.0f}" for e in d.confirmed))
+        _name_after_check(problem, d, m, fr.parameters, "final fit", spp=spp, seed=seed, repeats=repeats,
+                          renders=stack, uncertainties=fr.uncertainties, covariance=fr.covariance, say=say)
     d.verdict = _verdict(d.before, d.localisation, d.candidates, d.confirmed, ev,
                          [e["effect"] for e in d.pruned if e["dropped"]])
     say(f"  final fit: reduced chi2 {a.reduced_chi2:.3f} (HDR), {a.reduced_chi2_adjusted:.3f} at the noise floor "
         f"(refit {lm.residuals.reduced_chi2_adjusted:.3f}); "
         + ", ".join(f"{k} {fr.parameters[k]:.4g}" for k in ("sigma_t", "albedo")) + f" ({info['time_s']:.0f} s)")
     return fr
+
+
+def _name_after_check(problem: Any, d: ChannelDiagnosis, model: Any, params: Mapping[str, float], stage: str, *,
+                      spp: int, seed: int, repeats: int, renders: np.ndarray | None,
+                      uncertainties: Mapping[str, float], covariance: Mapping[str, Mapping[str, float]],
+                      say: Callable[[str], None]) -> None:
+    """`_prune_final` at the model `params` of `d`'s confirmed effects ("final fit", or the
+    "refit" that stands in for it): drops from `d.confirmed` the effects that no longer pay
+    for themselves there and ranks the rest by the chi^2 each carries (`_by_importance`)."""
+    checks, rises = _prune_final(problem, model, params, d.confirmed, d.before, spp=spp, seed=seed,
+                                 repeats=repeats, renders=renders, uncertainties=uncertainties,
+                                 covariance=covariance)
+    for e in checks:
+        e["stage"] = stage
+        say(f"  {e['effect']} in the {stage}: setting it to absent raises chi2 by {e['chi2_rise']:.1f} "
+            f"(needs {e['needed']:.1f}), its magnitude {e.get('magnitude_sigma', math.nan):.1f} sigma from "
+            f"absent (needs {MAGNITUDE_SIGMA:g})" + (" -> dropped" if e["dropped"] else " -> kept"))
+    d.pruned = list(d.pruned) + checks
+    d.confirmed = [c for c in d.confirmed if not any(e["effect"] == c and e["dropped"] for e in checks)]
+    d.importance = {}
+    if len(d.confirmed) >= 2:
+        d.confirmed, d.importance = _by_importance(d.confirmed, rises, stage)
+        say(f"  named by the chi2 each carries in the {stage}: "
+            + ", ".join(f"{e} {d.importance[e]['chi2_rise']:.0f}" for e in d.confirmed))
 
 
 def _screen(problem: Any, current: Evaluation, exts: Sequence[str], make_model: ModelFactory,
@@ -1240,7 +1298,7 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
                        phase, base_exts, {k: float(v) for k, v in (c.get("uncertainties") or {}).items()
                                           if v is not None})
         d = diagnose_channel(pb, base, make_model, candidates=effects, spp=spp, seed=seed, repeats=repeats,
-                             iterations=iterations, log=log)
+                             iterations=iterations, log=log, final_fit_follows=refine)
         if refine and d.confirmed:
             cb_progress, cb_stage = fit_progress(ch, phase) if fit_progress else (None, None)
             fr = refine_channel(pb, d, make_model, fit_settings, spp=spp, seed=seed, repeats=repeats, log=log,

@@ -160,8 +160,11 @@ def summary_text(doc: Mapping[str, Any]) -> str:
             ff = d.get("final_fit") or {}
             lm = d.get("refit_lm") or {}
             if ff.get("kept") and lm:
+                # "deferred": the joint refit was left to the final fit; the start was the
+                # last confirmed candidate's refit (`estimate.diagnose.diagnose_channel`).
+                which = "the last candidate's" if d.get("model_stage") == "deferred" else "the"
                 print(f"  (final model fitted by the estimator, {ff['iterations']} iterations, {ff['time_s']:.0f} s; "
-                      f"the Levenberg-Marquardt refit had reduced chi2 {lm['reduced_chi2_adjusted']:.3f} at the floor, "
+                      f"{which} Levenberg-Marquardt refit had reduced chi2 {lm['reduced_chi2_adjusted']:.3f} at the floor, "
                       + ", ".join(f"{k} {v:.4g}" for k, v in lm["material"].items() if k in ("sigma_t", "albedo"))
                       + ")", file=out)
             elif ff:

@@ -373,6 +373,35 @@ def test_final_fit_by_the_estimator_replaces_the_refit_of_a_confirmed_effect():
     assert f"time {d.time_s:.0f} s: evaluating the fit " in text and "the estimator's final fit" in text
 
 
+def test_with_the_final_fit_to_follow_the_last_round_leaves_the_joint_refit_to_it():
+    """`rig diagnose` (not --quick): once no further round can screen at the joint refit,
+    the model stage is the last candidate's refit evaluated on all angles; the estimator's
+    final fit starts there and replaces it."""
+    rec = record({"stray_light.offset": 0.01})
+    pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
+    d = diagnose_channel(pb, BaseFit(dict(TRUE), 1e4, "hg"), make_model, candidates=["stray_light"], spp=128,
+                         repeats=3, iterations=8, final_fit_follows=True)
+    assert d.confirmed == ["stray_light"] and d.model_stage == "deferred"
+    lm = d.after
+    entry = next(e for e in d.confirmations if e["confirmed"])
+    assert {k: lm.parameters[k] for k in entry["parameters"]} == entry["parameters"]
+    assert lm.model.shape == rec.measured.shape           # evaluated on every angle, held-out ones too
+    assert not d.fixed_seed_after                       # no decorrelated step of a joint refit
+    assert d.uncertainties_after["stray_light.offset"] > 0  # the candidate refit's own
+    st = FitSettings(seed=2, scale="free", max_iterations=14, spp_start=64, spp_max=128, final_spp=256, window=3,
+                     polish_steps=1)
+    fr = refine_channel(pb, d, make_model, st, spp=128, repeats=3)
+    assert fr is not None and d.final_fit["kept"] and fr.start["sigma_t"] == lm.parameters["sigma_t"]
+    assert d.lm_after is lm and fr.parameters["stray_light.offset"] == pytest.approx(0.01, rel=0.5)
+    doc = d.as_dict()
+    assert doc["model_stage"] == "deferred" and doc["material_fixed_seed_after"] is None
+    assert sum(doc["time_by_stage_s"].values()) == pytest.approx(d.time_s, rel=1e-3, abs=0.05)
+    from estimate.diagnose import summary_text
+
+    text = summary_text({"channels": {"g": doc}, "run_id": "x", "refit_run": None})
+    assert "the last candidate's Levenberg-Marquardt refit had reduced chi2" in text
+
+
 def test_final_fit_settings_come_from_the_fit_run():
     recorded = {"fit": {**FitSettings(seed=7, scale="calibrated", max_iterations=3).to_dict(), "future_key": 1}}
     st = _run_fit_settings(recorded)
@@ -611,6 +640,28 @@ def test_a_named_effect_stays_while_it_pays_its_bic_price(monkeypatch, rise_over
     # the joint model fits (chi^2 2000 on 2000 pixels): no dispersion to correct for
     assert out[0]["dispersion"] == pytest.approx(1.0, abs=0.01)
     assert out[0]["needed"] == pytest.approx(price, rel=0.01)
+
+
+def test_the_backward_check_names_the_model_it_was_made_in(monkeypatch):
+    """`_name_after_check`, the backward check that the final fit (or, when the final fit is
+    not kept after a deferred model stage, the last candidate's refit) makes: it drops what
+    no longer pays, ranks the rest by the chi^2 each carries, and says in which model."""
+    import estimate.diagnose as dg
+
+    _fake_final_fit(monkeypatch, 2000.0, {"stray_light": ("stray_light.offset", 0.0, 5000.0),
+                                          "lens_blur": ("lens_blur.core_sigma_px", 0.0, 8000.0),
+                                          "beam_halo": ("beam_halo.fraction", 0.0, 1.0)})
+    params = {"stray_light.offset": 0.003, "lens_blur.core_sigma_px": 1.0, "beam_halo.fraction": 0.01}
+    d = SimpleNamespace(confirmed=["stray_light", "beam_halo", "lens_blur"], before=None, pruned=[{"stage": "x"}],
+                        importance={})
+    lines: list[str] = []
+    dg._name_after_check(None, d, None, params, "refit", spp=1, seed=0, repeats=1, renders=None, uncertainties={},
+                         covariance={}, say=lines.append)
+    assert d.confirmed == ["lens_blur", "stray_light"]          # by the chi^2 each carries
+    assert [(e["effect"], e["stage"], e["dropped"]) for e in d.pruned[1:]] == [
+        ("stray_light", "refit", False), ("beam_halo", "refit", True)]
+    assert d.importance["lens_blur"] == {"chi2_rise": pytest.approx(8000.0), "stage": "refit"}
+    assert any("beam_halo in the refit: setting it to absent" in ln and "dropped" in ln for ln in lines)
 
 
 @pytest.mark.parametrize("joint_chi2_per_pixel, dropped", [(1.0, False), (4.16, True)])
