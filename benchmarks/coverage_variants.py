@@ -112,7 +112,9 @@ def analyse(d: Path) -> None:
     variants = {
         "as fitted": {},
         "session 29's recipe (render noise in the meat too)": {"data_meat": False},
-        "data meat (session 30's default)": {"data_meat": True},
+        "data meat (session 34's default: the Jacobians' mean in the meat)": {"data_meat": True},
+        "data meat, the Jacobians' cross products in the meat (sessions 30-33)": {"data_meat": True,
+                                                                                 "meat_cross": True},
         "data meat, cross floor 0.01": {"data_meat": True, "cross_floor": 0.01},
         "data meat, cross floor 0.3": {"data_meat": True, "cross_floor": 0.3},
         "data meat, without the polish s.e.": {"data_meat": True, "polish_se": False},

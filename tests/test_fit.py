@@ -257,6 +257,49 @@ def test_sandwich_curvature_from_cross_products_of_noisy_jacobians():
     assert pair == pytest.approx(exact, rel=0.1) and four == pytest.approx(exact, rel=0.1)
 
 
+def test_data_meat_holds_the_noise_of_the_jacobians_the_steps_use():
+    """The polish steps with the gradient of its Monte Carlo Jacobians, whose noise E adds
+    E^T S E to the gradient's variance: with the Jacobians fixed, the spread of such a step
+    over noise draws of the data is the data-meat sandwich's interval (the Jacobians' mean in
+    the meat, their cross products in the curvature). The cross-product meat (`meat_cross`,
+    sessions 30-33) leaves E^T S E out and falls short of it."""
+    rng = np.random.default_rng(11)
+    n, w = 4, 200
+    x = np.linspace(-3.0, 3.0, w)
+    prof = np.exp(-np.abs(x))[None, :] * np.ones((n, 1))
+    s, var = 100.0, 0.01 * 100.0 * prof + 1e-3
+    true = {"a": prof, "b": prof * (1.0 + 0.05 * x)}     # nearly parallel: a valley
+    j1, j2 = ({k: v + 0.1 * prof * rng.standard_normal(v.shape) for k, v in true.items()} for _ in range(2))
+    dl = 0.01 * float(prof.max())
+
+    def cols(j):
+        return np.stack([np.ravel(-j[k] / (prof + dl)) for k in ("a", "b")], axis=1)
+
+    c1, c2 = cols(j1), cols(j2)
+    h = 0.5 * (c1.T @ c2 + c2.T @ c1)
+    g = 0.5 * (c1 + c2)
+    steps, sds, exact, crossed = [], [], [], []
+    for _ in range(300):
+        meas = s * prof + rng.normal(0.0, np.sqrt(var))
+        r = np.ravel(np.log(meas / s + dl) - np.log(prof + dl))
+        steps.append(-np.linalg.solve(h, g.T @ r))
+        pb = Problem(np.zeros(n), x, meas, var, None, None, "t", None)  # type: ignore[arg-type]
+        kw: dict = {"delta_rel": 0.01, "fit_scale": False, "data_meat": True}
+        sds.append(sandwich_uncertainties(pb, {}, ["a", "b"], s, prof, np.zeros_like(prof), j1, jac_more=[j2],
+                                          **kw)[0]["b"])
+        if len(exact) < 20:
+            exact.append(sandwich_uncertainties(pb, {}, ["a", "b"], s, prof, np.zeros_like(prof), true, **kw)[0]["b"])
+            crossed.append(sandwich_uncertainties(pb, {}, ["a", "b"], s, prof, np.zeros_like(prof), j1,
+                                                  jac_more=[j2], meat_cross=True, **kw)[0]["b"])
+    spread = float(np.std(np.array(steps)[:, 1], ddof=1))
+    assert np.mean(sds) == pytest.approx(spread, rel=0.15), (np.mean(sds), spread)
+    # The cross-product meat estimates the noise-free Jacobian's meat and misses E^T S E
+    # (0.74-0.83 of the spread at seeds 11-14; the noise-free Jacobian's own interval is
+    # 0.75-1.0 of it, depending on the draw of the Jacobians' noise).
+    assert np.mean(crossed) < 0.9 * spread, (np.mean(crossed), spread)
+    assert np.mean(exact) < 1.05 * spread
+
+
 def test_robust_sandwich_meat_from_cross_products_of_noisy_jacobians():
     """Residuals 30x the stated noise in the tails (the frozen Monte Carlo noise of a simulated
     truth) select the robust meat A^T diag(r^2) A. Built from the Jacobians' mean, it also
