@@ -234,6 +234,10 @@ class FitSettings:
     #: noise alone (`sandwich_uncertainties(data_meat=True)`); the points' standard error
     #: carries the render noise. False: the render noise in both (session 29's recipe)
     uncertainty_data_meat: bool = True
+    #: that data meat from the cross products of the Jacobians, as sessions 30-33 had it
+    #: (False: from their mean, whose noise the polish's gradient carries;
+    #: `sandwich_uncertainties(meat_cross=...)`)
+    uncertainty_meat_cross: bool = False
     decorrelated: bool = True
     #: solve additive parameters (stray-light offset and slope) exactly at every iteration
     #: instead of stepping them (decorrelated mode only; see fit_channel)
@@ -766,7 +770,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
                                                ev["model_variance"], jac, delta_rel=d_ref,
                                                fit_scale=fixed_scale is None,
                                                render_variance_factor=2.0 * st.final_spp / max(1, st.lm_spp),
-                                               covariance_out=sandwich_cov, jac_more=more, data_meat=data_meat)
+                                               covariance_out=sandwich_cov, jac_more=more, data_meat=data_meat,
+                                               meat_cross=st.uncertainty_meat_cross)
         sandwich = dict(unc)
         # never below the ideal linear-chi^2 bound
         unc = {k: max(v, fisher.get(k, 0.0)) for k, v in unc.items()}

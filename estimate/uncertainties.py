@@ -108,9 +108,9 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
     one-channel benchmark's truth the residuals are almost all the evaluation render's
     noise (r^2 / (v_sensor + v_eval) 0.5-1.9 per angle) and the intervals were 1.5-2.2x too
     wide (18 noise draws, session 30, `benchmarks/coverage_variants.py`;
-    `docs/estimation-log.md`). Its Gram matrix is the Jacobians' mean's, not their cross
-    products' (`meat_cross=True` restores those, as sessions 30-33 had it): see the comment
-    at its use.
+    `docs/estimation-log.md`). This meat's Gram matrix is the Jacobians' mean's, not their
+    cross products' (`meat_cross=True` restores those, as sessions 30-33 had it; the other
+    meats keep the cross products): see the comment at its use.
     """
     valid = np.asarray(problem.valid, dtype=bool)
     m = problem.measured / scale
@@ -159,7 +159,7 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
         # inputs re-evaluated): with the cross-product meat the paper simulation's
         # d 0.5 um / sigma_t 6 fit was 3.9 sigma off on sigma_t and 3.5 on the albedo, with
         # this meat 1.5 and 1.3; the one-channel benchmark's 18 noise draws, RMS z 1.18 /
-        # 1.10 / 1.21 / 1.17 / 0.88 (sigma_t, albedo, b1-b3) before, 0.87 / 1.08 / 1.01 /
+        # 1.10 / 1.21 / 1.17 / 0.88 (sigma_t, albedo, b1-b3) before, 0.87 / 1.08 / 1.04 /
         # 1.03 / 0.79 with it.
         cov = correlation_factor(r, v_sensor + v_eval, valid) * (Hi @ gram(v_data.ravel(), meat_cross) @ Hi)
     else:
