@@ -659,9 +659,10 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         confirmed.append(best[1])
         current_exts = current_exts + [best[1]]
         if final_fit_follows and (len(confirmed) >= MAX_EFFECTS or all(c in confirmed for c in cands)):
-            # No round follows to screen at the joint refit, and the final fit replaces it
-            # (on the simulated bench that refit and its backward check took 131-247 s of a
-            # 560-797 s diagnosis). Its start is the candidate's refit, on all angles.
+            # No round follows to screen at the joint refit, and the final fit replaces it.
+            # On the simulated bench the model stage took 131-247 s of a 560-797 s diagnosis
+            # with it, 46-87 s without (session 34). The final fit starts from the
+            # candidate's refit, evaluated here on all angles.
             deferred = best[2]
             m = make_model(current_exts)
             current = evaluate(m, deferred.parameters, problem, len(_free_names(m, current_exts)) + 1, spp=spp,
