@@ -96,13 +96,10 @@ def fit_cache(cdir: Path, model: str) -> Path:
     return cdir / f"fit_{model}_{SCALE}_{FitSettings().optimizer}_{RECIPE}.json"
 
 
-def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
-    from estimate.fit import FitSettings, fit_channel, loss_at
-    from estimate.problem import load_problem
-    from sim_devices.world import load_world
-
-    name = case_name(d, s)
-    cdir = CACHE / name
+def case_session(d: float, s: float) -> tuple[Path, Path]:
+    """The case's recorded session (captured on the simulated bench on first use, an
+    interrupted capture finished) and its world file."""
+    cdir = CACHE / case_name(d, s)
     cdir.mkdir(parents=True, exist_ok=True)
     world = world_file(d, s)
     cal, ses = cdir / "cal", cdir / "session"
@@ -116,6 +113,17 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
 
         if not Session.open(ses).complete:  # an interrupted capture: finish it
             _rig("capture", "--sim", str(world), "--resume", str(ses), "--no-progress")
+    return ses, world
+
+
+def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
+    from estimate.fit import FitSettings, fit_channel, loss_at
+    from estimate.problem import load_problem
+    from sim_devices.world import load_world
+
+    name = case_name(d, s)
+    cdir = CACHE / name
+    ses, world = case_session(d, s)
     pb = load_problem(ses, "g")
     mat = load_world(world).materials["g"]
     truth = mat.parameters()

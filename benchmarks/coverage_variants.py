@@ -10,6 +10,11 @@ cross-product floor, the meat, the polish's standard error) are compared on the 
 
     .venv/bin/python benchmarks/coverage_variants.py capture --seeds 10-15 --dir /tmp/covvar
     .venv/bin/python benchmarks/coverage_variants.py analyse --dir /tmp/covvar
+
+The paper simulation's fits (`bench_paper_sim.py`'s sessions, one fit each) the same way:
+
+    .venv/bin/python benchmarks/coverage_variants.py capture-paper --seeds 0 --dir /tmp/covpaper
+    .venv/bin/python benchmarks/coverage_variants.py analyse-paper --dir /tmp/covpaper
 """
 
 from __future__ import annotations
@@ -43,12 +48,10 @@ def _seeds(text: str) -> list[int]:
     return [int(s) for s in text.split(",")]
 
 
-def capture(seed: int, out: Path) -> None:
-    """Fit draw `seed` with the defaults; pickle the uncertainty stage's inputs and the result."""
-    from synth_session import make_session
-
+def _fit_keeping_inputs(problem: Any, settings: Any) -> tuple[Any, dict[str, Any], float]:
+    """`fit_channel(problem, MODEL)` with the uncertainty stage's inputs kept: the fit, those
+    inputs (`kept["sandwich"]`, `kept["combined"]`) and the fit's wall time."""
     from estimate import fit
-    from estimate.problem import load_problem
 
     kept: dict[str, Any] = {}
     real_sandwich, real_combined = fit.sandwich_uncertainties, fit.combined_uncertainties
@@ -71,16 +74,28 @@ def capture(seed: int, out: Path) -> None:
         return real_combined(base, spread, polish_se, drift, polish_sd, polished=polished)
 
     fit.sandwich_uncertainties, fit.combined_uncertainties = sandwich, combined
+    try:
+        t0 = time.monotonic()
+        r = fit.fit_channel(problem, MODEL, settings=settings)
+        return r, kept, time.monotonic() - t0
+    finally:
+        fit.sandwich_uncertainties, fit.combined_uncertainties = real_sandwich, real_combined
+
+
+def capture(seed: int, out: Path) -> None:
+    """Fit draw `seed` with the defaults; pickle the uncertainty stage's inputs and the result."""
+    from synth_session import make_session
+
+    from estimate import fit
+    from estimate.problem import load_problem
+
     tmp = Path(tempfile.mkdtemp(prefix=f"covvar_{seed}_"))
     try:
         session = make_session(tmp / "s", {CHANNEL: TRUTH}, angles=ANGLES, spp=TRUTH_SPP, width=320,
                                scale=SCALE, seed=seed)
-        t0 = time.monotonic()
-        r = fit.fit_channel(load_problem(session, CHANNEL), MODEL,
-                            settings=fit.FitSettings(seed=seed, scale="calibrated"))
-        wall = time.monotonic() - t0
+        r, kept, wall = _fit_keeping_inputs(load_problem(session, CHANNEL),
+                                            fit.FitSettings(seed=seed, scale="calibrated"))
     finally:
-        fit.sandwich_uncertainties, fit.combined_uncertainties = real_sandwich, real_combined
         shutil.rmtree(tmp, ignore_errors=True)
     kept.update(seed=seed, wall_s=wall, parameters=dict(r.parameters), uncertainties=dict(r.uncertainties),
                 polish=[dict(e) for e in r.polish])
@@ -146,13 +161,80 @@ def analyse(d: Path) -> None:
                                         for p in TRUTH) + " |")
 
 
+def capture_paper(cases: list[str], seed: int, out: Path) -> None:
+    """Fit the paper simulation's cases (`bench_paper_sim.py`'s sessions, exp3, calibrated
+    scale, as there) and pickle each fit's uncertainty inputs, for `analyse_paper`."""
+    import bench_paper_sim as paper
+
+    from estimate import fit
+    from estimate.problem import load_problem
+
+    out.mkdir(parents=True, exist_ok=True)
+    for s in paper.SIGMAS:
+        for d in paper.DIAMETERS:
+            name = paper.case_name(d, s)
+            if name not in cases or (out / f"paper_{name}.pkl").is_file():
+                continue
+            ses, _ = paper.case_session(d, s)
+            r, kept, wall = _fit_keeping_inputs(load_problem(ses, "g"), fit.FitSettings(seed=seed, scale="calibrated"))
+            kept.update(case=name, truth={"sigma_t": s, "albedo": paper.ALBEDO}, wall_s=wall,
+                        parameters=dict(r.parameters), uncertainties=dict(r.uncertainties))
+            (out / f"paper_{name}.pkl").write_bytes(pickle.dumps(kept))
+            print(f"{name}: {wall:.0f} s; sigma_t {r.parameters['sigma_t']:.4g} +- {r.uncertainties['sigma_t']:.2g}, "
+                  f"albedo {r.parameters['albedo']:.4f} +- {r.uncertainties['albedo']:.2g}", flush=True)
+
+
+def _interval(k: dict[str, Any], **over: Any) -> dict[str, float]:
+    """A kept fit's combined intervals, recomputed with the data meat and `over`."""
+    from estimate.uncertainties import combined_uncertainties, sandwich_uncertainties
+
+    s = k["sandwich"]
+    kw = {**s["kw"], "data_meat": True, **over}
+    unc, _, _ = sandwich_uncertainties(s["problem"], s["params"], s["names"], s["scale"], s["profiles"],
+                                       s["model_variance"], s["jac"], **kw)
+    c = k["combined"]
+    out, _ = combined_uncertainties(unc, c["spread"], c["polish_se"], c["drift"], c["polish_sd"],
+                                    polished=c["polished"])
+    return out
+
+
+def analyse_paper(d: Path) -> None:
+    """Per paper case: sigma_t and albedo error over their intervals, both data meats."""
+    fits = [pickle.loads(p.read_bytes()) for p in sorted(d.glob("paper_*.pkl"))]
+    if not fits:
+        raise SystemExit(f"no paper fits in {d}: run `capture-paper` first")
+    meats = {"cross products (sessions 30-33)": {"meat_cross": True}, "the Jacobians' mean (session 34)": {}}
+    print("| case | sigma_t error | " + " | ".join(f"{m}: sigma_t interval, z; albedo z" for m in meats) + " |")
+    print("|---|---|" + "---|" * len(meats))
+    zs: dict[str, dict[str, list[float]]] = {m: {"sigma_t": [], "albedo": []} for m in meats}
+    for k in fits:
+        t, p = k["truth"], k["parameters"]
+        cells = []
+        for m, over in meats.items():
+            u = _interval(k, **over)
+            z = {q: (p[q] - t[q]) / u[q] for q in ("sigma_t", "albedo")}
+            for q, v in z.items():
+                zs[m][q].append(v)
+            cells.append(f"{u['sigma_t'] / t['sigma_t']:.1%}, {z['sigma_t']:+.1f}; {z['albedo']:+.1f}")
+        print(f"| {k['case']} | {p['sigma_t'] / t['sigma_t'] - 1:+.1%} | " + " | ".join(cells) + " |")
+    for m in meats:
+        print(f"{m}: RMS z " + ", ".join(f"{q} {math.sqrt(np.mean(np.square(v))):.2f} (largest {np.max(np.abs(v)):.1f})"
+                                         for q, v in zs[m].items()))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("what", choices=("capture", "analyse"))
-    ap.add_argument("--seeds", default="10-13", help="noise seeds, e.g. 10-15 or 3,5")
+    ap.add_argument("what", choices=("capture", "analyse", "capture-paper", "analyse-paper"))
+    ap.add_argument("--seeds", default="10-13", help="noise seeds, e.g. 10-15 or 3,5 (capture-paper: the fit seed)")
+    ap.add_argument("--cases", default="d0.5_s2,d0.3_s2,d0.2_s2,d0.01_s2,d0.5_s6,d0.3_s6,d0.2_s6,d0.01_s6",
+                    help="capture-paper: the paper simulation's cases (`bench_paper_sim.py` names)")
     ap.add_argument("--dir", type=Path, default=Path(tempfile.gettempdir()) / "covvar")
     a = ap.parse_args()
-    if a.what == "capture":
+    if a.what == "capture-paper":
+        capture_paper(a.cases.split(","), _seeds(a.seeds)[0], a.dir)
+    elif a.what == "analyse-paper":
+        analyse_paper(a.dir)
+    elif a.what == "capture":
         for s in _seeds(a.seeds):
             if (a.dir / f"draw{s}.pkl").is_file():
                 continue
