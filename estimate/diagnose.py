@@ -981,7 +981,8 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
     Gauss-Newton, progressive samples per pixel); "before -> after" only compares like with
     like when the final model is fitted the same way. So the confirmed effects' model is
     fitted with the base run's `settings` (`estimate.fit.FitSettings`), started at the LM
-    refit (no coarse search), and evaluated like every other model here (`evaluate`, same
+    refit or, under a calibrated scale, at a coarse grid's best where that fits better
+    (`_final_fit_start`), and evaluated like every other model here (`evaluate`, same
     seeds and noise floor estimate). Measured on the simulated bench's stray-light session:
     the LM refit left sigma_t 16.6 % high and the albedo at 0.73 (truth 0.95).
 
