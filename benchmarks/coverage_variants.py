@@ -105,24 +105,25 @@ def capture(seed: int, out: Path) -> None:
                                                      for k in TRUTH), flush=True)
 
 
-def analyse(d: Path) -> None:
+def _interval(k: dict[str, Any], *, polish_se: bool = True, **over: Any) -> dict[str, float]:
+    """A kept fit's combined intervals, recomputed from its kept inputs with the sandwich's
+    arguments changed by `over` (and the polish points' standard error left out without
+    `polish_se`)."""
     from estimate.uncertainties import combined_uncertainties, sandwich_uncertainties
 
+    s = k["sandwich"]
+    unc, _, _ = sandwich_uncertainties(s["problem"], s["params"], s["names"], s["scale"], s["profiles"],
+                                       s["model_variance"], s["jac"], **{**s["kw"], **over})
+    c = k["combined"]
+    out, _ = combined_uncertainties(unc, c["spread"], c["polish_se"] if polish_se else {}, c["drift"],
+                                    c["polish_sd"], polished=c["polished"])
+    return out
+
+
+def analyse(d: Path) -> None:
     draws = [pickle.loads(p.read_bytes()) for p in sorted(d.glob("draw*.pkl"))]
     if not draws:
         raise SystemExit(f"no draws in {d}: run `capture` first")
-
-    def recipe(k: dict[str, Any], **over: Any) -> dict[str, float]:
-        s = k["sandwich"]
-        kw = dict(s["kw"])
-        use_se = over.pop("polish_se", True)
-        kw.update(over)
-        unc, _, _ = sandwich_uncertainties(s["problem"], s["params"], s["names"], s["scale"], s["profiles"],
-                                           s["model_variance"], s["jac"], **kw)
-        c = k["combined"]
-        se = c["polish_se"] if use_se else {}
-        out, _ = combined_uncertainties(unc, c["spread"], se, c["drift"], c["polish_sd"], polished=c["polished"])
-        return out
 
     variants = {
         "as fitted": {},
@@ -140,7 +141,7 @@ def analyse(d: Path) -> None:
     # reproduce their own intervals (later ones did too, until the recipe changed again).
     same = [k for k in draws if not k["sandwich"]["kw"].get("data_meat")]
     if same:
-        worst = max(abs(recipe(k)[p] / k["uncertainties"][p] - 1.0) for k in same for p in TRUTH)
+        worst = max(abs(_interval(k)[p] / k["uncertainties"][p] - 1.0) for k in same for p in TRUTH)
         print(f"recomputed 'as fitted' against the fits' own intervals ({len(same)} draws fitted with "
               f"session 29's recipe): largest relative difference {worst:.2g}")
     print(f"{len(draws)} draws (seeds {', '.join(str(k['seed']) for k in draws)}); RMS z per parameter "
@@ -150,7 +151,7 @@ def analyse(d: Path) -> None:
     for name, over in variants.items():
         zs = {p: [] for p in TRUTH}
         for k in draws:
-            u = recipe(k, **dict(over))
+            u = _interval(k, **over)
             for p in TRUTH:
                 if u.get(p, 0) > 0 and math.isfinite(u[p]):
                     zs[p].append((k["parameters"][p] - TRUTH[p]) / u[p])
@@ -161,9 +162,10 @@ def analyse(d: Path) -> None:
                                         for p in TRUTH) + " |")
 
 
-def capture_paper(cases: list[str], seed: int, out: Path) -> None:
+def capture_paper(cases: list[str] | None, seed: int, out: Path) -> None:
     """Fit the paper simulation's cases (`bench_paper_sim.py`'s sessions, exp3, calibrated
-    scale, as there) and pickle each fit's uncertainty inputs, for `analyse_paper`."""
+    scale, as there; all eight when `cases` is None) and pickle each fit's uncertainty
+    inputs, for `analyse_paper`."""
     import bench_paper_sim as paper
 
     from estimate import fit
@@ -173,7 +175,7 @@ def capture_paper(cases: list[str], seed: int, out: Path) -> None:
     for s in paper.SIGMAS:
         for d in paper.DIAMETERS:
             name = paper.case_name(d, s)
-            if name not in cases or (out / f"paper_{name}.pkl").is_file():
+            if (cases is not None and name not in cases) or (out / f"paper_{name}.pkl").is_file():
                 continue
             ses, _ = paper.case_session(d, s)
             r, kept, wall = _fit_keeping_inputs(load_problem(ses, "g"), fit.FitSettings(seed=seed, scale="calibrated"))
@@ -184,26 +186,13 @@ def capture_paper(cases: list[str], seed: int, out: Path) -> None:
                   f"albedo {r.parameters['albedo']:.4f} +- {r.uncertainties['albedo']:.2g}", flush=True)
 
 
-def _interval(k: dict[str, Any], **over: Any) -> dict[str, float]:
-    """A kept fit's combined intervals, recomputed with the data meat and `over`."""
-    from estimate.uncertainties import combined_uncertainties, sandwich_uncertainties
-
-    s = k["sandwich"]
-    kw = {**s["kw"], "data_meat": True, **over}
-    unc, _, _ = sandwich_uncertainties(s["problem"], s["params"], s["names"], s["scale"], s["profiles"],
-                                       s["model_variance"], s["jac"], **kw)
-    c = k["combined"]
-    out, _ = combined_uncertainties(unc, c["spread"], c["polish_se"], c["drift"], c["polish_sd"],
-                                    polished=c["polished"])
-    return out
-
-
 def analyse_paper(d: Path) -> None:
     """Per paper case: sigma_t and albedo error over their intervals, both data meats."""
     fits = [pickle.loads(p.read_bytes()) for p in sorted(d.glob("paper_*.pkl"))]
     if not fits:
         raise SystemExit(f"no paper fits in {d}: run `capture-paper` first")
-    meats = {"cross products (sessions 30-33)": {"meat_cross": True}, "the Jacobians' mean (session 34)": {}}
+    meats = {"cross products (sessions 30-33)": {"data_meat": True, "meat_cross": True},
+             "the Jacobians' mean (session 34)": {"data_meat": True}}
     print("| case | sigma_t error | " + " | ".join(f"{m}: sigma_t interval, z; albedo z" for m in meats) + " |")
     print("|---|---|" + "---|" * len(meats))
     zs: dict[str, dict[str, list[float]]] = {m: {"sigma_t": [], "albedo": []} for m in meats}
@@ -226,12 +215,12 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("what", choices=("capture", "analyse", "capture-paper", "analyse-paper"))
     ap.add_argument("--seeds", default="10-13", help="noise seeds, e.g. 10-15 or 3,5 (capture-paper: the fit seed)")
-    ap.add_argument("--cases", default="d0.5_s2,d0.3_s2,d0.2_s2,d0.01_s2,d0.5_s6,d0.3_s6,d0.2_s6,d0.01_s6",
-                    help="capture-paper: the paper simulation's cases (`bench_paper_sim.py` names)")
+    ap.add_argument("--cases", default=None,
+                    help="capture-paper: the paper simulation's cases, e.g. d0.5_s6,d0.3_s2 (default: all eight)")
     ap.add_argument("--dir", type=Path, default=Path(tempfile.gettempdir()) / "covvar")
     a = ap.parse_args()
     if a.what == "capture-paper":
-        capture_paper(a.cases.split(","), _seeds(a.seeds)[0], a.dir)
+        capture_paper(a.cases.split(",") if a.cases else None, _seeds(a.seeds)[0], a.dir)
     elif a.what == "analyse-paper":
         analyse_paper(a.dir)
     elif a.what == "capture":

@@ -33,9 +33,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--spp", type=int, default=256, help="samples per pixel of the diagnosis renders (256)")
     p.add_argument("--seed", type=int, default=1000, help="base render seed (1000)")
     p.add_argument("--quick", action="store_true",
-                   help="skip the estimator's final fit of the confirmed effects (on the simulated bench it saves about "
-                        "2 min of a 9-11 min diagnosis per channel on 2 cores); the Levenberg-Marquardt refit is then the final model: a fast first "
-                        "look. It cannot walk a base fit that is far off (a left-out boundary: sigma_t 57 %% high) "
+                   help="skip the estimator's final fit of the confirmed effects (on the simulated bench it saves "
+                        "about 2 min of a 9-11 min diagnosis per channel on 2 cores); the Levenberg-Marquardt refit "
+                        "is then the final model: a fast first look. It cannot walk a base fit that is far off (a left-out boundary: sigma_t 57 %% high) "
                         "to the data, and may then name a stand-in effect, first or beside the real one; the full "
                         "run is the reference")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
