@@ -123,8 +123,9 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                     if "chi2_heldout_after" in e else "")
             mag = ""
             if "magnitude_sigma" in e:
-                by = (" (likelihood ratio)" if e.get("magnitude_lr_sigma", 0.0) > e.get("magnitude_wald_sigma", 0.0)
-                      else "")
+                # magnitude_wald_sigma is None where the Wald test was not asked (it could not decide)
+                by = (" (likelihood ratio)" if (e.get("magnitude_lr_sigma") or 0.0) > (e.get("magnitude_wald_sigma")
+                                                                                     or 0.0) else "")
                 mag = f", magnitude {e['magnitude_sigma']:.1f} sigma from absent{by}"
             print(f"  refit with {e['effect']}: BIC improves by {e['delta_bic']:.1f}{held}{mag}"
                   f" -> {'confirmed' if e['confirmed'] else 'not confirmed'}", file=out)

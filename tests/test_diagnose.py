@@ -402,6 +402,35 @@ def test_with_the_final_fit_to_follow_the_last_round_leaves_the_joint_refit_to_i
     assert "the last candidate's Levenberg-Marquardt refit had reduced chi2" in text
 
 
+def test_the_wald_test_of_a_candidate_is_asked_only_where_it_decides(monkeypatch):
+    """A candidate's Wald test costs its refit's uncertainties (a render and one or two
+    Jacobians). Where the likelihood ratio already puts the magnitude beyond MAGNITUDE_SIGMA
+    it cannot change the decision and is not asked; where the BIC gain passes and the
+    likelihood ratio does not, it is, and decides."""
+    import estimate.diagnose as dg
+
+    rec = record({"stray_light.offset": 0.01})
+    pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
+
+    def run():
+        return diagnose_channel(pb, BaseFit(dict(TRUE), 1e4, "hg"), make_model, candidates=["stray_light"],
+                                spp=128, repeats=3, iterations=8, final_fit_follows=True)
+
+    d = run()
+    e = d.confirmations[0]
+    assert e["confirmed"] and e["magnitude_lr_sigma"] > dg.MAGNITUDE_SIGMA
+    assert e["magnitude_wald_sigma"] is None and e["magnitude_sigma"] == e["magnitude_lr_sigma"]
+    assert d.uncertainties_after["stray_light.offset"] > 0   # the last model still gets its intervals
+    monkeypatch.setattr(dg, "_magnitude_lr_z", lambda *a, **k: 0.0)
+    d2 = run()
+    e2 = d2.confirmations[0]
+    assert e2["magnitude_wald_sigma"] is not None and e2["magnitude_wald_sigma"] > dg.MAGNITUDE_SIGMA
+    assert e2["magnitude_sigma"] == e2["magnitude_wald_sigma"] and e2["confirmed"]
+    # the same refit, its uncertainties added once
+    assert e2["chi2_refit_after"] == e["chi2_refit_after"]
+    assert d2.uncertainties_after == d.uncertainties_after
+
+
 def test_final_fit_settings_come_from_the_fit_run():
     recorded = {"fit": {**FitSettings(seed=7, scale="calibrated", max_iterations=3).to_dict(), "future_key": 1}}
     st = _run_fit_settings(recorded)

@@ -159,6 +159,37 @@ def test_neutral_extensions_leave_the_render_unchanged(base_model: ForwardModel)
     assert np.allclose(a, b, rtol=1e-5, atol=1e-9)
 
 
+@pytest.mark.parametrize("name", sorted(n for n, e in EXTENSIONS.items() if e.neutral_is_identity))
+@pytest.mark.parametrize("others", [(), ("stray_light",)])
+def test_an_extension_said_to_be_an_identity_at_neutral_renders_bit_for_bit_as_without_it(name, others) -> None:
+    """The screening shares one render as the secant base of every candidate that declares
+    `neutral_is_identity` (`estimate.diagnose._screen`): at its neutral values such a model
+    must render exactly what the model without it renders at the same seed, also with the
+    beam map imaged through the lens (where a lens blur renders) and beside another effect."""
+    _, frame = _camera_map({"core_sigma_px": 1.5, "tail_fraction": 0.02, "tail_scale_px": 20.0})
+    p = {**BASE, "phase.b1": 1.0, "stray_light.offset": 0.001}
+    for beam in (BEAM, frame):
+        without = ForwardModel(GEOM, beam, phase="exp1", extensions=list(others))
+        with_it = ForwardModel(GEOM, beam, phase="exp1", extensions=[*others, name])
+        a = without.render_profiles({k: v for k, v in p.items() if not k.startswith("stray") or others},
+                                    [40.0, 140.0], spp=32, seed=4)
+        b = with_it.render_profiles({k: v for k, v in p.items() if not k.startswith("stray") or others},
+                                    [40.0, 140.0], spp=32, seed=4)
+        assert np.array_equal(a, b), (name, others, beam is frame)
+
+
+@pytest.mark.parametrize("name", ["refractive_boundary", "filter_bandwidth"])
+def test_a_scene_extension_that_samples_differently_at_neutral_does_not_claim_identity(name) -> None:
+    """An index-matched boundary still draws its reflection decision and a band is several
+    renders: at neutral they agree with the model without them only in the mean, so their
+    screening secants need their own base render."""
+    assert not EXTENSIONS[name].neutral_is_identity
+    p = {**BASE, "phase.b1": 1.0}
+    a = ForwardModel(GEOM, BEAM, phase="exp1").render_profiles(p, [40.0, 140.0], spp=32, seed=4)
+    b = ForwardModel(GEOM, BEAM, phase="exp1", extensions=[name]).render_profiles(p, [40.0, 140.0], spp=32, seed=4)
+    assert not np.array_equal(a, b)
+
+
 def test_angle_offset_shifts_every_angle(base_model: ForwardModel) -> None:
     model = ForwardModel(GEOM, BEAM, phase="exp1", extensions=["angle_offset"])
     a = model.render_profiles({**BASE, "angle_offset.delta_deg": 4.0}, [40.0, 140.0], spp=256, seed=3)

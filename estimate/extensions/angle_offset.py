@@ -14,6 +14,7 @@ __all__ = ["AngleOffset"]
 class AngleOffset(Extension):
     name = "angle_offset"
     kind = "scene"
+    neutral_is_identity = True
     parameters = (
         ParameterSpec("delta_deg", 0.0, -20.0, 20.0, "deg", "fd", 0.25,
                       "added to every stage angle"),

@@ -15,6 +15,7 @@ __all__ = ["BeamHalo"]
 class BeamHalo(Extension):
     name = "beam_halo"
     kind = "scene"
+    neutral_is_identity = True
     parameters = (
         ParameterSpec("fraction", 0.0, 0.0, 1.0, "", "ad", 0.002,
                       "halo power relative to the calibrated beam power"),

@@ -130,6 +130,7 @@ def psf_2d(values: Mapping[str, float], radius: int = TRUNCATION_PX) -> np.ndarr
 
 class LensBlur(ImageExtension):
     name = "lens_blur"
+    neutral_is_identity = True
     parameters = (
         ParameterSpec("core_sigma_px", 0.0, 0.0, 20.0, "px", "image", 0.05,
                       "standard deviation of the sharp core"),

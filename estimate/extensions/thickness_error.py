@@ -13,6 +13,7 @@ __all__ = ["ThicknessError"]
 class ThicknessError(Extension):
     name = "thickness_error"
     kind = "scene"
+    neutral_is_identity = True
     parameters = (
         ParameterSpec("e", 0.0, -0.9, 2.0, "", "fd", 0.02,
                       "relative thickness error; thickness = nominal * (1 + e)"),
