@@ -5,6 +5,7 @@ before and after, written beside diagnosis.yaml).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
@@ -131,6 +132,15 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                   f" -> {'confirmed' if e['confirmed'] else 'not confirmed'}", file=out)
         for e in d.get("pruned") or []:
             final = e.get("stage") == "final fit"
+            if e.get("leading"):
+                # the effect that carries the most (or the only one): its magnitude alone decides
+                alone = "alone in the model" if not e["with"] else f"the largest of {', '.join([e['effect'], *e['with']])}"
+                print(f"  check in the estimator's fit: {e['effect']} ({alone}; setting it to absent raises chi2 by "
+                      f"{e['chi2_rise']:.1f}) lies {e.get('magnitude_sigma', math.nan):.1f} sigma from absent by the "
+                      f"fit's own intervals (needs more than {e.get('magnitude_needed', 1.0):g}) -> "
+                      + ("dropped: its magnitude cannot be told from absent, so it is not named (it stays in the "
+                         "fitted model at its fitted value)" if e["dropped"] else "kept"), file=out)
+                continue
             why = ("dropped: the final fit has no use for it (it stays in the fitted model at its fitted value)"
                    if final else "dropped: its signature was borrowed from the effect added after it")
             print(f"  backward check ({'estimator' if final else 'refit'}): {e['effect']} set to absent in the model "
