@@ -640,7 +640,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             if dbic > BIC_STRONG and z_lr <= MAGNITUDE_SIGMA:
                 fit = _with_uncertainties(problem, m, free, fit, cand_how)
                 z_wald = _magnitude_z(fit, cand.name)
-            z = max(z_lr, z_wald if z_wald is not None else z_lr)
+            z = z_lr if z_wald is None else max(z_lr, z_wald)
             entry["magnitude_sigma"] = z
             entry["magnitude_wald_sigma"] = z_wald
             entry["magnitude_lr_sigma"] = z_lr
@@ -1216,8 +1216,12 @@ def _verdict(before: Evaluation, loc: dict[str, Any], scores: list[CandidateScor
     test = f"smooth structure, p = {b.p_value_smooth:.2g}" if by == "smooth structure" else by
     head = f"significant mismatch ({test}; {noise}), {loc['summary']}"
     if not confirmed and dropped:
-        return (head + f"; the refits confirmed {', '.join(dropped)}, but in the estimator's final fit its "
-                "magnitude cannot be told from absent: no cause is named")
+        # Every confirmed effect was dropped: the last of them, the one that carried the most,
+        # can only go because its magnitude cannot be told from absent in the final fit.
+        why = ("but in the estimator's final fit its magnitude cannot be told from absent" if len(dropped) == 1 else
+               "but the checks in the final model dropped them all (the one that carried the most: its magnitude "
+               "cannot be told from absent there)")
+        return head + f"; the refits confirmed {', '.join(dropped)}, {why}: no cause is named"
     if not confirmed:
         lead = (f"; the best candidate, {scores[0].name}, would remove only {100 * min(1.0, scores[0].explained):.0f}% "
                 "of the excess and was not confirmed by a refit" if scores else "")

@@ -134,7 +134,8 @@ def summary_text(doc: Mapping[str, Any]) -> str:
             final = e.get("stage") == "final fit"
             if e.get("leading"):
                 # the effect that carries the most (or the only one): its magnitude alone decides
-                alone = "alone in the model" if not e["with"] else f"the largest of {', '.join([e['effect'], *e['with']])}"
+                alone = ("alone in the model" if not e["with"]
+                         else f"the largest of {', '.join([e['effect'], *e['with']])}")
                 print(f"  check in the estimator's fit: {e['effect']} ({alone}; setting it to absent raises chi2 by "
                       f"{e['chi2_rise']:.1f}) lies {e.get('magnitude_sigma', math.nan):.1f} sigma from absent by the "
                       f"fit's own intervals (needs more than {e.get('magnitude_needed', 1.0):g}) -> "
