@@ -675,7 +675,6 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         laps("confirmation")
         if best is None:
             break
-        best_how = cand_how
         for e in confirmations:
             if e["round"] == len(confirmed) + 1 and e["effect"] != best[1]:
                 e["confirmed"] = False
@@ -687,11 +686,11 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             # with it, 46-87 s without (session 34). The final fit starts from the
             # candidate's refit, evaluated here on all angles.
             m = make_model(current_exts)
+            free = _free_names(m, current_exts)
             # The last model's uncertainties are this refit's (the final fit's replace them
-            # where it is kept).
-            deferred = _with_uncertainties(problem, m, _free_names(m, current_exts), best[2], best_how)
-            current = evaluate(m, deferred.parameters, problem, len(_free_names(m, current_exts)) + 1, spp=spp,
-                               seed=seed, repeats=repeats)
+            # where it is kept); `cand_how` is this round's.
+            deferred = _with_uncertainties(problem, m, free, best[2], cand_how)
+            current = evaluate(m, deferred.parameters, problem, len(free) + 1, spp=spp, seed=seed, repeats=repeats)
             say(f"  with {', '.join(confirmed)}: reduced chi2 {current.residuals.reduced_chi2:.3f} (HDR), "
                 f"{current.residuals.reduced_chi2_adjusted:.3f} at the noise floor (the candidate's refit; "
                 "the final fit models it)")

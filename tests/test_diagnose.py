@@ -770,8 +770,8 @@ def test_a_lone_effect_whose_magnitude_the_final_fit_cannot_tell_from_absent_is_
     params = {"sigma_t": 2.8, "lens_blur.core_sigma_px": 0.0, "lens_blur.tail_fraction": tail}
     unc = {"sigma_t": 0.05, "lens_blur.core_sigma_px": 59.0, "lens_blur.tail_fraction": tail_sd}
     cov = {a: {b: (unc[a] ** 2 if a == b else 0.0) for b in unc} for a in unc}
-    (e,), rises = dg._prune_final(None, None, params, ["lens_blur"], None, spp=1, seed=0, repeats=1,
-                                  uncertainties=unc, covariance=cov)
+    (e,), _ = dg._prune_final(None, None, params, ["lens_blur"], None, spp=1, seed=0, repeats=1,
+                              uncertainties=unc, covariance=cov)
     assert e["leading"] and e["with"] == [] and e["chi2_rise"] == pytest.approx(4000.0)
     assert e["dropped"] is dropped and (e["magnitude_sigma"] <= dg.MAGNITUDE_SIGMA) is dropped
     # without the fit's intervals there is nothing to ask of a lone effect

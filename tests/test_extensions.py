@@ -167,14 +167,12 @@ def test_an_extension_said_to_be_an_identity_at_neutral_renders_bit_for_bit_as_w
     must render exactly what the model without it renders at the same seed, also with the
     beam map imaged through the lens (where a lens blur renders) and beside another effect."""
     _, frame = _camera_map({"core_sigma_px": 1.5, "tail_fraction": 0.02, "tail_scale_px": 20.0})
-    p = {**BASE, "phase.b1": 1.0, "stray_light.offset": 0.001}
+    p = {**BASE, "phase.b1": 1.0, **({"stray_light.offset": 0.001} if others else {})}
     for beam in (BEAM, frame):
         without = ForwardModel(GEOM, beam, phase="exp1", extensions=list(others))
         with_it = ForwardModel(GEOM, beam, phase="exp1", extensions=[*others, name])
-        a = without.render_profiles({k: v for k, v in p.items() if not k.startswith("stray") or others},
-                                    [40.0, 140.0], spp=32, seed=4)
-        b = with_it.render_profiles({k: v for k, v in p.items() if not k.startswith("stray") or others},
-                                    [40.0, 140.0], spp=32, seed=4)
+        a = without.render_profiles(p, [40.0, 140.0], spp=32, seed=4)
+        b = with_it.render_profiles(p, [40.0, 140.0], spp=32, seed=4)
         assert np.array_equal(a, b), (name, others, beam is frame)
 
 
