@@ -42,6 +42,10 @@
    that adds the last effect skips that joint refit (`diagnose_channel`'s
    `final_fit_follows`): the final fit starts from the candidate's refit and makes the
    backward check itself; `model_stage` says which way the model was made.
+5. Screen again: when the estimator's final fit drops every effect the refits confirmed
+   (none of their magnitudes can be told from absent there), the diagnosis runs once more
+   from that fit's material parameters, without those effects (`screen_again`): a base fit
+   far from the truth can rank a stand-in above the effect the recording holds.
 
 The evaluations and the Levenberg-Marquardt refits (a free linear scale, the large secant
 steps of `estimate.gauss_newton.secant_steps`) are in `estimate.refit`; the summary and
@@ -228,6 +232,9 @@ class ChannelDiagnosis:
     #: "deferred" (left to the estimator's final fit: `after` is the last candidate's refit,
     #: see `diagnose_channel`'s `final_fit_follows`); "" when nothing was confirmed
     model_stage: str = ""
+    #: what `screen_again` did when the estimator's final fit dropped every confirmed effect:
+    #: the effects dropped, where it screened, its candidates and refits, what it named
+    second_pass: dict[str, Any] = field(default_factory=dict)
 
     @property
     def significant(self) -> bool:
@@ -283,6 +290,7 @@ class ChannelDiagnosis:
             "importance": _plain(self.importance),
             "material_fixed_seed_after": ({k: self.fixed_seed_after[k] for k in self.material_names}
                                           if self.fixed_seed_after else None),
+            "second_pass": _plain(self.second_pass) or None,
         }
 
 
@@ -1062,9 +1070,10 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
         info["reason"] = (f"the estimator's fit ends at reduced chi2 {a.reduced_chi2_adjusted:.3g} at the noise floor, "
                           f"above the base fit's {b.reduced_chi2_adjusted:.3g}: the Levenberg-Marquardt refit is kept")
         say(f"  {info['reason']}")
-        if d.model_stage == "deferred" and len(d.confirmed) >= 2:
+        if d.model_stage == "deferred" or len(d.confirmed) == 1:
             # The joint refit's backward check was left to the final fit; the refit kept
-            # instead gets it now.
+            # instead gets it now. A lone effect gets the final fit's magnitude check there
+            # too (`_prune_final`): with two or more in a joint refit, `_prune` made it.
             _name_after_check(problem, d, m, lm.parameters, "refit", spp=spp, seed=seed, repeats=repeats,
                               renders=None, uncertainties=d.uncertainties_after, covariance=d.covariance_after,
                               say=say)
@@ -1113,6 +1122,106 @@ def _name_after_check(problem: Any, d: ChannelDiagnosis, model: Any, params: Map
         d.confirmed, d.importance = _by_importance(d.confirmed, rises, stage)
         say(f"  named by the chi2 each carries in the {stage}: "
             + ", ".join(f"{e} {d.importance[e]['chi2_rise']:.0f}" for e in d.confirmed))
+
+
+def dropped_at_final_fit(d: ChannelDiagnosis) -> list[str]:
+    """The confirmed effects that the estimator's final fit dropped, when it dropped them all
+    (nothing is named although the refits confirmed something); else []."""
+    if d.confirmed or not d.final_fit.get("kept"):
+        return []
+    return [e["effect"] for e in d.pruned if e.get("stage") == "final fit" and e.get("dropped")]
+
+
+def screen_again(problem: Any, d: ChannelDiagnosis, final: FitResult, base: BaseFit, make_model: ModelFactory,
+                 settings: FitSettings, *, candidates: Sequence[str] | None = None, spp: int = 256,
+                 seed: int = DEFAULT_SEED, repeats: int = DEFAULT_REPEATS, iterations: int = 8,
+                 log: Callable[[str], None] | None = None,
+                 progress: Callable[[int, float, int], None] | None = None,
+                 on_stage: Callable[[str], None] | None = None) -> FitResult | None:
+    """A second diagnosis from the estimator's final fit, when that fit dropped every effect
+    the refits had confirmed (`dropped_at_final_fit`).
+
+    The screening ranks the candidates by their score tests at the base fit, and a base fit
+    far from the truth can bury the true effect: on the simulated bench's recaptured
+    refractive-boundary session the base fit came out 74 % high in sigma_t, the boundary
+    screened fifth and was never refitted, and a glare tail was confirmed in its place. The
+    estimator's final fit with the tail left the tail 0.08 sigma from absent (so it was not
+    named) but moved the material parameters much closer to the truth (sigma_t 27 % high).
+    So the diagnosis is run once more (`diagnose_channel`, rounds and final fit alike) from
+    that fit's material parameters in the base model, the dropped effects taken out and not
+    offered again (the final fit could not tell them from absent; offered again, they would
+    stand in once more). "Before" stays the base fit: the report compares the named model
+    with the fit the user made. What the second pass names replaces `d`'s named model; its
+    screening and refits are kept in `d.second_pass` and its refits in `d.confirmations`
+    (with `pass` 2); its time is added to `d`'s stages. It runs once (no third pass).
+
+    Returns the second final fit when that names an effect and is kept, else None (`d` then
+    says that the second pass named nothing).
+    """
+    say = log or (lambda s: None)
+    dropped = dropped_at_final_fit(d)
+    if not dropped or not d.significant:
+        return None
+    cands = [c for c in (candidates or CANDIDATES) if c not in base.extensions and c not in dropped]
+    base_model = make_model(base.extensions)
+    start = {k: float(v) for k, v in final.parameters.items() if k in base_model.parameter_names}
+    info: dict[str, Any] = {"dropped": dropped, "start": dict(start), "candidates": [], "named": [],
+                            "first_final_fit": dict(d.final_fit)}
+    d.second_pass = info
+    if not cands:
+        info["outcome"] = "no candidate left to test"
+        d.verdict += f"; no other candidate is left to test after {', '.join(dropped)}"
+        return None
+    say(f"  the final fit dropped {', '.join(dropped)}: screening again at its material parameters "
+        f"({', '.join(f'{k} {start[k]:.4g}' for k in ('sigma_t', 'albedo') if k in start)}) without "
+        + ("it" if len(dropped) == 1 else "them"))
+    again = BaseFit(start, float(final.scale), base.phase, list(base.extensions),
+                    {k: float(v) for k, v in final.uncertainties.items() if k in start})
+    d2 = diagnose_channel(problem, again, make_model, candidates=cands, spp=spp, seed=seed, repeats=repeats,
+                          iterations=iterations, log=log, final_fit_follows=True)
+    fr2 = None
+    if d2.confirmed:
+        fr2 = refine_channel(problem, d2, make_model, settings, spp=spp, seed=seed, repeats=repeats, log=log,
+                             progress=progress, on_stage=on_stage)
+    for k, v in d2.stage_times_s.items():
+        d.stage_times_s[k] = d.stage_times_s.get(k, 0.0) + v
+    d.time_s += d2.time_s
+    for e in d2.confirmations:
+        e["pass"] = 2
+    for e in d2.pruned:
+        e["pass"] = 2
+    d.confirmations = list(d.confirmations) + list(d2.confirmations)
+    info.update({"reduced_chi2_adjusted_at_start": d2.before.residuals.reduced_chi2_adjusted,
+                 "significant_at_start": d2.significant,
+                 "candidates": [c.as_dict() for c in d2.candidates],
+                 "named": list(d2.confirmed), "time_s": d2.time_s, "time_by_stage_s": dict(d2.stage_times_s)})
+    first = f"the first refits confirmed {', '.join(dropped)}, which the estimator's final fit could not tell " \
+            "from absent; screened again at that fit's material parameters"
+    if not d2.confirmed:
+        # Nothing new is named; `d` keeps the first final fit (and its verdict, extended).
+        info["outcome"] = ("no significant mismatch at the start" if not d2.significant else
+                           "nothing confirmed" if not any(e["confirmed"] for e in d2.confirmations) else
+                           "confirmed, then dropped by the final fit")
+        d.pruned = list(d.pruned) + list(d2.pruned)
+        d.verdict += f"; screened again at the final fit's material parameters without it: {info['outcome']}"
+        say(f"  second pass: {info['outcome']}")
+        return None
+    info["outcome"] = "named " + ", ".join(d2.confirmed)
+    # The second pass's model is the one to report.
+    d.confirmed = list(d2.confirmed)
+    d.confirmed_order = list(d2.confirmed_order or d2.confirmed)
+    d.after, d.lm_after = d2.after, d2.lm_after
+    d.uncertainties_after, d.covariance_after = dict(d2.uncertainties_after), dict(d2.covariance_after)
+    d.final_fit = dict(d2.final_fit)
+    d.pruned = list(d.pruned) + list(d2.pruned)
+    d.importance = dict(d2.importance)
+    d.fixed_seed_after = dict(d2.fixed_seed_after)
+    d.parameter_ranges = dict(d2.parameter_ranges)
+    d.model_stage = d2.model_stage
+    d.verdict = (_verdict(d.before, d.localisation, d.candidates, d.confirmed, d.after,
+                          [e["effect"] for e in d2.pruned if e["dropped"]]) + f" ({first})")
+    say(f"  second pass: {info['outcome']}")
+    return fr2
 
 
 def _screen(problem: Any, current: Evaluation, exts: Sequence[str], make_model: ModelFactory,
@@ -1355,6 +1464,12 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
             cb_progress, cb_stage = fit_progress(ch, phase) if fit_progress else (None, None)
             fr = refine_channel(pb, d, make_model, fit_settings, spp=spp, seed=seed, repeats=repeats, log=log,
                                 progress=cb_progress, on_stage=cb_stage)
+            if fr is not None and dropped_at_final_fit(d):
+                fr2 = screen_again(pb, d, fr, base, make_model, fit_settings, candidates=effects, spp=spp,
+                                   seed=seed, repeats=repeats, iterations=iterations, log=log,
+                                   progress=cb_progress, on_stage=cb_stage)
+                if d.second_pass.get("named"):
+                    fr = fr2   # None: its final fit was not kept; the refit run takes its LM refit
             if fr is not None:
                 finals[ch] = fr
         diags[ch] = d

@@ -119,6 +119,15 @@ def summary_text(doc: Mapping[str, Any]) -> str:
             for c in cands:
                 print(f"    {c['name']:<20} {c['statistic']:10.1f} / {c['dof']}   log10 p {c['log10_p']:8.1f}"
                       f"   {100 * min(1.0, c['explained']):5.1f} %", file=out)
+        again = d.get("second_pass") or {}
+        if again:
+            st = again.get("start") or {}
+            at = ", ".join(f"{k} {st[k]:.4g}" for k in ("sigma_t", "albedo") if k in st)
+            print(f"  second pass: the estimator's final fit dropped {', '.join(again['dropped'])}; screened again at "
+                  f"its material parameters ({at}) without it: {again.get('outcome', '')}", file=out)
+            for c in (again.get("candidates") or [])[:4]:
+                print(f"    {c['name']:<20} {c['statistic']:10.1f} / {c['dof']}   log10 p {c['log10_p']:8.1f}"
+                      f"   {100 * min(1.0, c['explained']):5.1f} %", file=out)
         for e in d["confirmations"]:
             held = (f", held-out chi2 {e['chi2_heldout_before']:.0f} -> {e['chi2_heldout_after']:.0f}"
                     if "chi2_heldout_after" in e else "")
@@ -128,7 +137,8 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                 by = (" (likelihood ratio)" if (e.get("magnitude_lr_sigma") or 0.0) > (e.get("magnitude_wald_sigma")
                                                                                      or 0.0) else "")
                 mag = f", magnitude {e['magnitude_sigma']:.1f} sigma from absent{by}"
-            print(f"  refit with {e['effect']}: BIC improves by {e['delta_bic']:.1f}{held}{mag}"
+            tag = "second pass: " if e.get("pass") == 2 else ""
+            print(f"  {tag}refit with {e['effect']}: BIC improves by {e['delta_bic']:.1f}{held}{mag}"
                   f" -> {'confirmed' if e['confirmed'] else 'not confirmed'}", file=out)
         for e in d.get("pruned") or []:
             final = e.get("stage") == "final fit"

@@ -693,6 +693,49 @@ def test_the_backward_check_names_the_model_it_was_made_in(monkeypatch):
     assert any("beam_halo in the refit: setting it to absent" in ln and "dropped" in ln for ln in lines)
 
 
+@pytest.mark.parametrize("tail_sd, named", [(0.02, True), (2.3, False)])
+def test_a_lone_effect_is_checked_in_the_refit_that_stands_in_for_a_final_fit_not_kept(monkeypatch, tail_sd,
+                                                                                        named):
+    """When the estimator's final fit ends worse than the base fit, the Levenberg-Marquardt
+    refit stays the model; a lone effect there must pass the same magnitude check as in a
+    kept final fit (`_prune_final` at stage "refit"), by that refit's own intervals."""
+    import estimate.diagnose as dg
+    from estimate.diagnose import ChannelDiagnosis, refine_channel
+
+    _fake_final_fit(monkeypatch, 2000.0, {"lens_blur": ("lens_blur.tail_fraction", 0.0, 4000.0)})
+    fake_evaluate = dg.evaluate
+
+    def evaluate(model, params, problem, n_params, **kw):   # the final fit (sigma_t 9) fits worse
+        ev = fake_evaluate(model, params, problem, n_params, **kw)
+        ev.residuals.reduced_chi2_adjusted = 50.0 if params.get("sigma_t") == 9.0 else 1.0
+        return ev
+
+    monkeypatch.setattr(dg, "evaluate", evaluate)
+    monkeypatch.setattr(dg, "render_stack", lambda *a, **k: None)
+    monkeypatch.setattr(dg, "fit_channel", lambda *a, **k: SimpleNamespace(
+        parameters={"sigma_t": 9.0}, iterations=3, stop_reason="cap", drifting=[], loss=1.0, reduced_chi2=50.0,
+        free=["sigma_t"]))
+    params = {"sigma_t": 2.0, "lens_blur.core_sigma_px": 1.0, "lens_blur.tail_fraction": 0.19}
+    # the bench boundary session's tail: 19 +- 230 %, core 0 +- 59 px (here 1 +- 59)
+    unc = {"sigma_t": 0.05, "lens_blur.core_sigma_px": 0.1 if named else 59.0, "lens_blur.tail_fraction": tail_sd}
+    res = SimpleNamespace(noise_scale=np.array([1.0]), significant=True, extra={}, p_value_smooth=1e-9,
+                          reduced_chi2_adjusted=11.8, reduced_chi2=11.8, dof=100)
+    before = SimpleNamespace(residuals=res, parameters={"sigma_t": 3.0})
+    lm = SimpleNamespace(extensions=["lens_blur"], parameters=params,
+                         residuals=SimpleNamespace(reduced_chi2_adjusted=1.0, significant=False))
+    d = ChannelDiagnosis("g", before, {"summary": "in the tails"}, [], [], ["lens_blur"], lm, dict(unc), "", 1.0,
+                         ["sigma_t"], covariance_after={a: {b: (unc[a] ** 2 if a == b else 0.0) for b in unc}
+                                                        for a in unc}, model_stage="refit")
+    model = SimpleNamespace(parameter_names=list(params), phase="hg")
+    assert refine_channel(None, d, lambda exts: model, FitSettings(scale="free")) is None
+    assert not d.final_fit["kept"] and d.after is lm
+    (check,) = d.pruned
+    assert check["stage"] == "refit" and check["leading"] and check["dropped"] is (not named)
+    assert d.confirmed == (["lens_blur"] if named else [])
+    assert ("left-out physics: lens_blur" in d.verdict) is named
+    assert ("no cause is named" in d.verdict) is (not named)
+
+
 @pytest.mark.parametrize("joint_chi2_per_pixel, dropped", [(1.0, False), (4.16, True)])
 def test_the_bar_to_stay_scales_with_the_dispersion_the_joint_model_leaves(monkeypatch, joint_chi2_per_pixel,
                                                                              dropped):
@@ -782,6 +825,79 @@ def test_a_lone_effect_whose_magnitude_the_final_fit_cannot_tell_from_absent_is_
     verdict = _verdict(before, {"summary": "in the tails"}, [], [], None, ["lens_blur"])
     assert "confirmed lens_blur, but in the estimator's final fit its magnitude cannot be told from absent" in verdict
     assert verdict.endswith("no cause is named")
+
+
+def _dropped_first_pass(pb, candidates, material):
+    """A first pass whose estimator's final fit dropped its only confirmed effect, a glare tail
+    (the bench's recaptured boundary session): the base fit's evaluation and screening, and
+    that final fit (`material`, the tail at a magnitude no different from absent)."""
+    from estimate.diagnose import ChannelDiagnosis, screen_candidates
+
+    ev, loc, scores = screen_candidates(pb, BaseFit(dict(TRUE), 1e4, "hg"), make_model, candidates=candidates,
+                                        spp=64, repeats=3)
+    pruned = [{"effect": "lens_blur", "stage": "final fit", "chi2_rise": 40.0, "needed": 11.0, "price": 11.0,
+               "dispersion": 1.0, "dropped": True, "with": [], "leading": True, "magnitude_sigma": 0.08,
+               "magnitude_needed": 1.0}]
+    d = ChannelDiagnosis("g", ev, loc, scores, [{"effect": "lens_blur", "round": 1, "delta_bic": 50.0,
+                                                "confirmed": True}], [], ev, {}, "first verdict", 3.0,
+                         ["sigma_t", "albedo", "phase.g"], final_fit={"kept": True, "time_s": 1.0},
+                         pruned=pruned, confirmed_order=["lens_blur"], stage_times_s={"locate": 1.0, "screening": 2.0})
+    final = SimpleNamespace(parameters={**material, "lens_blur.core_sigma_px": 0.1, "lens_blur.tail_fraction": 0.001},
+                            scale=1e4, uncertainties={"sigma_t": 0.1, "albedo": 0.01, "lens_blur.tail_fraction": 0.02})
+    return d, final
+
+
+def test_when_the_final_fit_drops_every_effect_the_fit_is_screened_again_from_it():
+    """The estimator's final fit dropped the only confirmed effect (a glare tail standing in
+    for the concealed one): the diagnosis runs again from that fit's material parameters,
+    without the dropped effect and without offering it again, and names what the recording
+    holds (a stray-light offset here); the report keeps both passes."""
+    from estimate.diagnose import dropped_at_final_fit, screen_again, summary_text
+
+    rec = record({"stray_light.offset": 0.01})
+    pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
+    d, final = _dropped_first_pass(pb, ["lens_blur", "stray_light"], {**TRUE, "sigma_t": 2.3})
+    assert dropped_at_final_fit(d) == ["lens_blur"]
+    st = FitSettings(seed=2, scale="free", max_iterations=14, spp_start=64, spp_max=128, final_spp=256, window=3,
+                     polish_steps=1)
+    fr = screen_again(pb, d, final, BaseFit(dict(TRUE), 1e4, "hg"), make_model, st,
+                      candidates=["lens_blur", "stray_light"], spp=64, repeats=3, iterations=8)
+    again = d.second_pass
+    assert again["dropped"] == ["lens_blur"] and again["start"]["sigma_t"] == 2.3
+    assert "lens_blur.tail_fraction" not in again["start"]           # the dropped effect is taken out
+    assert [c["name"] for c in again["candidates"]] == ["stray_light"]  # and not offered again
+    assert d.confirmed == ["stray_light"] and again["named"] == ["stray_light"]
+    assert fr is not None and fr.extensions == ["stray_light"] and d.final_fit["kept"]
+    assert d.after.extensions == ["stray_light"] and "lens_blur.tail_fraction" not in d.after.parameters
+    assert fr.parameters["stray_light.offset"] == pytest.approx(0.01, rel=0.5)
+    assert again["first_final_fit"]["time_s"] == 1.0
+    assert [e.get("pass") for e in d.confirmations][:1] == [None]
+    assert {e["pass"] for e in d.confirmations[1:]} == {2}
+    assert sum(d.stage_times_s.values()) == pytest.approx(d.time_s, rel=1e-3, abs=0.05)
+    doc = d.as_dict()
+    assert doc["second_pass"]["named"] == ["stray_light"] and "stray_light" in doc["confirmed_effects"]
+    assert doc["material_before"]["sigma_t"] == TRUE["sigma_t"]     # "before" stays the fit the user made
+    assert "left-out physics: stray_light" in d.verdict and "could not tell from absent" in d.verdict
+    text = summary_text({"channels": {"g": doc}, "run_id": "x", "refit_run": None})
+    assert "second pass: the estimator's final fit dropped lens_blur; screened again" in text
+    assert "second pass: refit with stray_light" in text
+
+
+def test_a_second_pass_without_candidates_left_says_so_and_names_nothing():
+    from estimate.diagnose import screen_again
+
+    rec = record({"stray_light.offset": 0.01})
+    pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
+    d, final = _dropped_first_pass(pb, ["lens_blur"], dict(TRUE))
+    assert screen_again(pb, d, final, BaseFit(dict(TRUE), 1e4, "hg"), make_model, FitSettings(),
+                        candidates=["lens_blur"], spp=64, repeats=3) is None
+    assert d.confirmed == [] and d.second_pass["outcome"] == "no candidate left to test"
+    assert d.verdict == "first verdict; no other candidate is left to test after lens_blur"
+    # nothing to do where an effect is still named, or where the final fit was not kept
+    from estimate.diagnose import dropped_at_final_fit
+
+    assert dropped_at_final_fit(dataclasses.replace(d, confirmed=["stray_light"])) == []
+    assert dropped_at_final_fit(dataclasses.replace(d, final_fit={"kept": False})) == []
 
 
 def test_a_value_at_an_end_of_its_range_is_told_apart():
