@@ -763,6 +763,41 @@ def test_averaged_polish_points_mean_step_within_their_scatter_is_not_added_twic
     assert moving == [] and unc["x"] == pytest.approx(math.hypot(0.1, 0.05, 0.2))
 
 
+def test_covariance_correlates_only_the_parts_whose_correlation_is_modelled():
+    """The reported covariance: the sandwich's (and the iterates') correlated part plus the
+    rest of each variance on the diagonal. Where the sandwich is all of the interval its
+    correlation is kept; where an uncorrelated part (the polish points' standard error)
+    dominates, the sandwich's strong sigma_t-albedo correlation is not stretched over it:
+    the derived sigma_a = sigma_t (1 - albedo) then gets the variance of independent parts
+    (bench_coverage's draw 0, session 36: 0.0013 /mm before, the error 0.0068)."""
+    from estimate.derived import derived_quantities
+    from estimate.uncertainties import combined_covariance
+
+    names = ["sigma_t", "albedo"]
+    s_st, s_a, rho = 7e-5, 1.2e-6, 0.95
+    sandwich = {"sigma_t": {"sigma_t": s_st ** 2, "albedo": rho * s_st * s_a},
+                "albedo": {"sigma_t": rho * s_st * s_a, "albedo": s_a ** 2}}
+    zero = np.zeros((2, 2))
+    # the sandwich is the whole interval: its correlation stays
+    full = combined_covariance(names, {"sigma_t": s_st, "albedo": s_a}, sandwich, zero)
+    assert full["sigma_t"]["albedo"] == pytest.approx(rho * s_st * s_a)
+    # the polish's standard error is nearly all of it: no correlation borrowed
+    unc = {"sigma_t": 0.0342, "albedo": 0.00136}
+    full = combined_covariance(names, unc, sandwich, zero)
+    assert full["sigma_t"]["sigma_t"] == pytest.approx(unc["sigma_t"] ** 2)
+    assert full["albedo"]["albedo"] == pytest.approx(unc["albedo"] ** 2)
+    assert abs(full["sigma_t"]["albedo"]) / (unc["sigma_t"] * unc["albedo"]) < 1e-5
+    params = {"sigma_t": 2.03, "albedo": 0.898, "phase.b1": 3.0, "phase.b2": 1.0, "phase.b3": 0.5}
+    sa = derived_quantities("exp3", params, full)["sigma_a"]["uncertainty"]
+    independent = math.hypot((1 - params["albedo"]) * unc["sigma_t"], params["sigma_t"] * unc["albedo"])
+    assert sa == pytest.approx(independent, rel=1e-3)
+    # the iterates' covariance is correlated too, and a part is never above the variance reported
+    it = np.array([[4e-4, 3.9e-6], [3.9e-6, 4e-8]])
+    full = combined_covariance(names, {"sigma_t": 0.01, "albedo": 1e-4}, {}, it)
+    assert full["sigma_t"]["sigma_t"] == pytest.approx(1e-4) and full["albedo"]["albedo"] == pytest.approx(1e-8)
+    assert full["sigma_t"]["albedo"] / (0.01 * 1e-4) == pytest.approx(3.9e-6 / math.sqrt(4e-4 * 4e-8))
+
+
 def test_polish_average_takes_the_later_points_in_z():
     """The polish's result is the mean of the points after steps `start`..: the stepped
     parameters averaged in their optimiser variables, solved additive ones as they are, the
