@@ -121,13 +121,14 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                       f"   {100 * min(1.0, c['explained']):5.1f} %", file=out)
         again = d.get("second_pass") or {}
         if again:
-            st = again.get("start") or {}
-            at = ", ".join(f"{k} {st[k]:.4g}" for k in ("sigma_t", "albedo") if k in st)
-            print(f"  second pass: the estimator's final fit dropped {', '.join(again['dropped'])}; screened again at "
-                  f"its material parameters ({at}) without it: {again.get('outcome', '')}", file=out)
-            for c in (again.get("candidates") or [])[:4]:
-                print(f"    {c['name']:<20} {c['statistic']:10.1f} / {c['dof']}   log10 p {c['log10_p']:8.1f}"
-                      f"   {100 * min(1.0, c['explained']):5.1f} %", file=out)
+            print(f"  second pass: the estimator's final fit dropped {', '.join(again['dropped'])}; every other "
+                  f"candidate the screening flagged ({', '.join(again.get('refitted') or []) or 'none'}) refitted "
+                  f"from the base fit, the held-out angles not deciding: {again.get('outcome', '')}", file=out)
+            vs = again.get("against_first")
+            if vs:
+                print(f"    its final fit against the first, in the base fit's noise metric: chi2 {vs['chi2_first']:.0f} "
+                      f"-> {vs['chi2_second']:.0f}, gain {vs['gain']:.1f} after the dispersion {vs['dispersion']:.2f} "
+                      f"and the parameters' price (needs more than {vs['needed']:g})", file=out)
         for e in d["confirmations"]:
             held = (f", held-out chi2 {e['chi2_heldout_before']:.0f} -> {e['chi2_heldout_after']:.0f}"
                     if "chi2_heldout_after" in e else "")
