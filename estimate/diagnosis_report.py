@@ -123,7 +123,7 @@ def summary_text(doc: Mapping[str, Any]) -> str:
         if again:
             print(f"  second pass: the estimator's final fit dropped {', '.join(again['dropped'])}; every other "
                   f"candidate the screening flagged ({', '.join(again.get('refitted') or []) or 'none'}) refitted "
-                  f"from the base fit, the held-out angles not deciding: {again.get('outcome', '')}", file=out)
+                  f"from the base fit, the held-out and no-harm tests not deciding: {again.get('outcome', '')}", file=out)
             vs = again.get("against_first")
             if vs:
                 print(f"    its final fit against the first, in the base fit's noise metric: chi2 {vs['chi2_first']:.0f} "
