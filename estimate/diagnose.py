@@ -45,7 +45,7 @@
 5. Second pass: when the estimator's final fit drops every effect the refits confirmed
    (none of their magnitudes can be told from absent there), every other candidate the
    screening flagged is refitted, and the best is fitted by the estimator and must explain
-   the data better than the fit with the stand-in (`screen_again`): a base fit far from the
+   the data better than the fit with the stand-in (`second_pass_channel`): a base fit far from the
    truth can rank a stand-in above the effect the recording holds.
 
 The evaluations and the Levenberg-Marquardt refits (a free linear scale, the large secant
@@ -233,8 +233,9 @@ class ChannelDiagnosis:
     #: "deferred" (left to the estimator's final fit: `after` is the last candidate's refit,
     #: see `diagnose_channel`'s `final_fit_follows`); "" when nothing was confirmed
     model_stage: str = ""
-    #: what `screen_again` did when the estimator's final fit dropped every confirmed effect:
-    #: the effects dropped, where it screened, its candidates and refits, what it named
+    #: what `second_pass_channel` did when the estimator's final fit dropped every confirmed effect:
+    #: the effects dropped, the candidates refitted and the one chosen, its final fit against
+    #: the first (`against_first`), the outcome and what it named
     second_pass: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -506,7 +507,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         max_confirm, max_effects: candidates refitted per round, effects added in all.
         refit_checks_decide: the held-out chi^2 must not rise and the refit, rendered
             independently, must do no harm (default); False records both without deciding
-            (`screen_again`, whose estimator fits judge instead).
+            (`second_pass_channel`, whose estimator fits judge instead).
     """
     laps = _Laps()
     say = log or (lambda s: None)
@@ -1139,7 +1140,7 @@ def dropped_at_final_fit(d: ChannelDiagnosis) -> list[str]:
     return [e["effect"] for e in d.pruned if e.get("stage") == "final fit" and e.get("dropped")]
 
 
-def screen_again(problem: Any, d: ChannelDiagnosis, final: FitResult, base: BaseFit, make_model: ModelFactory,
+def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, base: BaseFit, make_model: ModelFactory,
                  settings: FitSettings, *, spp: int = 256, seed: int = DEFAULT_SEED,
                  repeats: int = DEFAULT_REPEATS, iterations: int = 8, log: Callable[[str], None] | None = None,
                  progress: Callable[[int, float, int], None] | None = None,
@@ -1504,7 +1505,7 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
             fr = refine_channel(pb, d, make_model, fit_settings, spp=spp, seed=seed, repeats=repeats, log=log,
                                 progress=cb_progress, on_stage=cb_stage)
             if fr is not None and dropped_at_final_fit(d):
-                fr2 = screen_again(pb, d, fr, base, make_model, fit_settings, spp=spp, seed=seed,
+                fr2 = second_pass_channel(pb, d, fr, base, make_model, fit_settings, spp=spp, seed=seed,
                                    repeats=repeats, iterations=iterations, log=log, progress=cb_progress,
                                    on_stage=cb_stage)
                 if d.second_pass.get("named"):

@@ -852,7 +852,7 @@ def test_when_the_final_fit_drops_every_effect_the_other_flagged_candidates_are_
     for the concealed one): every other candidate the screening flagged is refitted from the
     base fit, the best is fitted by the estimator and, explaining the data better than the
     fit with the stand-in, named (a stray-light offset here); the report keeps both passes."""
-    from estimate.diagnose import dropped_at_final_fit, screen_again, summary_text
+    from estimate.diagnose import dropped_at_final_fit, second_pass_channel, summary_text
 
     rec = record({"stray_light.offset": 0.01})
     pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
@@ -860,7 +860,7 @@ def test_when_the_final_fit_drops_every_effect_the_other_flagged_candidates_are_
     assert dropped_at_final_fit(d) == ["lens_blur"]
     st = FitSettings(seed=2, scale="free", max_iterations=14, spp_start=64, spp_max=128, final_spp=256, window=3,
                      polish_steps=1)
-    fr = screen_again(pb, d, final, BaseFit(dict(TRUE), 1e4, "hg"), make_model, st, spp=64, repeats=3,
+    fr = second_pass_channel(pb, d, final, BaseFit(dict(TRUE), 1e4, "hg"), make_model, st, spp=64, repeats=3,
                       iterations=8)
     again = d.second_pass
     assert again["dropped"] == ["lens_blur"] and again["refitted"] == ["stray_light"]   # not offered again
@@ -889,7 +889,7 @@ def test_a_second_pass_that_cannot_beat_the_first_final_fit_names_nothing(monkey
     more than BIC_STRONG after the dispersion and the parameters' price; here the first
     final fit is given the truth itself, so nothing is gained and nothing named."""
     import estimate.diagnose as dg
-    from estimate.diagnose import screen_again
+    from estimate.diagnose import second_pass_channel
 
     rec = record({"stray_light.offset": 0.01})
     pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
@@ -898,7 +898,7 @@ def test_a_second_pass_that_cannot_beat_the_first_final_fit_names_nothing(monkey
                                                                     "stray_light.slope_per_mm": 0.0})
     st = FitSettings(seed=2, scale="free", max_iterations=14, spp_start=64, spp_max=128, final_spp=256, window=3,
                      polish_steps=1)
-    assert screen_again(pb, d, truth, BaseFit(dict(TRUE), 1e4, "hg"), make_model, st, spp=64, repeats=3) is None
+    assert second_pass_channel(pb, d, truth, BaseFit(dict(TRUE), 1e4, "hg"), make_model, st, spp=64, repeats=3) is None
     again = d.second_pass
     assert again["chosen"] == ["stray_light"] and again["named"] == [] and d.confirmed == []
     assert again["against_first"]["gain"] <= dg.BIC_STRONG
@@ -907,12 +907,12 @@ def test_a_second_pass_that_cannot_beat_the_first_final_fit_names_nothing(monkey
 
 
 def test_a_second_pass_without_candidates_left_says_so_and_names_nothing():
-    from estimate.diagnose import dropped_at_final_fit, screen_again
+    from estimate.diagnose import dropped_at_final_fit, second_pass_channel
 
     rec = record({"stray_light.offset": 0.01})
     pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
     d, final = _dropped_first_pass(pb, ["lens_blur"])
-    assert screen_again(pb, d, final, BaseFit(dict(TRUE), 1e4, "hg"), make_model, FitSettings(), spp=64,
+    assert second_pass_channel(pb, d, final, BaseFit(dict(TRUE), 1e4, "hg"), make_model, FitSettings(), spp=64,
                         repeats=3) is None
     assert d.confirmed == [] and d.second_pass["outcome"] == "no other candidate was flagged by the screening"
     assert d.verdict == "first verdict; no other candidate was flagged by the screening"
