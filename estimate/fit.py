@@ -763,7 +763,6 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
                                          fit_scale=fixed_scale is None,
                                          jac={n: np.mean([j[n] for j in (jac, *more)], axis=0) for n in names})
         sandwich_cov: dict[str, dict[str, float]] = {}
-        step_corr: dict[str, dict[str, float]] = {}
         # The result averaged polish points whose scatter (`polish_se`) is their render noise:
         # the meat then holds the data's noise alone, or that noise would be counted twice.
         data_meat = st.uncertainty_data_meat and bool(polish_se)
@@ -772,8 +771,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
                                                fit_scale=fixed_scale is None,
                                                render_variance_factor=2.0 * st.final_spp / max(1, st.lm_spp),
                                                covariance_out=sandwich_cov, jac_more=more, data_meat=data_meat,
-                                               meat_cross=st.uncertainty_meat_cross,
-                                               render_correlation_out=step_corr)
+                                               meat_cross=st.uncertainty_meat_cross)
         sandwich = dict(unc)
         # never below the ideal linear-chi^2 bound
         unc = {k: max(v, fisher.get(k, 0.0)) for k, v in unc.items()}
@@ -794,7 +792,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         unc, moving = combined_uncertainties(unc, spread, polish_se, drift, polish_sd, polished=polished)
         if polished:
             drifting = moving
-        covariance = combined_covariance(names, unc, sandwich_cov, it_cov, polish_se, step_corr)
+        covariance = combined_covariance(names, unc, sandwich_cov, it_cov)
         stage_done("uncertainties")
     elif on_stage:
         on_stage("done")

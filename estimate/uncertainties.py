@@ -60,8 +60,7 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
                            covariance_out: dict[str, dict[str, float]] | None = None,
                            jac_more: Sequence[Mapping[str, np.ndarray]] = (),
                            cross_floor: float = UNCERTAINTY_CROSS_FLOOR,
-                           data_meat: bool = False, meat_cross: bool = False,
-                           render_correlation_out: dict[str, dict[str, float]] | None = None,
+                           data_meat: bool = False, meat_cross: bool = False
                            ) -> tuple[dict[str, float], float, float]:
     """1-sigma uncertainties of the log-loss estimator (sandwich), its scale's, and the
     log-space reduced chi^2. With `covariance_out`, the full covariance of `names` (the
@@ -112,11 +111,6 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
     `docs/estimation-log.md`). This meat's Gram matrix is the Jacobians' mean's, not their
     cross products' (`meat_cross=True` restores those, as sessions 30-33 had it; the other
     meats keep the cross products): see the comment at its use.
-
-    `render_correlation_out`: the correlation matrix of H^-1 (A^T V A) H^-1, V the render
-    noise of one polish step's gradient (`render_variance_factor` x `model_variance`): how
-    the polish points scatter about the optimum, whose size `polish_se` measures
-    (`combined_covariance`).
     """
     valid = np.asarray(problem.valid, dtype=bool)
     m = problem.measured / scale
@@ -171,14 +165,6 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
     else:
         modelled = Hi @ gram(var_r.ravel()) @ Hi
         cov = modelled * max(1.0, red)
-    if render_correlation_out is not None:
-        v_step = render_variance_factor * model_variance / (ip + dl) ** 2
-        c_step = Hi @ gram(np.where(valid & np.isfinite(v_step), v_step, 0.0).ravel()) @ Hi
-        sd_step = np.sqrt(np.clip(np.diag(c_step), 0.0, None))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            rho = np.where(np.outer(sd_step, sd_step) > 0, c_step / np.outer(sd_step, sd_step), 0.0)
-        render_correlation_out.update({a: {b: float(np.clip(rho[i, j], -1.0, 1.0)) if i != j else 1.0
-                                           for j, b in enumerate(names)} for i, a in enumerate(names)})
     if covariance_out is not None:
         covariance_out.update({a: {b: float(cov[i, j]) for j, b in enumerate(names)} for i, a in enumerate(names)})
     if not data_meat and red > 1.0:
@@ -322,38 +308,27 @@ def combined_uncertainties(base: Mapping[str, float], spread: Mapping[str, float
 
 
 def combined_covariance(names: Sequence[str], unc: Mapping[str, float], sandwich: Mapping[str, Mapping[str, float]],
-                        iterate_cov: np.ndarray, polish_se: Mapping[str, float] | None = None,
-                        polish_correlation: Mapping[str, Mapping[str, float]] | None = None,
-                        ) -> dict[str, dict[str, float]]:
+                        iterate_cov: np.ndarray) -> dict[str, dict[str, float]]:
     """Full covariance whose diagonal is the reported uncertainties squared.
 
-    Its correlated part is what the correlations are known for: the sandwich covariance, the
-    averaged iterates' own covariance and, with `polish_correlation`
-    (`sandwich_uncertainties`' `render_correlation_out`), the polish points' standard error
-    `polish_se` with the correlation of the render noise their steps carry. The rest of each
-    reported variance (a drift, the Fisher bound's excess over the sandwich, the polish's
-    share without that correlation) sits on the diagonal alone.
+    Its correlated part is what the correlations are known for: the sandwich covariance plus
+    the averaged iterates' own covariance. The rest of each reported variance (the polish
+    points' standard error, a drift, the Fisher bound's excess over the sandwich) sits on the
+    diagonal alone: those parts come per parameter, without correlations.
 
-    Until session 36 the sandwich's correlations were stretched over the whole reported
-    interval. Where the data meat's excess is zero (`data_noise_variance`'s b) the sandwich
-    holds the sensor noise alone, 1e-4 of the interval, and the polish's standard error is
-    nearly all of it; it then lent the sandwich's strong sigma_t-albedo correlation to an
-    error that does not share it. On `bench_coverage.py`'s eight draws (3 such) the derived
-    sigma_a came out 2.4 sigma RMS off (its interval 0.0013 /mm, the errors up to 0.007).
-    With the polish's share on the diagonal sigma_a was right (1.11) but sigma_s' and g,
-    whose errors the correlations narrow, 2.5-3x too wide (`docs/estimation-log.md`)."""
+    Until session 36 the sandwich's correlations were stretched over the whole interval.
+    Where the data meat's excess is zero (`data_noise_variance`'s b) the sandwich holds the
+    sensor noise alone, 1e-4 of the interval, and the polish's standard error is nearly all
+    of it; it then lent the sandwich's strong sigma_t-albedo correlation to an error that
+    does not share it. On `bench_coverage.py`'s eight draws (3 such) the derived sigma_a
+    came out 2.4 sigma RMS off (its interval 0.0013 /mm, the errors up to 0.007)."""
     k = len(names)
     c = np.array([[float(sandwich.get(a, {}).get(b, 0.0)) for b in names] for a in names]) if sandwich \
         else np.zeros((k, k))
     c = np.where(np.isfinite(c), c, 0.0) + iterate_cov
-    if polish_se and polish_correlation:
-        se = np.array([float(polish_se.get(n, 0.0)) for n in names])
-        rho = np.array([[float(polish_correlation.get(a, {}).get(b, 1.0 if a == b else 0.0)) for b in names]
-                        for a in names])
-        c = c + np.where(np.isfinite(rho), rho, 0.0) * np.outer(se, se)
     var = np.array([float(unc[n]) for n in names]) ** 2
     d = np.clip(np.diag(c), 0.0, None)
-    # a part may not exceed the variance reported (a drift that is not added, rounding)
+    # a part may not exceed the variance reported (by construction it does not; rounding)
     with np.errstate(invalid="ignore", divide="ignore"):
         f = np.where(d > var, np.sqrt(var / np.where(d > 0, d, 1.0)), 1.0)
     c = c * np.outer(f, f)

@@ -207,28 +207,6 @@ def test_data_meat_leaves_the_evaluation_renders_noise_out():
     assert np.all(np.mean(without, axis=0) / spread > 1.6), (np.mean(without, axis=0), spread)
 
 
-def test_render_correlation_is_that_of_estimates_scattered_by_render_noise():
-    """The polish points scatter about the optimum by the render noise of the gradient they
-    step with. A toy log-loss fit to profiles carrying render noise alone (variance
-    `render_variance_factor` x `model_variance`): the correlation of its estimates is the
-    one `render_correlation_out` reports (a, b of a exp(-b x): strongly correlated)."""
-    x = np.linspace(0.0, 3.0, 90)
-    a, b, s_true, dl = 1.0, 1.2, 50.0, 0.03
-    model = a * np.exp(-b * x)
-    mv = (0.02 * model) ** 2 + 1e-6                # the evaluation render's variance, unit-power units
-    rng = np.random.default_rng(5)
-    est = [_toy_log_fit(model + rng.normal(0.0, np.sqrt(2.0 * mv)), x, dl) for _ in range(300)]
-    empirical = float(np.corrcoef(np.array(est).T)[0, 1])
-    pb = Problem(np.array([0.0]), x, (s_true * model)[None, :], np.full((1, x.size), 1e-6), None, None, "t",
-                 None)  # type: ignore[arg-type]
-    corr: dict[str, dict[str, float]] = {}
-    sandwich_uncertainties(pb, {"a": a, "b": b}, ["a", "b"], s_true, model[None, :], mv[None, :],
-                           {"a": model[None, :] / a, "b": (-x * model)[None, :]}, delta_rel=dl, fit_scale=False,
-                           data_meat=True, render_variance_factor=2.0, render_correlation_out=corr)
-    assert corr["a"]["a"] == 1.0 and corr["a"]["b"] == pytest.approx(corr["b"]["a"])
-    assert abs(empirical) > 0.3 and corr["a"]["b"] == pytest.approx(empirical, abs=0.1)
-
-
 def test_correlation_factor_counts_noise_shared_between_neighbouring_pixels():
     """White noise: a sum over pixels has the sum of their variances (factor ~1). Noise
     averaged over 3 neighbouring pixels (a render's reconstruction filter): a smooth sum
@@ -786,8 +764,8 @@ def test_averaged_polish_points_mean_step_within_their_scatter_is_not_added_twic
 
 
 def test_covariance_correlates_only_the_parts_whose_correlation_is_modelled():
-    """The reported covariance: the sandwich's, the iterates' and (with its correlation) the
-    polish's correlated parts plus the rest of each variance on the diagonal. Where the sandwich is all of the interval its
+    """The reported covariance: the sandwich's (and the iterates') correlated part plus the
+    rest of each variance on the diagonal. Where the sandwich is all of the interval its
     correlation is kept; where an uncorrelated part (the polish points' standard error)
     dominates, the sandwich's strong sigma_t-albedo correlation is not stretched over it:
     the derived sigma_a = sigma_t (1 - albedo) then gets the variance of independent parts
@@ -813,12 +791,6 @@ def test_covariance_correlates_only_the_parts_whose_correlation_is_modelled():
     sa = derived_quantities("exp3", params, full)["sigma_a"]["uncertainty"]
     independent = math.hypot((1 - params["albedo"]) * unc["sigma_t"], params["sigma_t"] * unc["albedo"])
     assert sa == pytest.approx(independent, rel=1e-3)
-    # the polish's share carries the render-noise correlation of its steps, where given
-    se = {"sigma_t": 0.0342, "albedo": 0.00136}
-    corr = {"sigma_t": {"sigma_t": 1.0, "albedo": -0.6}, "albedo": {"sigma_t": -0.6, "albedo": 1.0}}
-    full = combined_covariance(names, unc, sandwich, zero, se, corr)
-    assert full["sigma_t"]["albedo"] / (unc["sigma_t"] * unc["albedo"]) == pytest.approx(-0.6, abs=1e-3)
-    assert full["albedo"]["albedo"] == pytest.approx(unc["albedo"] ** 2)
     # the iterates' covariance is correlated too, and a part is never above the variance reported
     it = np.array([[4e-4, 3.9e-6], [3.9e-6, 4e-8]])
     full = combined_covariance(names, {"sigma_t": 0.01, "albedo": 1e-4}, {}, it)
