@@ -852,7 +852,11 @@ def test_when_the_final_fit_drops_every_effect_the_other_flagged_candidates_are_
     for the concealed one): every other candidate the screening flagged is refitted from the
     base fit, the best is fitted by the estimator and, explaining the data better than the
     fit with the stand-in, named (a stray-light offset here); the report keeps both passes."""
-    from estimate.diagnose import dropped_at_final_fit, second_pass_channel, summary_text
+    from estimate.diagnose import (
+        dropped_at_final_fit,
+        second_pass_channel,
+        summary_text,
+    )
 
     rec = record({"stray_light.offset": 0.01})
     pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
