@@ -45,8 +45,8 @@
 5. Second pass: when the estimator's final fit drops every effect the refits confirmed
    (none of their magnitudes can be told from absent there), every other candidate the
    screening flagged is refitted, and the best is fitted by the estimator and must explain
-   the data better than the fit with the stand-in (`second_pass_channel`): a base fit far from the
-   truth can rank a stand-in above the effect the recording holds.
+   the data better than the fit with the stand-in (`second_pass_channel`): a base fit far
+   from the truth can rank a stand-in above the effect the recording holds.
 
 The evaluations and the Levenberg-Marquardt refits (a free linear scale, the large secant
 steps of `estimate.gauss_newton.secant_steps`) are in `estimate.refit`; the summary and
@@ -1140,11 +1140,12 @@ def dropped_at_final_fit(d: ChannelDiagnosis) -> list[str]:
     return [e["effect"] for e in d.pruned if e.get("stage") == "final fit" and e.get("dropped")]
 
 
-def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, base: BaseFit, make_model: ModelFactory,
-                 settings: FitSettings, *, spp: int = 256, seed: int = DEFAULT_SEED,
-                 repeats: int = DEFAULT_REPEATS, iterations: int = 8, log: Callable[[str], None] | None = None,
-                 progress: Callable[[int, float, int], None] | None = None,
-                 on_stage: Callable[[str], None] | None = None) -> FitResult | None:
+def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, base: BaseFit,
+                        make_model: ModelFactory, settings: FitSettings, *, spp: int = 256,
+                        seed: int = DEFAULT_SEED, repeats: int = DEFAULT_REPEATS, iterations: int = 8,
+                        log: Callable[[str], None] | None = None,
+                        progress: Callable[[int, float, int], None] | None = None,
+                        on_stage: Callable[[str], None] | None = None) -> FitResult | None:
     """A second pass when the estimator's final fit (`final`) dropped every effect the refits
     had confirmed (`dropped_at_final_fit`): every other candidate the first screening flagged
     is refitted, and the best is fitted by the estimator and compared with `final`.
@@ -1255,9 +1256,9 @@ def _against_first(problem: Any, d: ChannelDiagnosis, first: FitResult, second: 
         ev = evaluate(m, fr.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats, noise_variance=yd)
         out[f"chi2_{tag}"] = float(ev.residuals.chi2_adjusted)
         out[f"k_{tag}"] = float(len(_free_names(m, list(fr.extensions))) + 1)
-        out["n_obs"] = float(max(2, int(np.sum(np.isfinite(ev.residuals.r)))))
-    n = out["n_obs"]
-    out["dispersion"] = _dispersion(out["chi2_second"], int(n), int(out["k_second"]))
+    n = max(2, int(np.sum(np.isfinite(ev.residuals.r))))   # the same pixels in both
+    out["n_obs"] = float(n)
+    out["dispersion"] = _dispersion(out["chi2_second"], n, int(out["k_second"]))
     out["gain"] = ((out["chi2_first"] - out["chi2_second"]) / out["dispersion"]
                    - (out["k_second"] - out["k_first"]) * math.log(n))
     out["needed"] = BIC_STRONG
@@ -1506,8 +1507,8 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
                                 progress=cb_progress, on_stage=cb_stage)
             if fr is not None and dropped_at_final_fit(d):
                 fr2 = second_pass_channel(pb, d, fr, base, make_model, fit_settings, spp=spp, seed=seed,
-                                   repeats=repeats, iterations=iterations, log=log, progress=cb_progress,
-                                   on_stage=cb_stage)
+                                          repeats=repeats, iterations=iterations, log=log,
+                                          progress=cb_progress, on_stage=cb_stage)
                 if d.second_pass.get("named"):
                     fr = fr2   # None: its final fit was not kept; the refit run takes its LM refit
             if fr is not None:

@@ -865,7 +865,7 @@ def test_when_the_final_fit_drops_every_effect_the_other_flagged_candidates_are_
     st = FitSettings(seed=2, scale="free", max_iterations=14, spp_start=64, spp_max=128, final_spp=256, window=3,
                      polish_steps=1)
     fr = second_pass_channel(pb, d, final, BaseFit(dict(TRUE), 1e4, "hg"), make_model, st, spp=64, repeats=3,
-                      iterations=8)
+                             iterations=8)
     again = d.second_pass
     assert again["dropped"] == ["lens_blur"] and again["refitted"] == ["stray_light"]   # not offered again
     assert d.confirmed == ["stray_light"] and again["named"] == ["stray_light"]
@@ -902,7 +902,8 @@ def test_a_second_pass_that_cannot_beat_the_first_final_fit_names_nothing(monkey
                                                                     "stray_light.slope_per_mm": 0.0})
     st = FitSettings(seed=2, scale="free", max_iterations=14, spp_start=64, spp_max=128, final_spp=256, window=3,
                      polish_steps=1)
-    assert second_pass_channel(pb, d, truth, BaseFit(dict(TRUE), 1e4, "hg"), make_model, st, spp=64, repeats=3) is None
+    assert second_pass_channel(pb, d, truth, BaseFit(dict(TRUE), 1e4, "hg"), make_model, st, spp=64,
+                               repeats=3) is None
     again = d.second_pass
     assert again["chosen"] == ["stray_light"] and again["named"] == [] and d.confirmed == []
     assert again["against_first"]["gain"] <= dg.BIC_STRONG
@@ -917,7 +918,7 @@ def test_a_second_pass_without_candidates_left_says_so_and_names_nothing():
     pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
     d, final = _dropped_first_pass(pb, ["lens_blur"])
     assert second_pass_channel(pb, d, final, BaseFit(dict(TRUE), 1e4, "hg"), make_model, FitSettings(), spp=64,
-                        repeats=3) is None
+                               repeats=3) is None
     assert d.confirmed == [] and d.second_pass["outcome"] == "no other candidate was flagged by the screening"
     assert d.verdict == "first verdict; no other candidate was flagged by the screening"
     # nothing to do where an effect is still named, or where the final fit was not kept
