@@ -56,6 +56,7 @@ mismatch, no cause is named.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import time
@@ -187,6 +188,34 @@ class BaseFit:
 
 
 @dataclass
+class FirstRound:
+    """What `diagnose_channel` computed from the base fit before its first confirmation
+    decided: the evaluation, localisation and score tests, the control refit, and each
+    candidate's refit with its statistics (held-out and no-harm tests included, the
+    decision not). `second_pass_channel` starts again from the same base fit at the same
+    settings, so it takes these instead of rendering them again: on the bench boundary
+    session that was the evaluation, the screening, the control and a beam-halo refit,
+    about 70 s of its 230 s (session 37). Kept in memory only, never in the report.
+    """
+
+    #: (spp, seed, repeats, iterations, base parameters, base extensions): reused only where all match
+    key: tuple[Any, ...]
+    before: Evaluation
+    localisation: dict[str, Any]
+    scores: list[CandidateScore]
+    #: the control refit, the current model and the control on the training angles, the held-out chi^2
+    control: tuple[Any, ...] | None = None
+    #: candidate -> (its confirmation entry without the decision, its refit)
+    refits: dict[str, tuple[dict[str, Any], RefitResult]] = field(default_factory=dict)
+
+
+def _first_round_key(problem: Any, base: BaseFit, spp: int, seed: int, repeats: int,
+                     iterations: int) -> tuple[Any, ...]:
+    return (id(problem), spp, seed, repeats, iterations, tuple(sorted(base.parameters.items())),
+            tuple(base.extensions))
+
+
+@dataclass
 class ChannelDiagnosis:
     """Everything `rig diagnose` reports for one channel (see `as_dict`)."""
 
@@ -237,6 +266,8 @@ class ChannelDiagnosis:
     #: the effects dropped, the candidates refitted and the one chosen, its final fit against
     #: the first (`against_first`), the outcome and what it named
     second_pass: dict[str, Any] = field(default_factory=dict)
+    #: the first round's renders and refits, for a second pass from the same base fit (not reported)
+    first_round: FirstRound | None = field(default=None, repr=False, compare=False)
 
     @property
     def significant(self) -> bool:
@@ -484,7 +515,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                      repeats: int = DEFAULT_REPEATS, iterations: int = 12,
                      log: Callable[[str], None] | None = None,
                      final_fit_follows: bool = False, max_confirm: int = MAX_CONFIRM,
-                     max_effects: int = MAX_EFFECTS, refit_checks_decide: bool = True) -> ChannelDiagnosis:
+                     max_effects: int = MAX_EFFECTS, refit_checks_decide: bool = True,
+                     reuse: FirstRound | None = None) -> ChannelDiagnosis:
     """Diagnose one channel.
 
     Args:
@@ -508,6 +540,10 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         refit_checks_decide: the held-out chi^2 must not rise and the refit, rendered
             independently, must do no harm (default); False records both without deciding
             (`second_pass_channel`, whose estimator fits judge instead).
+        reuse: an earlier diagnosis's `first_round` from the same problem and base fit: its
+            evaluation, screening, control and candidate refits are taken instead of computed
+            again where its settings (spp, seed, repeats, iterations) are these; the same
+            seeds would give the same numbers.
     """
     laps = _Laps()
     say = log or (lambda s: None)
@@ -520,8 +556,15 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         raise EstimateError(f"channel {problem.channel}: at least two light angles are needed to diagnose a fit")
     base_model = make_model(base.extensions)
     base_free = _free_names(base_model, base.extensions)
-    before = evaluate(base_model, base.parameters, problem, len(base_free) + 1, spp=spp, seed=seed, repeats=repeats)
-    loc = localise(before.residuals.r_adjusted, problem.angles_deg, problem.x_mm, before.model)
+    key = _first_round_key(problem, base, spp, seed, repeats, iterations)
+    if reuse is not None and (reuse.key != key or not set(cands) <= {c.name for c in reuse.scores}):
+        reuse = None
+    if reuse is not None:
+        before, loc = reuse.before, reuse.localisation
+    else:
+        before = evaluate(base_model, base.parameters, problem, len(base_free) + 1, spp=spp, seed=seed,
+                          repeats=repeats)
+        loc = localise(before.residuals.r_adjusted, problem.angles_deg, problem.x_mm, before.model)
     # One noise metric for every comparison between models (refits, BIC, held-out chi^2):
     # the data's noise, f^2 (var + s^2 var_model) less the base render's own part.
     floor = before.residuals.noise_scale
@@ -570,10 +613,15 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
     # can, because they know its shape. The fit is therefore tested by the union of the
     # smooth test (level ALPHA) and the candidates' score tests (ALPHA / candidates each):
     # a family-wise false-positive rate <= 2 ALPHA.
-    if cands:
+    if reuse is not None:
+        # The score tests are one per candidate, independent of the others screened with it,
+        # and `before` already holds the significance they completed.
+        first_scores = [c for c in reuse.scores if c.name in cands]
+    elif cands:
         first_scores = _screen(problem, before, current_exts, make_model, cands, spp=spp, seed=seed + 101,
                                repeats=repeats)
         _targeted_significance(before, first_scores)
+    first_round = reuse or FirstRound(key, before, loc, list(first_scores))
     laps("screening")
     while before.residuals.significant and len(confirmed) < max_effects:
         remaining = [c for c in cands if c not in confirmed]
@@ -589,27 +637,17 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             break
         best: tuple[float, str, RefitResult] | None = None
         cur_model = make_model(current_exts)
-        cur_train = evaluate(cur_model, current.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats,
-                             angle_idx=train, noise_variance=yardstick)
-        # Control: the current model refitted alone, with the same optimiser, seeds and
-        # angles. A candidate must beat this, not the fit as given: when the fit to diagnose
-        # stopped far from its optimum, any extension's refit also re-optimises the material
-        # parameters and would otherwise take the credit for it.
-        ctrl = refit(cur_model, problem, current.parameters, _free_names(cur_model, current_exts), angle_idx=train,
-                     spp=spp, seed=seed + 202, iterations=iterations, model_variance=current.model_variance * repeats,
-                     noise_scale=floor, uncertainties=False)
-        ctrl_tr = evaluate(cur_model, ctrl.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats,
-                           angle_idx=train, noise_variance=yardstick)
-        # Candidates are judged against the control in pairs: same seed, spp, angles,
-        # weights and LM iterations. A fixed-seed refit also fits that render's Monte-Carlo
-        # noise (at 128 spp a control refit of a clean-ish fit raised the independently
-        # rendered chi^2 from 515 to 840); the paired difference of the refits' own chi^2
-        # cancels that common part and leaves what the extension explains.
-        ref_held = None
-        if held:
-            ctrl_ho = evaluate(cur_model, ctrl.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats,
-                               angle_idx=held, scale=ctrl_tr.scale, noise_variance=yardstick)
-            ref_held = ctrl_ho.residuals.chi2_adjusted
+        # The first round starts at the base fit, whatever the candidates: its control and
+        # refits are kept (`first_round`) and taken from `reuse` where given.
+        round_one = not confirmed
+        if round_one and first_round.control is not None:
+            ctrl, cur_train, ctrl_tr, ref_held = first_round.control
+        else:
+            ctrl, cur_train, ctrl_tr, ref_held = _control(problem, cur_model, current, current_exts, train, held,
+                                                          spp=spp, seed=seed, repeats=repeats,
+                                                          iterations=iterations, floor=floor, yardstick=yardstick)
+            if round_one:
+                first_round.control = (ctrl, cur_train, ctrl_tr, ref_held)
         gain = cur_train.residuals.chi2_adjusted - ctrl_tr.residuals.chi2_adjusted
         if not confirmed:
             before.residuals.extra["control_refit_gain"] = gain
@@ -619,23 +657,27 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         # The candidates' refits: the control's seed, spp, angles and weights.
         cand_how = {"angle_idx": train, "spp": spp, "seed": seed + 202,
                     "model_variance": current.model_variance * repeats, "noise_scale": floor}
-        for cand in leading:
-            exts = current_exts + [cand.name]
+
+        def _try_candidate(name: str) -> tuple[dict[str, Any], RefitResult]:
+            """One candidate's refit against this round's control, with its statistics: the
+            BIC gain, the magnitude's distance from absent, and the no-harm and held-out tests
+            (`entry`, without the decision), and the refit."""
+            exts = current_exts + [name]
             m = make_model(exts)
             free = _free_names(m, exts)
             # Without uncertainties: the Wald test below asks for them only where it decides.
-            fit = refit(m, problem, _start(m, current.parameters, cand.name, brightest), free,
+            fit = refit(m, problem, _start(m, current.parameters, name, brightest), free,
                         iterations=iterations, uncertainties=False, **cand_how)
             tr = evaluate(m, fit.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats, angle_idx=train,
                           noise_variance=yardstick)
             n_train = int(np.sum(np.isfinite(tr.residuals.r)))
-            dbic = ctrl.chi2 - fit.chi2 - _bic_penalty(cand.name, n_train)
-            entry: dict[str, Any] = {"effect": cand.name, "round": len(confirmed) + 1, "delta_bic": dbic,
+            dbic = ctrl.chi2 - fit.chi2 - _bic_penalty(name, n_train)
+            entry: dict[str, Any] = {"effect": name, "round": len(confirmed) + 1, "delta_bic": dbic,
                                      "chi2_train_before": cur_train.residuals.chi2_adjusted,
                                      "chi2_train_control": ctrl_tr.residuals.chi2_adjusted,
                                      "chi2_train_after": tr.residuals.chi2_adjusted,
                                      "chi2_refit_control": ctrl.chi2, "chi2_refit_after": fit.chi2,
-                                     "parameters": {kk: fit.parameters[kk] for kk in FREE_PARAMETERS[cand.name]}}
+                                     "parameters": {kk: fit.parameters[kk] for kk in FREE_PARAMETERS[name]}}
             # The effect itself must carry the improvement: a refit also re-optimises the
             # material parameters, which alone can lower chi^2 when the current fit sits off
             # its optimum.
@@ -643,9 +685,9 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             # _magnitude_lr_z: the quadratic model behind the Wald test fails for a bounded
             # parameter and far from a good fit); the conditional chi^2 is one render at the
             # refit's seed.
-            neutral = refit(m, problem, _neutral_magnitudes(m, fit.parameters, cand.name), free,
+            neutral = refit(m, problem, _neutral_magnitudes(m, fit.parameters, name), free,
                             iterations=0, uncertainties=False, **cand_how)
-            z_lr = _magnitude_lr_z(fit, ctrl.chi2, neutral.chi2, n_train, len(free) + 1, cand.name)
+            z_lr = _magnitude_lr_z(fit, ctrl.chi2, neutral.chi2, n_train, len(free) + 1, name)
             # The Wald test needs the refit's uncertainties: a render and one or two Jacobians,
             # 4-8 s a candidate on the simulated bench, about a tenth of the confirmation. It
             # can only change the decision where the BIC gain passes and the likelihood ratio
@@ -654,13 +696,12 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             z_wald: float | None = None
             if dbic > BIC_STRONG and z_lr <= MAGNITUDE_SIGMA:
                 fit = _with_uncertainties(problem, m, free, fit, cand_how)
-                z_wald = _magnitude_z(fit, cand.name)
+                z_wald = _magnitude_z(fit, name)
             z = z_lr if z_wald is None else max(z_lr, z_wald)
             entry["magnitude_sigma"] = z
             entry["magnitude_wald_sigma"] = z_wald
             entry["magnitude_lr_sigma"] = z_lr
             entry["chi2_refit_neutral"] = neutral.chi2
-            ok = dbic > BIC_STRONG and z > MAGNITUDE_SIGMA
             # No harm, rendered independently: the paired gain alone let a candidate through
             # whose refit was merely less damaged than the control's by fitting its own
             # render noise (a clean simulated-bench session, 256 spp: stray light "confirmed"
@@ -668,7 +709,6 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             # does not leave the fit worse than it was by more than that chi^2's spread.
             no_harm = tr.residuals.chi2_adjusted <= cur_train.residuals.chi2_adjusted + math.sqrt(2.0 * n_train)
             entry["no_harm"] = bool(no_harm)
-            ok = ok and (no_harm or not refit_checks_decide)
             if held:
                 ho = evaluate(m, fit.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats, angle_idx=held,
                               scale=tr.scale, noise_variance=yardstick)
@@ -680,7 +720,22 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                 # Monte-Carlo noise of the refitted material parameters alone.
                 n_held = int(np.sum(np.isfinite(ho.residuals.r)))
                 entry["heldout_ok"] = bool(ho.residuals.chi2_adjusted < ref_held + math.sqrt(2.0 * n_held))
-                ok = ok and (entry["heldout_ok"] or not refit_checks_decide)
+            return entry, fit
+
+        for cand in leading:
+            if round_one and cand.name in first_round.refits:
+                cached, fit = first_round.refits[cand.name]
+                entry = copy.deepcopy(cached)
+            else:
+                entry, fit = _try_candidate(cand.name)
+                if round_one:
+                    first_round.refits[cand.name] = (copy.deepcopy(entry), fit)
+            # The decision: every test counts unless `refit_checks_decide` is off, when the
+            # held-out and no-harm tests are recorded only.
+            ok = (entry["delta_bic"] > BIC_STRONG and entry["magnitude_sigma"] > MAGNITUDE_SIGMA
+                  and (entry["no_harm"] or not refit_checks_decide)
+                  and (entry.get("heldout_ok", True) or not refit_checks_decide))
+            dbic = entry["delta_bic"]
             entry["confirmed"] = bool(ok)
             confirmations.append(entry)
             say(f"  refit with {cand.name}: dBIC {dbic:.1f}" +
@@ -778,7 +833,40 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                             current_cov if confirmed else {}, pruned=pruned, confirmed_order=confirmed_order,
                             importance=importance, fixed_seed_after=fixed_seed, parameter_ranges=ranges,
                             stage_times_s=dict(laps.seconds),
-                            model_stage="deferred" if deferred is not None else "refit" if confirmed else "")
+                            model_stage="deferred" if deferred is not None else "refit" if confirmed else "",
+                            first_round=first_round)
+
+
+def _control(problem: Any, model: Any, current: Evaluation, exts: Sequence[str], train: Sequence[int],
+             held: Sequence[int], *, spp: int, seed: int, repeats: int, iterations: int, floor: np.ndarray,
+             yardstick: np.ndarray) -> tuple[RefitResult, Evaluation, Evaluation, float | None]:
+    """The control of a confirmation round: the current model refitted alone, with the
+    candidates' optimiser, seeds and training angles. A candidate must beat this, not the fit
+    as given: when the fit to diagnose stopped far from its optimum, any extension's refit
+    also re-optimises the material parameters and would otherwise take the credit for it.
+
+    Returns the control refit, the current fit and the control evaluated on the training
+    angles (in the yardstick's metric), and the control's held-out chi^2 (None without
+    held-out angles).
+    """
+    cur_train = evaluate(model, current.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats,
+                         angle_idx=train, noise_variance=yardstick)
+    ctrl = refit(model, problem, current.parameters, _free_names(model, exts), angle_idx=train,
+                 spp=spp, seed=seed + 202, iterations=iterations, model_variance=current.model_variance * repeats,
+                 noise_scale=floor, uncertainties=False)
+    ctrl_tr = evaluate(model, ctrl.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats,
+                       angle_idx=train, noise_variance=yardstick)
+    # Candidates are judged against the control in pairs: same seed, spp, angles,
+    # weights and LM iterations. A fixed-seed refit also fits that render's Monte-Carlo
+    # noise (at 128 spp a control refit of a clean-ish fit raised the independently
+    # rendered chi^2 from 515 to 840); the paired difference of the refits' own chi^2
+    # cancels that common part and leaves what the extension explains.
+    ref_held = None
+    if held:
+        ctrl_ho = evaluate(model, ctrl.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats,
+                           angle_idx=held, scale=ctrl_tr.scale, noise_variance=yardstick)
+        ref_held = ctrl_ho.residuals.chi2_adjusted
+    return ctrl, cur_train, ctrl_tr, ref_held
 
 
 def bound_side(value: float, ranges: Sequence[tuple[float, float]]) -> str | None:
@@ -1172,7 +1260,10 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
     it is the fit that refit could not reach. (A first version screened again at the final
     fit's material parameters instead; there the boundary still ranked fifth, and a halo and
     a sensor compression confirmed in its place were dropped by the next final fit, session
-    36.) What the pass names replaces `d`'s named model; its refits join
+    36.) The first pass's round from the base fit is not done again: its evaluation,
+    screening, control refit and the candidates it already refitted come from
+    `d.first_round` (`diagnose_channel`'s `reuse`), so only the candidates it never tried
+    are refitted. What the pass names replaces `d`'s named model; its refits join
     `d.confirmations` (`pass` 2), its time `d`'s stages, and `d.second_pass` says what it
     did. It runs once. Returns the second final fit when it names an effect, else None.
     """
@@ -1192,7 +1283,7 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
         f"({', '.join(flagged)}) from the base fit")
     d2 = diagnose_channel(problem, base, make_model, candidates=flagged, spp=spp, seed=seed, repeats=repeats,
                           iterations=iterations, log=log, final_fit_follows=True, max_confirm=len(flagged),
-                          max_effects=1, refit_checks_decide=False)
+                          max_effects=1, refit_checks_decide=False, reuse=d.first_round)
     chosen = list(d2.confirmed)
     fr2 = None
     if chosen:

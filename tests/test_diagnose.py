@@ -402,6 +402,49 @@ def test_with_the_final_fit_to_follow_the_last_round_leaves_the_joint_refit_to_i
     assert "the last candidate's Levenberg-Marquardt refit had reduced chi2" in text
 
 
+def test_a_second_diagnosis_from_the_same_base_fit_reuses_the_first_round(monkeypatch):
+    """`second_pass_channel` starts again from the base fit: given the first diagnosis's
+    `first_round`, the evaluation, the screening, the control and every candidate already
+    refitted are taken, not rendered again, and give the same statistics; only the decision
+    follows the new call's rules. Other settings (here the LM iterations) compute afresh."""
+    import estimate.diagnose as dg
+
+    rec = record({"stray_light.offset": 0.01})
+    pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
+    base = BaseFit(dict(TRUE), 1e4, "hg")
+    d1 = diagnose_channel(pb, base, make_model, candidates=["stray_light", "lens_blur"], spp=64, repeats=3,
+                          iterations=6, final_fit_follows=True, max_effects=1)
+    first = {e["effect"]: e for e in d1.confirmations}
+    assert set(first) == set(d1.first_round.refits) and d1.first_round.control is not None
+    assert "first_round" not in d1.as_dict()
+
+    calls = {"refit": 0, "evaluate": 0, "screen": 0}
+
+    def counting(name, fn):
+        def wrapped(*a, **k):
+            calls[name] += 1
+            return fn(*a, **k)
+        return wrapped
+
+    monkeypatch.setattr(dg, "refit", counting("refit", dg.refit))
+    monkeypatch.setattr(dg, "evaluate", counting("evaluate", dg.evaluate))
+    monkeypatch.setattr(dg, "_screen", counting("screen", dg._screen))
+    d2 = diagnose_channel(pb, base, make_model, candidates=list(first), spp=64, repeats=3, iterations=6,
+                          final_fit_follows=True, max_effects=1, max_confirm=2, refit_checks_decide=False,
+                          reuse=d1.first_round)
+    assert d2.before is d1.before and calls["screen"] == 0
+    for e in d2.confirmations:
+        same = {k: v for k, v in e.items() if k != "confirmed"}
+        assert same == {k: v for k, v in first[e["effect"]].items() if k != "confirmed"}
+    # the only renders left: the chosen effect's uncertainties and its evaluation on all angles
+    assert calls["refit"] <= 1 and calls["evaluate"] == 1
+    assert d2.stage_times_s["screening"] < 0.5 * d1.stage_times_s["screening"]
+    # another LM budget is another first round: computed, not taken
+    d3 = diagnose_channel(pb, base, make_model, candidates=["stray_light"], spp=64, repeats=3, iterations=5,
+                          final_fit_follows=True, max_effects=1, reuse=d1.first_round)
+    assert d3.before is not d1.before and calls["screen"] == 1
+
+
 def test_the_wald_test_of_a_candidate_is_asked_only_where_it_decides(monkeypatch):
     """A candidate's Wald test costs its refit's uncertainties (a render and one or two
     Jacobians). Where the likelihood ratio already puts the magnitude beyond MAGNITUDE_SIGMA
