@@ -105,30 +105,80 @@ def capture(seed: int, out: Path) -> None:
                                                      for k in TRUTH), flush=True)
 
 
-def _interval(k: dict[str, Any], *, polish_se: bool = True, **over: Any) -> dict[str, float]:
+def _interval(k: dict[str, Any], *, polish_se: bool = True, clip_b: bool = False, polish_corr: bool = False,
+              fixed_b: float | None = None, **over: Any) -> dict[str, float]:
     """A kept fit's combined intervals, recomputed from its kept inputs with the sandwich's
     arguments changed by `over` (and the polish points' standard error left out without
-    `polish_se`)."""
-    from estimate.uncertainties import combined_uncertainties, sandwich_uncertainties
+    `polish_se`; the data meat's excess share clipped at 0, as until session 36, with
+    `clip_b`; or set to `fixed_b`, an oracle). The covariance that goes with them is under the key "covariance"; with
+    `polish_corr` the polish points' standard error carries the correlation of its steps'
+    render noise there (`sandwich_uncertainties`' `render_correlation_out`)."""
+    from estimate import uncertainties as un
 
     s = k["sandwich"]
-    unc, _, _ = sandwich_uncertainties(s["problem"], s["params"], s["names"], s["scale"], s["profiles"],
-                                       s["model_variance"], s["jac"], **{**s["kw"], **over})
+    real = un.excess_share
+    if clip_b:
+        un.excess_share = lambda *a, **kw: {**(e := real(*a, **kw)), "b": max(e["b_raw"], 0.0)}
+    elif fixed_b is not None:
+        un.excess_share = lambda *a, **kw: {**real(*a, **kw), "b": fixed_b}
+    try:
+        sw: dict[str, dict[str, float]] = {}
+        step: dict[str, dict[str, float]] = {}
+        unc, _, _ = un.sandwich_uncertainties(s["problem"], s["params"], s["names"], s["scale"], s["profiles"],
+                                              s["model_variance"], s["jac"],
+                                              **{**s["kw"], "covariance_out": sw, "render_correlation_out": step,
+                                                 **over})
+    finally:
+        un.excess_share = real
     c = k["combined"]
-    out, _ = combined_uncertainties(unc, c["spread"], c["polish_se"] if polish_se else {}, c["drift"],
-                                    c["polish_sd"], polished=c["polished"])
-    return out
+    out, _ = un.combined_uncertainties(unc, c["spread"], c["polish_se"] if polish_se else {}, c["drift"],
+                                       c["polish_sd"], polished=c["polished"])
+    names = s["names"]
+    # The averaged iterates' covariance: their spread on the diagonal (none once polished).
+    it_cov = np.diag([c["spread"].get(n, 0.0) ** 2 for n in names])
+    pse = c["polish_se"] if polish_se and polish_corr else None
+    return {**out, "covariance": un.combined_covariance(names, out, sw, it_cov, pse, step if pse else None)}
+
+
+def _excess(k: dict[str, Any]) -> dict[str, float]:
+    """The kept fit's data-meat excess share b (`estimate.uncertainties.excess_share`)."""
+    from estimate.uncertainties import excess_share
+
+    s = k["sandwich"]
+    pb, scale = s["problem"], s["scale"]
+    valid = np.asarray(pb.valid, dtype=bool)
+    m = pb.measured / scale
+    dl = max(s["kw"]["delta_rel"] * float(np.max(np.where(valid, m, -np.inf))), 1e-30)
+    mm = np.clip(m, -0.5 * dl, None)
+    ip = np.clip(s["profiles"], 0, None)
+    r = np.where(valid, np.log(mm + dl) - np.log(ip + dl), 0.0)
+    return excess_share(r, (pb.variance / scale ** 2) / (mm + dl) ** 2, s["model_variance"] / (ip + dl) ** 2, valid)
+
+
+#: Derived quantities scored by `analyse` (`estimate.derived`).
+DERIVED = ("sigma_a", "sigma_s_reduced", "g")
 
 
 def analyse(d: Path) -> None:
+    from estimate.derived import derived_quantities
+
     draws = [pickle.loads(p.read_bytes()) for p in sorted(d.glob("draw*.pkl"))]
     if not draws:
         raise SystemExit(f"no draws in {d}: run `capture` first")
 
     variants = {
         "as fitted": {},
+        "data meat, b clipped at 0 (sessions 30-36)": {"data_meat": True, "clip_b": True},
+        "data meat, b its posterior mean, the polish's share on the diagonal": {"data_meat": True},
+        "data meat, b the truth's 1/16 (an oracle: the truth's 32768 spp against the evaluation's 2 x 1024)": {
+            "data_meat": True, "fixed_b": 1 / 16},
+        "b clipped, the polish's share with its steps' render correlation (tried in session 36)": {
+            "data_meat": True, "clip_b": True, "polish_corr": True},
+        "b its posterior mean, the polish's share with its steps' render correlation (session 37)": {
+            "data_meat": True, "polish_corr": True},
+        "b the oracle's 1/16, the polish's share with its steps' render correlation": {
+            "data_meat": True, "fixed_b": 1 / 16, "polish_corr": True},
         "session 29's recipe (render noise in the meat too)": {"data_meat": False},
-        "data meat (session 34's default: the Jacobians' mean in the meat)": {"data_meat": True},
         "data meat, the Jacobians' cross products in the meat (sessions 30-33)": {"data_meat": True,
                                                                                  "meat_cross": True},
         "data meat, cross floor 0.01": {"data_meat": True, "cross_floor": 0.01},
@@ -144,17 +194,28 @@ def analyse(d: Path) -> None:
         worst = max(abs(_interval(k)[p] / k["uncertainties"][p] - 1.0) for k in same for p in TRUTH)
         print(f"recomputed 'as fitted' against the fits' own intervals ({len(same)} draws fitted with "
               f"session 29's recipe): largest relative difference {worst:.2g}")
+    print("the data meat's excess share per draw: " + "; ".join(
+        f"{k['seed']}: b_raw {e['b_raw']:+.3f} +- {e['se']:.3f} -> b {e['b']:.3f}"
+        for k in draws for e in [_excess(k)]))
     print(f"{len(draws)} draws (seeds {', '.join(str(k['seed']) for k in draws)}); RMS z per parameter "
-          "(1 when the intervals are right), the share within 1 sigma (68 % expected) and the largest |z|")
-    print("| recipe | " + " | ".join(TRUTH) + " |")
-    print("|---|" + "---|" * len(TRUTH))
+          "(1 when the intervals are right), the share within 1 sigma (68 % expected) and the largest |z|; "
+          "the derived quantities through the reported covariance")
+    truth_derived = derived_quantities(MODEL, TRUTH)
+    cols = [*TRUTH, *DERIVED]
+    print("| recipe | " + " | ".join(cols) + " |")
+    print("|---|" + "---|" * len(cols))
     for name, over in variants.items():
-        zs = {p: [] for p in TRUTH}
+        zs: dict[str, list[float]] = {p: [] for p in cols}
         for k in draws:
             u = _interval(k, **over)
             for p in TRUTH:
                 if u.get(p, 0) > 0 and math.isfinite(u[p]):
                     zs[p].append((k["parameters"][p] - TRUTH[p]) / u[p])
+            dq = derived_quantities(MODEL, k["parameters"], u["covariance"])
+            for p in DERIVED:
+                du = dq[p]["uncertainty"]
+                if du:
+                    zs[p].append((dq[p]["value"] - truth_derived[p]["value"]) / du)
         print(f"| {name} | " + " | ".join(
             f"{math.sqrt(np.mean(np.square(v))):.2f} ({100 * np.mean(np.abs(v) <= 1):.0f} %, max {np.max(np.abs(v)):.1f})"
             if v else "-" for v in zs.values()) + " |")

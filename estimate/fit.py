@@ -238,6 +238,10 @@ class FitSettings:
     #: (False: from their mean, whose noise the polish's gradient carries;
     #: `sandwich_uncertainties(meat_cross=...)`)
     uncertainty_meat_cross: bool = False
+    #: the reported covariance gives the polish points' standard error the correlation of the
+    #: render noise their steps carry (`combined_covariance(polish_correlation=...)`, session
+    #: 37); False: that share on the diagonal (session 36)
+    uncertainty_polish_correlation: bool = True
     decorrelated: bool = True
     #: solve additive parameters (stray-light offset and slope) exactly at every iteration
     #: instead of stepping them (decorrelated mode only; see fit_channel)
@@ -763,6 +767,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
                                          fit_scale=fixed_scale is None,
                                          jac={n: np.mean([j[n] for j in (jac, *more)], axis=0) for n in names})
         sandwich_cov: dict[str, dict[str, float]] = {}
+        step_corr: dict[str, dict[str, float]] = {}
         # The result averaged polish points whose scatter (`polish_se`) is their render noise:
         # the meat then holds the data's noise alone, or that noise would be counted twice.
         data_meat = st.uncertainty_data_meat and bool(polish_se)
@@ -771,7 +776,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
                                                fit_scale=fixed_scale is None,
                                                render_variance_factor=2.0 * st.final_spp / max(1, st.lm_spp),
                                                covariance_out=sandwich_cov, jac_more=more, data_meat=data_meat,
-                                               meat_cross=st.uncertainty_meat_cross)
+                                               meat_cross=st.uncertainty_meat_cross,
+                                               render_correlation_out=step_corr)
         sandwich = dict(unc)
         # never below the ideal linear-chi^2 bound
         unc = {k: max(v, fisher.get(k, 0.0)) for k, v in unc.items()}
@@ -792,7 +798,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         unc, moving = combined_uncertainties(unc, spread, polish_se, drift, polish_sd, polished=polished)
         if polished:
             drifting = moving
-        covariance = combined_covariance(names, unc, sandwich_cov, it_cov)
+        covariance = combined_covariance(names, unc, sandwich_cov, it_cov,
+                                         *((polish_se, step_corr) if st.uncertainty_polish_correlation else ()))
         stage_done("uncertainties")
     elif on_stage:
         on_stage("done")

@@ -16,6 +16,7 @@ import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
+from scipy import stats
 
 from estimate.evaluation import jacobian_columns
 from estimate.forward import ForwardModel
@@ -23,7 +24,7 @@ from estimate.gauss_newton import bounded_cross
 from estimate.problem import Problem
 
 __all__ = ["DRIFT_T", "UNCERTAINTY_CROSS_FLOOR", "combined_covariance", "combined_uncertainties", "correlation_factor",
-           "data_noise_variance",
+           "data_noise_variance", "excess_share",
            "fisher_uncertainties", "iterate_drift", "sandwich_uncertainties", "window_estimate", "window_scatter"]
 
 
@@ -60,7 +61,8 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
                            covariance_out: dict[str, dict[str, float]] | None = None,
                            jac_more: Sequence[Mapping[str, np.ndarray]] = (),
                            cross_floor: float = UNCERTAINTY_CROSS_FLOOR,
-                           data_meat: bool = False, meat_cross: bool = False
+                           data_meat: bool = False, meat_cross: bool = False,
+                           render_correlation_out: dict[str, dict[str, float]] | None = None,
                            ) -> tuple[dict[str, float], float, float]:
     """1-sigma uncertainties of the log-loss estimator (sandwich), its scale's, and the
     log-space reduced chi^2. With `covariance_out`, the full covariance of `names` (the
@@ -111,6 +113,11 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
     `docs/estimation-log.md`). This meat's Gram matrix is the Jacobians' mean's, not their
     cross products' (`meat_cross=True` restores those, as sessions 30-33 had it; the other
     meats keep the cross products): see the comment at its use.
+
+    `render_correlation_out`: the correlation matrix of H^-1 (A^T V A) H^-1, V the render
+    noise of one polish step's gradient (`render_variance_factor` x `model_variance`): how
+    the polish points scatter about the optimum, whose size `polish_se` measures
+    (`combined_covariance`).
     """
     valid = np.asarray(problem.valid, dtype=bool)
     m = problem.measured / scale
@@ -165,6 +172,14 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
     else:
         modelled = Hi @ gram(var_r.ravel()) @ Hi
         cov = modelled * max(1.0, red)
+    if render_correlation_out is not None:
+        v_step = render_variance_factor * model_variance / (ip + dl) ** 2
+        c_step = Hi @ gram(np.where(valid & np.isfinite(v_step), v_step, 0.0).ravel()) @ Hi
+        sd_step = np.sqrt(np.clip(np.diag(c_step), 0.0, None))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rho = np.where(np.outer(sd_step, sd_step) > 0, c_step / np.outer(sd_step, sd_step), 0.0)
+        render_correlation_out.update({a: {b: float(np.clip(rho[i, j], -1.0, 1.0)) if i != j else 1.0
+                                           for j, b in enumerate(names)} for i, a in enumerate(names)})
     if covariance_out is not None:
         covariance_out.update({a: {b: float(cov[i, j]) for j, b in enumerate(names)} for i, a in enumerate(names)})
     if not data_meat and red > 1.0:
@@ -180,6 +195,24 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
 UNCERTAINTY_CORRELATION_LAGS = 10
 
 
+def _lag_correlations(r: np.ndarray, v: np.ndarray, valid: np.ndarray, lags: int) -> list[float]:
+    """The correlation of the noise-normalised residuals r / sqrt(v) at lags 1..`lags` along
+    the profiles ((R, W) arrays); [] where nothing is valid."""
+    z = np.where(valid & (v > 0) & np.isfinite(r), r / np.sqrt(np.where(v > 0, v, 1.0)), 0.0)
+    ok = z != 0.0
+    if not ok.any():
+        return []
+    z = np.where(ok, z - z[ok].mean(), 0.0)
+    norm = float(np.sum(z * z))
+    if norm <= 0:
+        return []
+    return [float(np.sum(z[..., :-lag] * z[..., lag:])) / norm for lag in range(1, min(lags, z.shape[-1] - 1) + 1)]
+
+
+def _bartlett(rho: Sequence[float], lags: int) -> float:
+    return 1.0 + 2.0 * sum((1.0 - (i + 1) / (lags + 1)) * x for i, x in enumerate(rho))
+
+
 def correlation_factor(r: np.ndarray, v: np.ndarray, valid: np.ndarray,
                        lags: int = UNCERTAINTY_CORRELATION_LAGS) -> float:
     """How much a smooth sum over pixels of the residuals' noise exceeds the sum of their
@@ -188,17 +221,7 @@ def correlation_factor(r: np.ndarray, v: np.ndarray, valid: np.ndarray,
     in the Newey-West covariance), at least 1. A rendered profile's noise is correlated over
     a few pixels (lag 1: 0.2-0.5 on the one-channel benchmark, lag 5: 0.04-0.18), and the
     sandwich's diagonal meat treats pixels as independent. (R, W) arrays; one number."""
-    z = np.where(valid & (v > 0) & np.isfinite(r), r / np.sqrt(np.where(v > 0, v, 1.0)), 0.0)
-    ok = z != 0.0
-    if not ok.any():
-        return 1.0
-    z = np.where(ok, z - z[ok].mean(), 0.0)
-    norm = float(np.sum(z * z))
-    kappa = 1.0
-    for lag in range(1, min(lags, z.shape[-1] - 1) + 1):
-        rho = float(np.sum(z[..., :-lag] * z[..., lag:])) / norm if norm > 0 else 0.0
-        kappa += 2.0 * (1.0 - lag / (lags + 1)) * rho
-    return max(kappa, 1.0)
+    return max(_bartlett(_lag_correlations(r, v, valid, lags), lags), 1.0)
 
 
 def data_noise_variance(r: np.ndarray, v_sensor: np.ndarray, v_eval: np.ndarray, valid: np.ndarray
@@ -209,19 +232,56 @@ def data_noise_variance(r: np.ndarray, v_sensor: np.ndarray, v_eval: np.ndarray,
     E r^2 = v_sensor + b v_eval + v_eval: the variance channel's noise, an excess shaped like
     the render's (a simulated truth's frozen Monte Carlo noise, or model error that follows
     the signal), and the evaluation render's own noise, which does not move the estimate.
-    b = max(0, sum(r^2 - v_sensor - v_eval) / sum(v_eval)) over the valid pixels: one
-    number from thousands of pixels. Per pixel, r^2 less v_eval was useless: where the
-    render noise dominates (the one-channel benchmark: r^2 / (v_sensor + v_eval) 0.5-1.9
-    per angle, the excess about 1/16 of v_eval) the difference of two one-sample variances
-    is mostly noise, and pooled over 15 pixels it still gave one benchmark draw's albedo an
-    interval 1/50 of the others'. A weighted fit of b was no better: v_eval, a two-seed
-    estimate, is near 0 in some pixels, which then dominated it (session 30).
+    b is one number from thousands of pixels (`excess_share`). Per pixel, r^2 less v_eval
+    was useless: where the render noise dominates (the one-channel benchmark: r^2 /
+    (v_sensor + v_eval) 0.5-1.9 per angle, the excess about 1/16 of v_eval) the difference of
+    two one-sample variances is mostly noise, and pooled over 15 pixels it still gave one
+    benchmark draw's albedo an interval 1/50 of the others'. A weighted fit of b was no
+    better: v_eval, a two-seed estimate, is near 0 in some pixels, which then dominated it
+    (session 30).
     Returns (v_sensor + b v_eval, b).
     """
     ok = valid & np.isfinite(r) & np.isfinite(v_sensor) & np.isfinite(v_eval)
-    total = float(np.sum(v_eval[ok]))
-    b = max(0.0, float(np.sum(r[ok] ** 2 - v_sensor[ok] - v_eval[ok])) / total) if total > 0 else 0.0
+    b = excess_share(r, v_sensor, v_eval, valid)["b"]
     return np.where(ok, v_sensor + b * v_eval, 0.0), b
+
+
+def excess_share(r: np.ndarray, v_sensor: np.ndarray, v_eval: np.ndarray, valid: np.ndarray,
+                 lags: int = UNCERTAINTY_CORRELATION_LAGS) -> dict[str, float]:
+    """The excess noise share b of `data_noise_variance`, with its standard error.
+
+    The moment estimate b_raw = sum(r^2 - v_sensor - v_eval) / sum(v_eval) is a small
+    difference of large sums: on the one-channel benchmark the truth's frozen render noise
+    is about 1/16 of the evaluation render's, and b_raw came out below zero on 3 of 8 noise
+    draws (session 36). Clipped at 0, the data's excess then left the sandwich altogether,
+    and those draws' intervals were the narrow ones (the derived sigma_a 2.4 sigma off).
+
+    Its standard error: sum r^2 over Gaussian residuals of variance s_i has variance
+    2 sum s_i^2, times 1 + 2 sum_l w_l rho_l^2 for the residuals' correlation rho_l along the
+    profiles (the squares of correlated Gaussians correlate by rho^2; Bartlett weights w_l,
+    as in `correlation_factor`). b is a variance share, so b >= 0; given b_raw and its
+    standard error se, with a flat prior on b >= 0 its posterior mean is
+    b_raw + se phi(t) / Phi(t), t = b_raw / se: b_raw where it stands clear of 0, about
+    0.8 se where it is 0, and positive always. The sandwich's meat is linear in b, so this
+    mean is what its expected variance needs.
+
+    Returns {"b": the posterior mean, "b_raw": the moment estimate, "se": its standard error}.
+    """
+    ok = valid & np.isfinite(r) & np.isfinite(v_sensor) & np.isfinite(v_eval)
+    total = float(np.sum(v_eval[ok]))
+    if total <= 0:
+        return {"b": 0.0, "b_raw": 0.0, "se": 0.0}
+    b_raw = float(np.sum(r[ok] ** 2 - v_sensor[ok] - v_eval[ok])) / total
+    s = v_sensor + (1.0 + max(b_raw, 0.0)) * v_eval
+    rho = _lag_correlations(r, np.where(ok, s, 0.0), ok, lags)
+    kappa2 = max(1.0, _bartlett([x * x for x in rho], lags))
+    se = math.sqrt(2.0 * kappa2 * float(np.sum(s[ok] ** 2))) / total
+    if se <= 0:
+        return {"b": max(b_raw, 0.0), "b_raw": b_raw, "se": 0.0}
+    t = b_raw / se
+    # phi(t) / Phi(t) in logs: exact far into the negative tail, where both vanish.
+    mills = math.exp(stats.norm.logpdf(t) - stats.norm.logcdf(t))
+    return {"b": max(0.0, b_raw + se * mills), "b_raw": b_raw, "se": se}
 
 
 #: Drift t-statistic above which a parameter counts as still moving when the fit stopped.
@@ -308,27 +368,38 @@ def combined_uncertainties(base: Mapping[str, float], spread: Mapping[str, float
 
 
 def combined_covariance(names: Sequence[str], unc: Mapping[str, float], sandwich: Mapping[str, Mapping[str, float]],
-                        iterate_cov: np.ndarray) -> dict[str, dict[str, float]]:
+                        iterate_cov: np.ndarray, polish_se: Mapping[str, float] | None = None,
+                        polish_correlation: Mapping[str, Mapping[str, float]] | None = None,
+                        ) -> dict[str, dict[str, float]]:
     """Full covariance whose diagonal is the reported uncertainties squared.
 
-    Its correlated part is what the correlations are known for: the sandwich covariance plus
-    the averaged iterates' own covariance. The rest of each reported variance (the polish
-    points' standard error, a drift, the Fisher bound's excess over the sandwich) sits on the
-    diagonal alone: those parts come per parameter, without correlations.
+    Its correlated part is what the correlations are known for: the sandwich covariance, the
+    averaged iterates' own covariance and, with `polish_correlation`
+    (`sandwich_uncertainties`' `render_correlation_out`), the polish points' standard error
+    `polish_se` with the correlation of the render noise their steps carry. The rest of each
+    reported variance (a drift, the Fisher bound's excess over the sandwich, the polish's
+    share without that correlation) sits on the diagonal alone.
 
-    Until session 36 the sandwich's correlations were stretched over the whole interval.
-    Where the data meat's excess is zero (`data_noise_variance`'s b) the sandwich holds the
-    sensor noise alone, 1e-4 of the interval, and the polish's standard error is nearly all
-    of it; it then lent the sandwich's strong sigma_t-albedo correlation to an error that
-    does not share it. On `bench_coverage.py`'s eight draws (3 such) the derived sigma_a
-    came out 2.4 sigma RMS off (its interval 0.0013 /mm, the errors up to 0.007)."""
+    Until session 36 the sandwich's correlations were stretched over the whole reported
+    interval. Where the data meat's excess is zero (`data_noise_variance`'s b) the sandwich
+    holds the sensor noise alone, 1e-4 of the interval, and the polish's standard error is
+    nearly all of it; it then lent the sandwich's strong sigma_t-albedo correlation to an
+    error that does not share it. On `bench_coverage.py`'s eight draws (3 such) the derived
+    sigma_a came out 2.4 sigma RMS off (its interval 0.0013 /mm, the errors up to 0.007).
+    With the polish's share on the diagonal sigma_a was right (1.11) but sigma_s' and g,
+    whose errors the correlations narrow, 2.5-3x too wide (`docs/estimation-log.md`)."""
     k = len(names)
     c = np.array([[float(sandwich.get(a, {}).get(b, 0.0)) for b in names] for a in names]) if sandwich \
         else np.zeros((k, k))
     c = np.where(np.isfinite(c), c, 0.0) + iterate_cov
+    if polish_se and polish_correlation:
+        se = np.array([float(polish_se.get(n, 0.0)) for n in names])
+        rho = np.array([[float(polish_correlation.get(a, {}).get(b, 1.0 if a == b else 0.0)) for b in names]
+                        for a in names])
+        c = c + np.where(np.isfinite(rho), rho, 0.0) * np.outer(se, se)
     var = np.array([float(unc[n]) for n in names]) ** 2
     d = np.clip(np.diag(c), 0.0, None)
-    # a part may not exceed the variance reported (by construction it does not; rounding)
+    # a part may not exceed the variance reported (a drift that is not added, rounding)
     with np.errstate(invalid="ignore", divide="ignore"):
         f = np.where(d > var, np.sqrt(var / np.where(d > 0, d, 1.0)), 1.0)
     c = c * np.outer(f, f)

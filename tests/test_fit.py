@@ -207,6 +207,28 @@ def test_data_meat_leaves_the_evaluation_renders_noise_out():
     assert np.all(np.mean(without, axis=0) / spread > 1.6), (np.mean(without, axis=0), spread)
 
 
+def test_render_correlation_is_that_of_estimates_scattered_by_render_noise():
+    """The polish points scatter about the optimum by the render noise of the gradient they
+    step with. A toy log-loss fit to profiles carrying render noise alone (variance
+    `render_variance_factor` x `model_variance`): the correlation of its estimates is the
+    one `render_correlation_out` reports (a, b of a exp(-b x): strongly correlated)."""
+    x = np.linspace(0.0, 3.0, 90)
+    a, b, s_true, dl = 1.0, 1.2, 50.0, 0.03
+    model = a * np.exp(-b * x)
+    mv = (0.02 * model) ** 2 + 1e-6                # the evaluation render's variance, unit-power units
+    rng = np.random.default_rng(5)
+    est = [_toy_log_fit(model + rng.normal(0.0, np.sqrt(2.0 * mv)), x, dl) for _ in range(300)]
+    empirical = float(np.corrcoef(np.array(est).T)[0, 1])
+    pb = Problem(np.array([0.0]), x, (s_true * model)[None, :], np.full((1, x.size), 1e-6), None, None, "t",
+                 None)  # type: ignore[arg-type]
+    corr: dict[str, dict[str, float]] = {}
+    sandwich_uncertainties(pb, {"a": a, "b": b}, ["a", "b"], s_true, model[None, :], mv[None, :],
+                           {"a": model[None, :] / a, "b": (-x * model)[None, :]}, delta_rel=dl, fit_scale=False,
+                           data_meat=True, render_variance_factor=2.0, render_correlation_out=corr)
+    assert corr["a"]["a"] == 1.0 and corr["a"]["b"] == pytest.approx(corr["b"]["a"])
+    assert abs(empirical) > 0.3 and corr["a"]["b"] == pytest.approx(empirical, abs=0.1)
+
+
 def test_correlation_factor_counts_noise_shared_between_neighbouring_pixels():
     """White noise: a sum over pixels has the sum of their variances (factor ~1). Noise
     averaged over 3 neighbouring pixels (a render's reconstruction filter): a smooth sum
@@ -228,6 +250,46 @@ def test_correlation_factor_counts_noise_shared_between_neighbouring_pixels():
     holes = valid.copy()
     holes[:, ::7] = False
     assert 2.3 < correlation_factor(smooth, v, holes) < 3.2
+
+
+def test_excess_share_has_a_calibrated_standard_error_and_never_collapses_to_zero():
+    """The data meat's excess share b: residuals r = excess + evaluation noise + sensor noise,
+    with an excess b v_eval of 1/16 of the render's own noise (the one-channel benchmark's
+    frozen truth noise), white and correlated over 3 pixels. The moment estimate scatters by
+    its standard error (z about unit spread) and falls below 0 on some draws; the reported b,
+    its posterior mean given b >= 0, stays positive there, near 0.8 se where b_raw is 0, and
+    is b_raw where that stands clear of 0."""
+    from scipy import ndimage
+
+    from estimate.uncertainties import data_noise_variance, excess_share
+
+    rng = np.random.default_rng(21)
+    shape = (10, 120)
+    valid = np.ones(shape, bool)
+    v_eval = np.exp(rng.uniform(-1.0, 1.0, shape))
+    v_sensor = 0.2 * v_eval
+    for smooth in (False, True):
+        zs, lows = [], []
+        for _ in range(200):
+            e = rng.standard_normal((3, *shape))
+            if smooth:   # unit variance after a 3-pixel box filter
+                e = ndimage.uniform_filter1d(e, 3, axis=-1) * math.sqrt(3.0)
+            r = np.sqrt(v_sensor) * e[0] + np.sqrt(v_eval) * e[1] + np.sqrt(v_eval / 16) * e[2]
+            x = excess_share(r, v_sensor, v_eval, valid)
+            zs.append((x["b_raw"] - 1 / 16) / x["se"])
+            if x["b_raw"] < 0:
+                lows.append(x)
+            assert x["b"] > 0 and x["b"] >= x["b_raw"]
+        assert 0.8 < np.std(zs) < 1.25, (smooth, np.std(zs))
+        assert abs(np.mean(zs)) < 0.3
+        assert lows, "b_raw below zero on some draws, as on the benchmark"
+        assert all(0.3 * x["se"] < x["b"] < x["se"] for x in lows)
+    # clear of zero: the moment estimate itself; the variance returned carries it
+    r = np.sqrt(v_sensor + 2.0 * v_eval) * rng.standard_normal(shape)
+    x = excess_share(r, v_sensor, v_eval, valid)
+    assert x["b"] == pytest.approx(x["b_raw"], rel=1e-3) and x["b"] == pytest.approx(1.0, abs=0.2)
+    v, b = data_noise_variance(r, v_sensor, v_eval, valid)
+    assert b == x["b"] and np.allclose(v, v_sensor + b * v_eval)
 
 
 def test_sandwich_curvature_from_cross_products_of_noisy_jacobians():
@@ -764,8 +826,8 @@ def test_averaged_polish_points_mean_step_within_their_scatter_is_not_added_twic
 
 
 def test_covariance_correlates_only_the_parts_whose_correlation_is_modelled():
-    """The reported covariance: the sandwich's (and the iterates') correlated part plus the
-    rest of each variance on the diagonal. Where the sandwich is all of the interval its
+    """The reported covariance: the sandwich's, the iterates' and (with its correlation) the
+    polish's correlated parts plus the rest of each variance on the diagonal. Where the sandwich is all of the interval its
     correlation is kept; where an uncorrelated part (the polish points' standard error)
     dominates, the sandwich's strong sigma_t-albedo correlation is not stretched over it:
     the derived sigma_a = sigma_t (1 - albedo) then gets the variance of independent parts
@@ -791,6 +853,12 @@ def test_covariance_correlates_only_the_parts_whose_correlation_is_modelled():
     sa = derived_quantities("exp3", params, full)["sigma_a"]["uncertainty"]
     independent = math.hypot((1 - params["albedo"]) * unc["sigma_t"], params["sigma_t"] * unc["albedo"])
     assert sa == pytest.approx(independent, rel=1e-3)
+    # the polish's share carries the render-noise correlation of its steps, where given
+    se = {"sigma_t": 0.0342, "albedo": 0.00136}
+    corr = {"sigma_t": {"sigma_t": 1.0, "albedo": -0.6}, "albedo": {"sigma_t": -0.6, "albedo": 1.0}}
+    full = combined_covariance(names, unc, sandwich, zero, se, corr)
+    assert full["sigma_t"]["albedo"] / (unc["sigma_t"] * unc["albedo"]) == pytest.approx(-0.6, abs=1e-3)
+    assert full["albedo"]["albedo"] == pytest.approx(unc["albedo"] ** 2)
     # the iterates' covariance is correlated too, and a part is never above the variance reported
     it = np.array([[4e-4, 3.9e-6], [3.9e-6, 4e-8]])
     full = combined_covariance(names, {"sigma_t": 0.01, "albedo": 1e-4}, {}, it)
