@@ -608,6 +608,74 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         optimum, seed, spp and weights, so the same chi^2."""
         return joint_refit(exts, fit.parameters, mv, iterations=0, decorrelate=True)
     brightest = float(np.max(before.model))
+
+    def try_candidate(name: str, current: Evaluation, current_exts: list[str], control: tuple[Any, ...],
+                      cand_how: Mapping[str, Any], round_no: int) -> tuple[dict[str, Any], RefitResult]:
+        """One candidate's refit from `current` against the round's `control` (`_control`),
+        with the round's optimiser settings `cand_how`: its statistics (the BIC gain, the
+        magnitude's distance from absent, the no-harm and held-out tests; `entry`, without
+        the decision) and the refit."""
+        ctrl, cur_train, ctrl_tr, ref_held = control
+        exts = current_exts + [name]
+        m = make_model(exts)
+        free = _free_names(m, exts)
+        # Without uncertainties: the Wald test below asks for them only where it decides.
+        fit = refit(m, problem, _start(m, current.parameters, name, brightest), free,
+                    iterations=iterations, uncertainties=False, **cand_how)
+        tr = evaluate(m, fit.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats, angle_idx=train,
+                      noise_variance=yardstick)
+        n_train = int(np.sum(np.isfinite(tr.residuals.r)))
+        dbic = ctrl.chi2 - fit.chi2 - _bic_penalty(name, n_train)
+        entry: dict[str, Any] = {"effect": name, "round": round_no, "delta_bic": dbic,
+                                 "chi2_train_before": cur_train.residuals.chi2_adjusted,
+                                 "chi2_train_control": ctrl_tr.residuals.chi2_adjusted,
+                                 "chi2_train_after": tr.residuals.chi2_adjusted,
+                                 "chi2_refit_control": ctrl.chi2, "chi2_refit_after": fit.chi2,
+                                 "parameters": {kk: fit.parameters[kk] for kk in FREE_PARAMETERS[name]}}
+        # The effect itself must carry the improvement: a refit also re-optimises the
+        # material parameters, which alone can lower chi^2 when the current fit sits off
+        # its optimum.
+        # Magnitude: the likelihood ratio, or the Wald test where that says more (see
+        # _magnitude_lr_z: the quadratic model behind the Wald test fails for a bounded
+        # parameter and far from a good fit); the conditional chi^2 is one render at the
+        # refit's seed.
+        neutral = refit(m, problem, _neutral_magnitudes(m, fit.parameters, name), free,
+                        iterations=0, uncertainties=False, **cand_how)
+        z_lr = _magnitude_lr_z(fit, ctrl.chi2, neutral.chi2, n_train, len(free) + 1, name)
+        # The Wald test needs the refit's uncertainties: a render and one or two Jacobians,
+        # 4-8 s a candidate on the simulated bench, about a tenth of the confirmation. It
+        # can only change the decision where the BIC gain passes and the likelihood ratio
+        # leaves the magnitude within MAGNITUDE_SIGMA of absent; elsewhere it is not asked
+        # (magnitude_wald_sigma None) and the decision is the one it would have made.
+        z_wald: float | None = None
+        if dbic > BIC_STRONG and z_lr <= MAGNITUDE_SIGMA:
+            fit = _with_uncertainties(problem, m, free, fit, cand_how)
+            z_wald = _magnitude_z(fit, name)
+        z = z_lr if z_wald is None else max(z_lr, z_wald)
+        entry["magnitude_sigma"] = z
+        entry["magnitude_wald_sigma"] = z_wald
+        entry["magnitude_lr_sigma"] = z_lr
+        entry["chi2_refit_neutral"] = neutral.chi2
+        # No harm, rendered independently: the paired gain alone let a candidate through
+        # whose refit was merely less damaged than the control's by fitting its own
+        # render noise (a clean simulated-bench session, 256 spp: stray light "confirmed"
+        # while the independently rendered chi^2 rose from 7772 to 9946). A real effect
+        # does not leave the fit worse than it was by more than that chi^2's spread.
+        no_harm = tr.residuals.chi2_adjusted <= cur_train.residuals.chi2_adjusted + math.sqrt(2.0 * n_train)
+        entry["no_harm"] = bool(no_harm)
+        if held:
+            ho = evaluate(m, fit.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats, angle_idx=held,
+                          scale=tr.scale, noise_variance=yardstick)
+            entry["chi2_heldout_before"] = ref_held
+            entry["chi2_heldout_after"] = ho.residuals.chi2_adjusted
+            # Held out, the extension must not predict worse than the current model by more
+            # than one standard deviation of a chi^2 on those pixels (sqrt(2 n)): with few
+            # held-out angles that already fit, a strict "<" rejects true effects on the
+            # Monte-Carlo noise of the refitted material parameters alone.
+            n_held = int(np.sum(np.isfinite(ho.residuals.r)))
+            entry["heldout_ok"] = bool(ho.residuals.chi2_adjusted < ref_held + math.sqrt(2.0 * n_held))
+        return entry, fit
+
     # The smooth-structure test cannot see a mismatch that changes sign within a few pixels
     # (a blur moves light across the edge of the spot); the score tests of the catalogue
     # can, because they know its shape. The fit is therefore tested by the union of the
@@ -658,76 +726,13 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         cand_how = {"angle_idx": train, "spp": spp, "seed": seed + 202,
                     "model_variance": current.model_variance * repeats, "noise_scale": floor}
 
-        def _try_candidate(name: str) -> tuple[dict[str, Any], RefitResult]:
-            """One candidate's refit against this round's control, with its statistics: the
-            BIC gain, the magnitude's distance from absent, and the no-harm and held-out tests
-            (`entry`, without the decision), and the refit."""
-            exts = current_exts + [name]
-            m = make_model(exts)
-            free = _free_names(m, exts)
-            # Without uncertainties: the Wald test below asks for them only where it decides.
-            fit = refit(m, problem, _start(m, current.parameters, name, brightest), free,
-                        iterations=iterations, uncertainties=False, **cand_how)
-            tr = evaluate(m, fit.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats, angle_idx=train,
-                          noise_variance=yardstick)
-            n_train = int(np.sum(np.isfinite(tr.residuals.r)))
-            dbic = ctrl.chi2 - fit.chi2 - _bic_penalty(name, n_train)
-            entry: dict[str, Any] = {"effect": name, "round": len(confirmed) + 1, "delta_bic": dbic,
-                                     "chi2_train_before": cur_train.residuals.chi2_adjusted,
-                                     "chi2_train_control": ctrl_tr.residuals.chi2_adjusted,
-                                     "chi2_train_after": tr.residuals.chi2_adjusted,
-                                     "chi2_refit_control": ctrl.chi2, "chi2_refit_after": fit.chi2,
-                                     "parameters": {kk: fit.parameters[kk] for kk in FREE_PARAMETERS[name]}}
-            # The effect itself must carry the improvement: a refit also re-optimises the
-            # material parameters, which alone can lower chi^2 when the current fit sits off
-            # its optimum.
-            # Magnitude: the likelihood ratio, or the Wald test where that says more (see
-            # _magnitude_lr_z: the quadratic model behind the Wald test fails for a bounded
-            # parameter and far from a good fit); the conditional chi^2 is one render at the
-            # refit's seed.
-            neutral = refit(m, problem, _neutral_magnitudes(m, fit.parameters, name), free,
-                            iterations=0, uncertainties=False, **cand_how)
-            z_lr = _magnitude_lr_z(fit, ctrl.chi2, neutral.chi2, n_train, len(free) + 1, name)
-            # The Wald test needs the refit's uncertainties: a render and one or two Jacobians,
-            # 4-8 s a candidate on the simulated bench, about a tenth of the confirmation. It
-            # can only change the decision where the BIC gain passes and the likelihood ratio
-            # leaves the magnitude within MAGNITUDE_SIGMA of absent; elsewhere it is not asked
-            # (magnitude_wald_sigma None) and the decision is the one it would have made.
-            z_wald: float | None = None
-            if dbic > BIC_STRONG and z_lr <= MAGNITUDE_SIGMA:
-                fit = _with_uncertainties(problem, m, free, fit, cand_how)
-                z_wald = _magnitude_z(fit, name)
-            z = z_lr if z_wald is None else max(z_lr, z_wald)
-            entry["magnitude_sigma"] = z
-            entry["magnitude_wald_sigma"] = z_wald
-            entry["magnitude_lr_sigma"] = z_lr
-            entry["chi2_refit_neutral"] = neutral.chi2
-            # No harm, rendered independently: the paired gain alone let a candidate through
-            # whose refit was merely less damaged than the control's by fitting its own
-            # render noise (a clean simulated-bench session, 256 spp: stray light "confirmed"
-            # while the independently rendered chi^2 rose from 7772 to 9946). A real effect
-            # does not leave the fit worse than it was by more than that chi^2's spread.
-            no_harm = tr.residuals.chi2_adjusted <= cur_train.residuals.chi2_adjusted + math.sqrt(2.0 * n_train)
-            entry["no_harm"] = bool(no_harm)
-            if held:
-                ho = evaluate(m, fit.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats, angle_idx=held,
-                              scale=tr.scale, noise_variance=yardstick)
-                entry["chi2_heldout_before"] = ref_held
-                entry["chi2_heldout_after"] = ho.residuals.chi2_adjusted
-                # Held out, the extension must not predict worse than the current model by more
-                # than one standard deviation of a chi^2 on those pixels (sqrt(2 n)): with few
-                # held-out angles that already fit, a strict "<" rejects true effects on the
-                # Monte-Carlo noise of the refitted material parameters alone.
-                n_held = int(np.sum(np.isfinite(ho.residuals.r)))
-                entry["heldout_ok"] = bool(ho.residuals.chi2_adjusted < ref_held + math.sqrt(2.0 * n_held))
-            return entry, fit
-
         for cand in leading:
             if round_one and cand.name in first_round.refits:
                 cached, fit = first_round.refits[cand.name]
                 entry = copy.deepcopy(cached)
             else:
-                entry, fit = _try_candidate(cand.name)
+                entry, fit = try_candidate(cand.name, current, current_exts, (ctrl, cur_train, ctrl_tr, ref_held),
+                                           cand_how, len(confirmed) + 1)
                 if round_one:
                     first_round.refits[cand.name] = (copy.deepcopy(entry), fit)
             # The decision: every test counts unless `refit_checks_decide` is off, when the

@@ -99,7 +99,8 @@ result and the loop; the stages' parts live beside it: `estimate.start` (1),
    (`sandwich_uncertainties`: Gauss-Newton curvature of the log loss, the sensor and render
    noise propagated through it, times the log-space reduced chi^2 when > 1; since session
    30, when the result averaged polish points, the data's noise alone, its excess sized from
-   the residuals and times their pixel correlation (`uncertainty_data_meat`), because the
+   the residuals (since session 37 the excess share's posterior mean given that it is not
+   negative, `excess_share`) and times their pixel correlation (`uncertainty_data_meat`), because the
    points' standard error below carries the render noise; the curvature
    from the cross products of independent Jacobians, the polish's last ones (since session
    28; before, and still when the polish averaged fewer than two points, one more at the

@@ -387,7 +387,14 @@ def combined_covariance(names: Sequence[str], unc: Mapping[str, float], sandwich
     error that does not share it. On `bench_coverage.py`'s eight draws (3 such) the derived
     sigma_a came out 2.4 sigma RMS off (its interval 0.0013 /mm, the errors up to 0.007).
     With the polish's share on the diagonal sigma_a was right (1.11) but sigma_s' and g,
-    whose errors the correlations narrow, 2.5-3x too wide (`docs/estimation-log.md`)."""
+    whose errors the correlations narrow, 2.5-3x too wide. The polish's share with its
+    render correlation was tried then and made them narrow instead (sigma_a 1.43, sigma_s'
+    1.44), on the draws whose excess share b had been clipped to 0. Since session 37 b is its
+    posterior mean (`excess_share`) and never 0; recomputed on 8 fresh draws' kept inputs
+    (`benchmarks/coverage_variants.py`), RMS z sigma_a / sigma_s' / g: 0.69 / 0.31 / 0.33 with
+    the share on the diagonal, 0.74 / 0.53 / 0.67 with its correlation (the fit's default,
+    `FitSettings.uncertainty_polish_correlation`), 0.85 / 0.61 / 0.76 with the oracle's b
+    (`docs/estimation-log.md`)."""
     k = len(names)
     c = np.array([[float(sandwich.get(a, {}).get(b, 0.0)) for b in names] for a in names]) if sandwich \
         else np.zeros((k, k))
