@@ -63,7 +63,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from scipy import stats
@@ -269,9 +269,25 @@ class ChannelDiagnosis:
     #: the first round's renders and refits, for a second pass from the same base fit (not reported)
     first_round: FirstRound | None = field(default=None, repr=False, compare=False)
 
+    #: the fields that describe the named model and its fits (`adopt_named_model`)
+    NAMED_MODEL_FIELDS: ClassVar[tuple[str, ...]] = (
+        "confirmed", "confirmed_order", "after", "lm_after", "uncertainties_after", "covariance_after",
+        "final_fit", "importance", "fixed_seed_after", "parameter_ranges", "model_stage")
+
     @property
     def significant(self) -> bool:
         return self.before.residuals.significant
+
+    def adopt_named_model(self, other: ChannelDiagnosis) -> None:
+        """Take `other`'s named model: the effects it named (in the order its rounds added
+        them), its fits ("after", the refit, the estimator's final fit), their uncertainties,
+        covariance and ranges. What was located and screened, and "before", stay this
+        diagnosis's (`second_pass_channel`)."""
+        for name in self.NAMED_MODEL_FIELDS:
+            value = getattr(other, name)
+            setattr(self, name, copy.copy(value) if isinstance(value, (list, dict)) else value)
+        if not self.confirmed_order:
+            self.confirmed_order = list(self.confirmed)
 
     def as_dict(self) -> dict[str, Any]:
         """Plain (YAML/JSON-ready) summary."""
@@ -1323,15 +1339,7 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
     info["named"] = list(d2.confirmed)
     info["outcome"] = (f"named {', '.join(d2.confirmed)}: its final fit explains the data better than the one with "
                        f"{', '.join(dropped)} (gain {better['gain']:.0f})")
-    d.confirmed = list(d2.confirmed)
-    d.confirmed_order = list(d2.confirmed_order or d2.confirmed)
-    d.after, d.lm_after = d2.after, d2.lm_after
-    d.uncertainties_after, d.covariance_after = dict(d2.uncertainties_after), dict(d2.covariance_after)
-    d.final_fit = dict(d2.final_fit)
-    d.importance = dict(d2.importance)
-    d.fixed_seed_after = dict(d2.fixed_seed_after)
-    d.parameter_ranges = dict(d2.parameter_ranges)
-    d.model_stage = d2.model_stage
+    d.adopt_named_model(d2)
     d.verdict = (_verdict(d.before, d.localisation, d.candidates, d.confirmed, d.after)
                  + f" (the first refits confirmed {', '.join(dropped)}, which the estimator's final fit could not "
                  f"tell from absent; refitting every other flagged candidate, {info['outcome']})")
