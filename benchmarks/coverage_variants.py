@@ -142,17 +142,11 @@ def _interval(k: dict[str, Any], *, polish_se: bool = True, clip_b: bool = False
 
 def _excess(k: dict[str, Any]) -> dict[str, float]:
     """The kept fit's data-meat excess share b (`estimate.uncertainties.excess_share`)."""
-    from estimate.uncertainties import excess_share
+    from estimate.uncertainties import excess_share, log_residuals
 
     s = k["sandwich"]
-    pb, scale = s["problem"], s["scale"]
-    valid = np.asarray(pb.valid, dtype=bool)
-    m = pb.measured / scale
-    dl = max(s["kw"]["delta_rel"] * float(np.max(np.where(valid, m, -np.inf))), 1e-30)
-    mm = np.clip(m, -0.5 * dl, None)
-    ip = np.clip(s["profiles"], 0, None)
-    r = np.where(valid, np.log(mm + dl) - np.log(ip + dl), 0.0)
-    return excess_share(r, (pb.variance / scale ** 2) / (mm + dl) ** 2, s["model_variance"] / (ip + dl) ** 2, valid)
+    lr = log_residuals(s["problem"], s["scale"], s["profiles"], s["model_variance"], s["kw"]["delta_rel"])
+    return excess_share(lr.r, lr.v_sensor, lr.v_eval, lr.valid)
 
 
 #: Derived quantities scored by `analyse` (`estimate.derived`).

@@ -63,7 +63,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 from scipy import stats
@@ -187,6 +187,17 @@ class BaseFit:
     uncertainties: dict[str, float] = field(default_factory=dict)
 
 
+class Control(NamedTuple):
+    """A confirmation round's control (`_control`): the current model refitted alone."""
+
+    refit: RefitResult
+    #: the current fit and the control evaluated on the training angles (the yardstick's metric)
+    train_before: Evaluation
+    train_control: Evaluation
+    #: the control's held-out chi^2 (None without held-out angles)
+    heldout_chi2: float | None
+
+
 @dataclass
 class FirstRound:
     """What `diagnose_channel` computed from the base fit before its first confirmation
@@ -195,7 +206,7 @@ class FirstRound:
     decision not). `second_pass_channel` starts again from the same base fit at the same
     settings, so it takes these instead of rendering them again: on the bench boundary
     session that was the evaluation, the screening, the control and a beam-halo refit,
-    about 70 s of its 230 s (session 37). Kept in memory only, never in the report.
+    about 105 s of the pass's 229 s (session 37). Kept in memory only, never in the report.
     """
 
     #: (spp, seed, repeats, iterations, base parameters, base extensions): reused only where all match
@@ -203,8 +214,7 @@ class FirstRound:
     before: Evaluation
     localisation: dict[str, Any]
     scores: list[CandidateScore]
-    #: the control refit, the current model and the control on the training angles, the held-out chi^2
-    control: tuple[Any, ...] | None = None
+    control: Control | None = None
     #: candidate -> (its confirmation entry without the decision, its refit)
     refits: dict[str, tuple[dict[str, Any], RefitResult]] = field(default_factory=dict)
 
@@ -625,7 +635,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         return joint_refit(exts, fit.parameters, mv, iterations=0, decorrelate=True)
     brightest = float(np.max(before.model))
 
-    def try_candidate(name: str, current: Evaluation, current_exts: list[str], control: tuple[Any, ...],
+    def try_candidate(name: str, current: Evaluation, current_exts: list[str], control: Control,
                       cand_how: Mapping[str, Any], round_no: int) -> tuple[dict[str, Any], RefitResult]:
         """One candidate's refit from `current` against the round's `control` (`_control`),
         with the round's optimiser settings `cand_how`: its statistics (the BIC gain, the
@@ -725,13 +735,13 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         # refits are kept (`first_round`) and taken from `reuse` where given.
         round_one = not confirmed
         if round_one and first_round.control is not None:
-            ctrl, cur_train, ctrl_tr, ref_held = first_round.control
+            control = first_round.control
         else:
-            ctrl, cur_train, ctrl_tr, ref_held = _control(problem, cur_model, current, current_exts, train, held,
-                                                          spp=spp, seed=seed, repeats=repeats,
-                                                          iterations=iterations, floor=floor, yardstick=yardstick)
+            control = _control(problem, cur_model, current, current_exts, train, held, spp=spp, seed=seed,
+                               repeats=repeats, iterations=iterations, floor=floor, yardstick=yardstick)
             if round_one:
-                first_round.control = (ctrl, cur_train, ctrl_tr, ref_held)
+                first_round.control = control
+        cur_train, ctrl_tr = control.train_before, control.train_control
         gain = cur_train.residuals.chi2_adjusted - ctrl_tr.residuals.chi2_adjusted
         if not confirmed:
             before.residuals.extra["control_refit_gain"] = gain
@@ -747,8 +757,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                 cached, fit = first_round.refits[cand.name]
                 entry = copy.deepcopy(cached)
             else:
-                entry, fit = try_candidate(cand.name, current, current_exts, (ctrl, cur_train, ctrl_tr, ref_held),
-                                           cand_how, len(confirmed) + 1)
+                entry, fit = try_candidate(cand.name, current, current_exts, control, cand_how, len(confirmed) + 1)
                 if round_one:
                     first_round.refits[cand.name] = (copy.deepcopy(entry), fit)
             # The decision: every test counts unless `refit_checks_decide` is off, when the
@@ -860,15 +869,12 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
 
 def _control(problem: Any, model: Any, current: Evaluation, exts: Sequence[str], train: Sequence[int],
              held: Sequence[int], *, spp: int, seed: int, repeats: int, iterations: int, floor: np.ndarray,
-             yardstick: np.ndarray) -> tuple[RefitResult, Evaluation, Evaluation, float | None]:
+             yardstick: np.ndarray) -> Control:
     """The control of a confirmation round: the current model refitted alone, with the
     candidates' optimiser, seeds and training angles. A candidate must beat this, not the fit
     as given: when the fit to diagnose stopped far from its optimum, any extension's refit
     also re-optimises the material parameters and would otherwise take the credit for it.
 
-    Returns the control refit, the current fit and the control evaluated on the training
-    angles (in the yardstick's metric), and the control's held-out chi^2 (None without
-    held-out angles).
     """
     cur_train = evaluate(model, current.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats,
                          angle_idx=train, noise_variance=yardstick)
@@ -887,7 +893,7 @@ def _control(problem: Any, model: Any, current: Evaluation, exts: Sequence[str],
         ctrl_ho = evaluate(model, ctrl.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats,
                            angle_idx=held, scale=ctrl_tr.scale, noise_variance=yardstick)
         ref_held = ctrl_ho.residuals.chi2_adjusted
-    return ctrl, cur_train, ctrl_tr, ref_held
+    return Control(ctrl, cur_train, ctrl_tr, ref_held)
 
 
 def bound_side(value: float, ranges: Sequence[tuple[float, float]]) -> str | None:

@@ -778,7 +778,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
                                                render_variance_factor=2.0 * st.final_spp / max(1, st.lm_spp),
                                                covariance_out=sandwich_cov, jac_more=more, data_meat=data_meat,
                                                meat_cross=st.uncertainty_meat_cross,
-                                               render_correlation_out=step_corr)
+                                               render_correlation_out=(step_corr if st.uncertainty_polish_correlation
+                                                                       else None))
         sandwich = dict(unc)
         # never below the ideal linear-chi^2 bound
         unc = {k: max(v, fisher.get(k, 0.0)) for k, v in unc.items()}

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from typing import NamedTuple
 
 import numpy as np
 from scipy import stats
@@ -25,7 +26,7 @@ from estimate.problem import Problem
 
 __all__ = ["DRIFT_T", "UNCERTAINTY_CROSS_FLOOR", "combined_covariance", "combined_uncertainties", "correlation_factor",
            "data_noise_variance", "excess_share",
-           "fisher_uncertainties", "iterate_drift", "sandwich_uncertainties", "window_estimate", "window_scatter"]
+           "fisher_uncertainties", "iterate_drift", "log_residuals", "sandwich_uncertainties", "window_estimate", "window_scatter"]
 
 
 def fisher_uncertainties(fm: ForwardModel, problem: Problem, params: Mapping[str, float],
@@ -53,6 +54,40 @@ def fisher_uncertainties(fm: ForwardModel, problem: Problem, params: Mapping[str
 #: Smallest generalised eigenvalue of the uncertainties' cross-product curvature against the
 #: matrix of the Jacobians' mean (`sandwich_uncertainties`, `bounded_cross`).
 UNCERTAINTY_CROSS_FLOOR = 0.1
+
+
+class LogResiduals(NamedTuple):
+    """The log loss's residuals and their noise variances (`log_residuals`)."""
+
+    valid: np.ndarray
+    #: measured radiance over the scale, and that clipped at -delta / 2 (the log's argument)
+    measured: np.ndarray
+    measured_clipped: np.ndarray
+    #: the fitted profiles, clipped at 0
+    profiles: np.ndarray
+    #: the loss's delta in radiance units (`delta_rel` x the brightest measured pixel)
+    delta: float
+    #: r = log(measured + delta) - log(profile + delta), 0 where not valid
+    r: np.ndarray
+    #: the variance channel's noise and the evaluation render's, in r's units
+    v_sensor: np.ndarray
+    v_eval: np.ndarray
+
+
+def log_residuals(problem: Problem, scale: float, profiles: np.ndarray, model_variance: np.ndarray,
+                  delta_rel: float) -> LogResiduals:
+    """The residuals r of the log loss at the fitted `profiles` (radiance units, `scale` the
+    measured-to-rendered factor) and their per-pixel noise variances, propagated to log
+    space: the sensor's from `problem.variance`, the evaluation render's from
+    `model_variance` (the variance of the rendered mean)."""
+    valid = np.asarray(problem.valid, dtype=bool)
+    m = problem.measured / scale
+    dl = max(delta_rel * float(np.max(np.where(valid, m, -np.inf))), 1e-30)
+    mm = np.clip(m, -0.5 * dl, None)
+    ip = np.clip(profiles, 0, None)
+    r = np.where(valid, np.log(mm + dl) - np.log(ip + dl), 0.0)
+    return LogResiduals(valid, m, mm, ip, dl, r, (problem.variance / scale ** 2) / (mm + dl) ** 2,
+                        model_variance / (ip + dl) ** 2)
 
 
 def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names: Sequence[str], scale: float,
@@ -119,13 +154,9 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
     the polish points scatter about the optimum, whose size `polish_se` measures
     (`combined_covariance`).
     """
-    valid = np.asarray(problem.valid, dtype=bool)
-    m = problem.measured / scale
-    dl = max(delta_rel * float(np.max(np.where(valid, m, -np.inf))), 1e-30)
-    mm = np.clip(m, -0.5 * dl, None)
-    ip = np.clip(profiles, 0, None)
-    r = np.where(valid, np.log(mm + dl) - np.log(ip + dl), 0.0)
-    var_r = (problem.variance / scale ** 2) / (mm + dl) ** 2 + render_variance_factor * model_variance / (ip + dl) ** 2
+    lr = log_residuals(problem, scale, profiles, model_variance, delta_rel)
+    valid, m, mm, ip, dl, r = lr.valid, lr.measured, lr.measured_clipped, lr.profiles, lr.delta, lr.r
+    var_r = lr.v_sensor + render_variance_factor * lr.v_eval
     var_r = np.where(valid & np.isfinite(var_r), var_r, 0.0)
 
     def columns(j: Mapping[str, np.ndarray]) -> np.ndarray:
@@ -157,7 +188,7 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
     except np.linalg.LinAlgError:
         return {k: float("nan") for k in names}, float("nan"), red
     if data_meat:
-        v_sensor, v_eval = (problem.variance / scale ** 2) / (mm + dl) ** 2, model_variance / (ip + dl) ** 2
+        v_sensor, v_eval = lr.v_sensor, lr.v_eval
         v_data, _ = data_noise_variance(r, v_sensor, v_eval, valid)
         # The meat is the variance of the gradient the polish steps with, A^T r, and those
         # steps use the Monte Carlo Jacobians: Var(A^T r) = A0^T S A0 + E[E^T S E], E their
@@ -173,7 +204,7 @@ def sandwich_uncertainties(problem: Problem, params: Mapping[str, float], names:
         modelled = Hi @ gram(var_r.ravel()) @ Hi
         cov = modelled * max(1.0, red)
     if render_correlation_out is not None:
-        v_step = render_variance_factor * model_variance / (ip + dl) ** 2
+        v_step = render_variance_factor * lr.v_eval
         c_step = Hi @ gram(np.where(valid & np.isfinite(v_step), v_step, 0.0).ravel()) @ Hi
         sd_step = np.sqrt(np.clip(np.diag(c_step), 0.0, None))
         with np.errstate(invalid="ignore", divide="ignore"):
