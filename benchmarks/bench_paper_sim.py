@@ -47,8 +47,10 @@ SCALE = "calibrated"  # intensity scale of the fits (--scale); as rig estimate's
 #: uncertainties' cross-product curvature since 20; the polish's one-sided Jacobians and
 #: iterations to 128 spp since 25; the damped polish with wider caps since 27; the hand-over
 #: to the polish after the Adam steps and the polish's Jacobians for the uncertainties since 28;
-#: the sandwich's data-only meat since 30).
-RECIPE = "jointgrid-smoothgn-davg-polish-cross-chi2-crossunc-onesided128-damped-handover-datameat"
+#: the sandwich's data-only meat since 30; its meat with the Jacobians' noise since 34, the
+#: polish's share with its steps' render correlation since 36, the excess share's posterior
+#: mean since 37).
+RECIPE = "jointgrid-smoothgn-davg-polish-cross-chi2-crossunc-onesided128-damped-handover-datameat-jacmeat-bpost"
 
 WORLD_TEMPLATE = """\
 # Paper section 4 simulation case: poly-disperse Mie, mean diameter {d} um, sigma_t {s} /mm.
