@@ -67,19 +67,30 @@ beam:
   power_e_per_s: {{r: 3.2e10, g: 3.2e10, b: 3.2e10}}
 stage: {{zero_error_deg: 0.0}}
 effects: {{}}
-render: {{mie_degree: 8}}
+render: {{mie_degree: 8{render_extra}}}
 """
+
+#: Samples per pixel of the simulated camera's profile rows (`sim_devices.world.RenderSettings`
+#: spp_profile; `--truth-spp`). The recording's scatter is this render's frozen Monte Carlo noise
+#: plus the sensor's; the paper's experiment has sensor noise only.
+TRUTH_SPP = 1024
 
 
 def case_name(d: float, s: float) -> str:
     return f"d{d:g}_s{s:g}"
 
 
+def case_key(d: float, s: float) -> str:
+    """The case's world and cache name: `case_name`, and the truth's spp where not the default."""
+    return case_name(d, s) + ("" if TRUTH_SPP == 1024 else f"_spp{TRUTH_SPP}")
+
+
 def world_file(d: float, s: float) -> Path:
     WORLDS.mkdir(parents=True, exist_ok=True)
-    p = WORLDS / f"paper_{case_name(d, s)}.yaml"
+    p = WORLDS / f"paper_{case_key(d, s)}.yaml"
     if not p.exists():
-        p.write_text(WORLD_TEMPLATE.format(d=d, s=s, a=ALBEDO), encoding="utf-8")
+        extra = "" if TRUTH_SPP == 1024 else f", spp_profile: {TRUTH_SPP}"
+        p.write_text(WORLD_TEMPLATE.format(d=d, s=s, a=ALBEDO, render_extra=extra), encoding="utf-8")
     return p
 
 
@@ -101,7 +112,7 @@ def fit_cache(cdir: Path, model: str) -> Path:
 def case_session(d: float, s: float) -> tuple[Path, Path]:
     """The case's recorded session (captured on the simulated bench on first use, an
     interrupted capture finished) and its world file."""
-    cdir = CACHE / case_name(d, s)
+    cdir = CACHE / case_key(d, s)
     cdir.mkdir(parents=True, exist_ok=True)
     world = world_file(d, s)
     cal, ses = cdir / "cal", cdir / "session"
@@ -124,7 +135,7 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
     from sim_devices.world import load_world
 
     name = case_name(d, s)
-    cdir = CACHE / name
+    cdir = CACHE / case_key(d, s)
     ses, world = case_session(d, s)
     pb = load_problem(ses, "g")
     mat = load_world(world).materials["g"]
@@ -141,7 +152,8 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
         wall = time.monotonic() - t0
         floor = loss_at(pb, mat.model, truth, spp=st.final_spp,
                         fixed_scale=r.scale if SCALE == "calibrated" else None)["loss"]
-        row = {"case": name, "diameter_um": d, "sigma_t_true": s, "albedo_true": ALBEDO, "model": r.model,
+        row = {"case": name, "truth_spp": TRUTH_SPP, "diameter_um": d, "sigma_t_true": s, "albedo_true": ALBEDO,
+               "model": r.model,
                "sigma_t": r.parameters["sigma_t"], "albedo": r.parameters["albedo"],
                "sigma_t_rel_error": abs(r.parameters["sigma_t"] / s - 1), "albedo_abs_error": abs(r.parameters["albedo"] - ALBEDO),
                "loss": r.loss, "loss_at_truth": floor, "loss_ratio": r.loss / floor, "reduced_chi2": r.reduced_chi2,
@@ -191,7 +203,7 @@ def unbiased_losses(row: dict, seed: int = 4242) -> dict:
     if row.get("unbiased_spp") == UNBIASED_SPP:
         return row
     d, s = row["diameter_um"], row["sigma_t_true"]
-    cdir = CACHE / case_name(d, s)
+    cdir = CACHE / case_key(d, s)
     pb = load_problem(cdir / "session", "g")
     mat = load_world(world_file(d, s)).materials["g"]
     fs = calibrated_scale(pb.session_path, "g", pb.beam.power()).scale if row.get("scale_mode") == "calibrated" else None
@@ -213,7 +225,7 @@ def truth_check(d: float, s: float, model: str, seed: int) -> dict:
     from estimate.fit import FitSettings, fit_channel
     from estimate.problem import load_problem
 
-    cdir = CACHE / case_name(d, s)
+    cdir = CACHE / case_key(d, s)
     f = cdir / f"check_{model}_{SCALE}.json"
     if f.exists():
         return json.loads(f.read_text())
@@ -244,11 +256,15 @@ def main() -> int:
                     help="intensity scale of the fits: calibrated (default, as rig estimate) or free")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "bench_paper_sim.json"),
                     help="results JSON (a run of some models or cases only may keep the full table's file)")
+    ap.add_argument("--truth-spp", type=int, default=1024,
+                    help="samples per pixel of the simulated camera's profile rows (the recording's frozen render "
+                         "noise; worlds and caches of other values are kept apart)")
     ap.add_argument("--unbiased", action="store_true",
                     help="add the losses without Monte Carlo variance (fit and truth) to cached fits that lack them")
     args = ap.parse_args()
-    global SCALE
+    global SCALE, TRUTH_SPP
     SCALE = args.scale
+    TRUTH_SPP = args.truth_spp
     models = [m for m in args.models.split(",") if m]
     want = set(args.cases.split(",")) if args.cases else None
     rows: list[dict] = []
@@ -259,10 +275,10 @@ def main() -> int:
                 continue
             if args.table_only:
                 for m in models:
-                    f = fit_cache(CACHE / case_name(d, s), m)
+                    f = fit_cache(CACHE / case_key(d, s), m)
                     if f.exists():
                         rows.append(json.loads(f.read_text()))
-                    c = CACHE / case_name(d, s) / f"check_{m}_{SCALE}.json"
+                    c = CACHE / case_key(d, s) / f"check_{m}_{SCALE}.json"
                     if c.exists():
                         checks.append(json.loads(c.read_text()))
                 continue
