@@ -218,6 +218,42 @@ def unbiased_losses(row: dict, seed: int = 4242) -> dict:
     return row
 
 
+def recording_noise(d: float, s: float, spp: int = 16384, seed: int = 11) -> dict:
+    """How far the case's recording scatters about its truth, in units of its variance channel
+    (the sensor's noise): the truth rendered twice at `spp` with independent seeds, scaled to
+    the recording (`estimate.refit.best_scale`); chi^2 / pixel of the recording against their
+    mean, and that mean's own variance (from the two renders' difference) / the sensor's. What
+    is left of the first beyond the second and 1 is the simulated camera's frozen render noise
+    (and any difference between its rows and the model's profile)."""
+    import numpy as np
+
+    from estimate.forward import ForwardModel
+    from estimate.problem import load_problem
+    from estimate.refit import best_scale, recording_variance
+    from sim_devices.world import load_world
+
+    ses, world = case_session(d, s)
+    pb = load_problem(ses, "g")
+    mat = load_world(world).materials["g"]
+    fm = ForwardModel(pb.geometry, pb.beam, phase=mat.model, profile_y_shape=pb.y_shapes())
+    angles = [float(a) for a in pb.angles_deg]
+    meas = np.asarray(pb.measured, dtype=float)
+    var = recording_variance(pb)
+    ok = np.asarray(pb.valid, bool) & np.isfinite(var) & (var > 0)
+    ra = fm.render_profiles(mat.parameters(), angles, spp=spp, seed=seed)
+    rb = fm.render_profiles(mat.parameters(), angles, spp=spp, seed=seed + 1)
+    m = 0.5 * (ra + rb)
+    sc = best_scale(meas, var, m, None)
+    chi2 = float(np.mean(((meas - sc * m) ** 2 / var)[ok]))
+    own = float(np.mean(((sc * 0.5 * (ra - rb)) ** 2 / var)[ok]))
+    row = {"case": case_name(d, s), "truth_spp": TRUTH_SPP, "check_spp": spp, "pixels": int(ok.sum()),
+           "chi2_per_pixel": chi2, "check_render_variance_per_pixel": own, "frozen_render_noise": chi2 - own - 1.0}
+    print(f"{row['case']} recorded at {TRUTH_SPP} spp: chi2 / pixel {chi2:.1f} against the truth at 2 x {spp} spp "
+          f"(its own noise {own:.1f}): the recording's render noise about {row['frozen_render_noise']:.0f}x the "
+          "sensor variance", flush=True)
+    return row
+
+
 def truth_check(d: float, s: float, model: str, seed: int) -> dict:
     """The model's best loss with sigma_t and albedo held at the truth (phase free), against
     the free fit's: equal losses mean the model cannot tell sigma_t and albedo apart on these
@@ -256,6 +292,8 @@ def main() -> int:
                     help="intensity scale of the fits: calibrated (default, as rig estimate) or free")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "bench_paper_sim.json"),
                     help="results JSON (a run of some models or cases only may keep the full table's file)")
+    ap.add_argument("--noise-check", action="store_true",
+                    help="also measure each case's recording scatter against its truth rendered at 2 x 16384 spp")
     ap.add_argument("--truth-spp", type=int, default=1024,
                     help="samples per pixel of the simulated camera's profile rows (the recording's frozen render "
                          "noise; worlds and caches of other values are kept apart)")
@@ -269,6 +307,7 @@ def main() -> int:
     want = set(args.cases.split(",")) if args.cases else None
     rows: list[dict] = []
     checks: list[dict] = []
+    noise: list[dict] = []
     for s in SIGMAS:
         for d in DIAMETERS:
             if want and case_name(d, s) not in want:
@@ -283,6 +322,8 @@ def main() -> int:
                         checks.append(json.loads(c.read_text()))
                 continue
             rows.extend(run_case(d, s, models, args.seed))
+            if args.noise_check:
+                noise.append(recording_noise(d, s))
             if args.truth_check:
                 checks.extend(truth_check(d, s, m, args.seed) for m in models)
     if args.unbiased:
@@ -306,7 +347,10 @@ def main() -> int:
         for c in checks:
             print(f"{c['case']:<12}{c['model']:<7}{c['fixed_over_free']:>40.3f}")
     out = Path(args.out)
-    out.write_text(json.dumps({"fits": rows, "truth_checks": checks}, indent=1, default=float))
+    doc: dict = {"fits": rows, "truth_checks": checks}
+    if noise:
+        doc["recording_noise"] = noise
+    out.write_text(json.dumps(doc, indent=1, default=float))
     print(f"wrote {out} (targets: S/A/L met, s/a/l missed: sigma_t 3 %, albedo 0.01, loss 10 %)")
     return 0
 
