@@ -72,8 +72,10 @@ render: {{mie_degree: 8{render_extra}}}
 
 #: Samples per pixel of the simulated camera's profile rows (`sim_devices.world.RenderSettings`
 #: spp_profile; `--truth-spp`). The recording's scatter is this render's frozen Monte Carlo noise
-#: plus the sensor's; the paper's experiment has sensor noise only.
-TRUTH_SPP = 1024
+#: plus the sensor's; the paper's experiment has sensor noise only. The world files and caches
+#: of the default carry no spp in their names (as before `--truth-spp`).
+DEFAULT_TRUTH_SPP = 1024
+TRUTH_SPP = DEFAULT_TRUTH_SPP
 
 
 def case_name(d: float, s: float) -> str:
@@ -82,14 +84,14 @@ def case_name(d: float, s: float) -> str:
 
 def case_key(d: float, s: float) -> str:
     """The case's world and cache name: `case_name`, and the truth's spp where not the default."""
-    return case_name(d, s) + ("" if TRUTH_SPP == 1024 else f"_spp{TRUTH_SPP}")
+    return case_name(d, s) + ("" if TRUTH_SPP == DEFAULT_TRUTH_SPP else f"_spp{TRUTH_SPP}")
 
 
 def world_file(d: float, s: float) -> Path:
     WORLDS.mkdir(parents=True, exist_ok=True)
     p = WORLDS / f"paper_{case_key(d, s)}.yaml"
     if not p.exists():
-        extra = "" if TRUTH_SPP == 1024 else f", spp_profile: {TRUTH_SPP}"
+        extra = "" if TRUTH_SPP == DEFAULT_TRUTH_SPP else f", spp_profile: {TRUTH_SPP}"
         p.write_text(WORLD_TEMPLATE.format(d=d, s=s, a=ALBEDO, render_extra=extra), encoding="utf-8")
     return p
 
@@ -293,13 +295,16 @@ def main() -> int:
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "bench_paper_sim.json"),
                     help="results JSON (a run of some models or cases only may keep the full table's file)")
     ap.add_argument("--noise-check", action="store_true",
-                    help="also measure each case's recording scatter against its truth rendered at 2 x 16384 spp")
-    ap.add_argument("--truth-spp", type=int, default=1024,
+                    help="also measure each case's recording scatter against its truth rendered at 2 x 16384 spp "
+                         "(after the case's fits; not with --table-only, which computes nothing)")
+    ap.add_argument("--truth-spp", type=int, default=DEFAULT_TRUTH_SPP,
                     help="samples per pixel of the simulated camera's profile rows (the recording's frozen render "
                          "noise; worlds and caches of other values are kept apart)")
     ap.add_argument("--unbiased", action="store_true",
                     help="add the losses without Monte Carlo variance (fit and truth) to cached fits that lack them")
     args = ap.parse_args()
+    if args.truth_spp < 1:
+        ap.error(f"--truth-spp {args.truth_spp}: samples per pixel must be at least 1")
     global SCALE, TRUTH_SPP
     SCALE = args.scale
     TRUTH_SPP = args.truth_spp

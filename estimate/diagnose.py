@@ -874,7 +874,6 @@ def _control(problem: Any, model: Any, current: Evaluation, exts: Sequence[str],
     candidates' optimiser, seeds and training angles. A candidate must beat this, not the fit
     as given: when the fit to diagnose stopped far from its optimum, any extension's refit
     also re-optimises the material parameters and would otherwise take the credit for it.
-
     """
     cur_train = evaluate(model, current.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats,
                          angle_idx=train, noise_variance=yardstick)
