@@ -46,29 +46,17 @@ def main() -> int:
     ap.add_argument("--setting", action="append", default=[], metavar="KEY=VALUE",
                     help="a FitSettings field to change, e.g. polish_one_sided=false (JSON values; repeatable)")
     args = ap.parse_args()
-    overrides: dict[str, object] = {}
-    for item in args.setting:
-        key, sep, value = item.partition("=")
-        if not sep:
-            print(f"--setting {item!r}: give KEY=VALUE, e.g. polish_steps=4", file=sys.stderr)
-            return 2
-        try:
-            overrides[key] = json.loads(value)
-        except json.JSONDecodeError:
-            overrides[key] = value
+    from fit_overrides import parse_overrides, settings_with
+
     from estimate.errors import ModelParameterError
-    from estimate.fit import FitSettings, fit_channel, loss_at
+    from estimate.fit import fit_channel, loss_at
+    from estimate.mitsuba_env import init_mitsuba
     from estimate.problem import load_problem
 
     # Checked before the session is made or loaded: a typo costs a line, not minutes.
-    unknown = set(overrides) - set(FitSettings().to_dict())
-    if unknown:
-        print(f"--setting: no fit setting named {', '.join(sorted(unknown))}", file=sys.stderr)
-        return 2
     try:
-        settings = FitSettings.from_dict({**FitSettings(seed=args.seed, scale=args.scale).to_dict(), **overrides},
-                                         where="--setting")
-    except ModelParameterError as e:
+        settings = settings_with(parse_overrides(args.setting), seed=args.seed, scale=args.scale)
+    except (ValueError, ModelParameterError) as e:
         print(e, file=sys.stderr)
         return 2
 
@@ -116,7 +104,7 @@ def main() -> int:
         load = os.getloadavg()[0]
         out = {"session": "synthetic" if truth else str(session), "channel": args.channel, "model": r.model,
                "scale_mode": args.scale, "optimizer": r.settings["optimizer"], "settings": r.settings,
-               "load_average_1min_at_start": load0,
+               "variant": init_mitsuba().variant(), "load_average_1min_at_start": load0,
                "n_angles": pb.n_angles, "n_px": pb.n_px, "cpu_count": os.cpu_count(), "wall_s": wall,
                "cpu_s": cpu, "load_average_1min_at_end": load,
                "load_s": t_load, "fit_s": r.time_s, "iterations": r.iterations, "stop_reason": r.stop_reason,

@@ -50,6 +50,8 @@ SCALE = "calibrated"  # intensity scale of the fits (--scale); as rig estimate's
 #: the sandwich's data-only meat since 30; its meat with the Jacobians' noise since 34, the
 #: polish's share with its steps' render correlation since 36, the excess share's posterior
 #: mean since 37).
+#: FitSettings fields changed by `--setting` (none by default).
+OVERRIDES: dict = {}
 RECIPE = "jointgrid-smoothgn-davg-polish-cross-chi2-crossunc-onesided128-damped-handover-datameat-jacmeat-bpost"
 
 WORLD_TEMPLATE = """\
@@ -104,11 +106,24 @@ def _rig(*args: str) -> None:
 
 
 def fit_cache(cdir: Path, model: str) -> Path:
-    """Cached fit of one case: keyed by model, scale mode and optimiser (earlier optimisers'
-    fits stay as they were)."""
-    from estimate.fit import FitSettings
+    """Cached fit of one case: keyed by model, scale mode, optimiser, recipe, a non-CPU Mitsuba
+    variant and the `--setting` overrides (earlier recipes' and other settings' fits stay)."""
+    from fit_overrides import overrides_tag
 
-    return cdir / f"fit_{model}_{SCALE}_{FitSettings().optimizer}_{RECIPE}.json"
+    from estimate.fit import FitSettings
+    from estimate.mitsuba_env import default_variant
+
+    # A GPU's fits start from other defaults (FitSettings.for_variant): cached apart.
+    variant = default_variant()
+    vtag = "" if variant.startswith("llvm") else f"_{variant}"
+    return cdir / f"fit_{model}_{SCALE}_{FitSettings().optimizer}_{RECIPE}{vtag}{overrides_tag(OVERRIDES)}.json"
+
+
+def check_cache(cdir: Path, model: str) -> Path:
+    """Cached `truth_check` of one case and model (keyed by scale mode and the overrides)."""
+    from fit_overrides import overrides_tag
+
+    return cdir / f"check_{model}_{SCALE}{overrides_tag(OVERRIDES)}.json"
 
 
 def case_session(d: float, s: float) -> tuple[Path, Path]:
@@ -132,7 +147,10 @@ def case_session(d: float, s: float) -> tuple[Path, Path]:
 
 
 def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
-    from estimate.fit import FitSettings, fit_channel, loss_at
+    from fit_overrides import settings_with
+
+    from estimate.fit import fit_channel, loss_at
+    from estimate.mitsuba_env import init_mitsuba
     from estimate.problem import load_problem
     from sim_devices.world import load_world
 
@@ -148,7 +166,7 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
         if f.exists():
             rows.append(json.loads(f.read_text()))
             continue
-        st = FitSettings(seed=seed, scale=SCALE)
+        st = settings_with(OVERRIDES, seed=seed, scale=SCALE)
         t0 = time.monotonic()
         r = fit_channel(pb, model, settings=st)
         wall = time.monotonic() - t0
@@ -161,7 +179,8 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
                "loss": r.loss, "loss_at_truth": floor, "loss_ratio": r.loss / floor, "reduced_chi2": r.reduced_chi2,
                "scale_mode": SCALE, "optimizer": st.optimizer, "load_average_1min_at_end": os.getloadavg()[0],
                "iterations": r.iterations, "spp_schedule": r.spp_schedule, "time_s": wall,
-               "parameters": r.parameters, "uncertainties": r.uncertainties, "true_model": mat.model}
+               "parameters": r.parameters, "uncertainties": r.uncertainties, "true_model": mat.model,
+               "setting_overrides": OVERRIDES, "variant": init_mitsuba().variant()}
         f.write_text(json.dumps(row, indent=1, default=float))
         rows.append(row)
         print(f"{name} {model}: sigma_t {row['sigma_t']:.4g} albedo {row['albedo']:.4f} loss/floor "
@@ -260,16 +279,18 @@ def truth_check(d: float, s: float, model: str, seed: int) -> dict:
     """The model's best loss with sigma_t and albedo held at the truth (phase free), against
     the free fit's: equal losses mean the model cannot tell sigma_t and albedo apart on these
     profiles (its misfit is the phase shape, not the material); cached as check_<model>.json."""
-    from estimate.fit import FitSettings, fit_channel
+    from fit_overrides import settings_with
+
+    from estimate.fit import fit_channel
     from estimate.problem import load_problem
 
     cdir = CACHE / case_key(d, s)
-    f = cdir / f"check_{model}_{SCALE}.json"
+    f = check_cache(cdir, model)
     if f.exists():
         return json.loads(f.read_text())
     free = json.loads(fit_cache(cdir, model).read_text())
     pb = load_problem(cdir / "session", "g")
-    st = FitSettings(seed=seed, scale=SCALE, uncertainties=False)
+    st = settings_with(OVERRIDES, seed=seed, scale=SCALE, uncertainties=False)
     r = fit_channel(pb, model, settings=st, fixed={"sigma_t": s, "albedo": ALBEDO})
     row = {"case": case_name(d, s), "model": r.model, "loss_fixed_at_truth": r.loss,
            "loss_free": free["loss"], "loss_at_truth": free["loss_at_truth"],
@@ -300,14 +321,27 @@ def main() -> int:
     ap.add_argument("--truth-spp", type=int, default=DEFAULT_TRUTH_SPP,
                     help="samples per pixel of the simulated camera's profile rows (the recording's frozen render "
                          "noise; worlds and caches of other values are kept apart)")
+    ap.add_argument("--setting", action="append", default=[], metavar="KEY=VALUE",
+                    help="a FitSettings field to change for the fits, e.g. final_spp=8192 (JSON values; "
+                         "repeatable; such fits are cached apart)")
     ap.add_argument("--unbiased", action="store_true",
                     help="add the losses without Monte Carlo variance (fit and truth) to cached fits that lack them")
     args = ap.parse_args()
     if args.truth_spp < 1:
         ap.error(f"--truth-spp {args.truth_spp}: samples per pixel must be at least 1")
-    global SCALE, TRUTH_SPP
+    global SCALE, TRUTH_SPP, OVERRIDES
     SCALE = args.scale
     TRUTH_SPP = args.truth_spp
+    from fit_overrides import parse_overrides, settings_with
+
+    from estimate.errors import ModelParameterError
+
+    try:
+        OVERRIDES = parse_overrides(args.setting)
+        settings_with(OVERRIDES)
+    except (ValueError, ModelParameterError) as e:
+        print(e, file=sys.stderr)
+        return 2
     models = [m for m in args.models.split(",") if m]
     want = set(args.cases.split(",")) if args.cases else None
     rows: list[dict] = []
@@ -322,7 +356,7 @@ def main() -> int:
                     f = fit_cache(CACHE / case_key(d, s), m)
                     if f.exists():
                         rows.append(json.loads(f.read_text()))
-                    c = CACHE / case_key(d, s) / f"check_{m}_{SCALE}.json"
+                    c = check_cache(CACHE / case_key(d, s), m)
                     if c.exists():
                         checks.append(json.loads(c.read_text()))
                 continue

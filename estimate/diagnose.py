@@ -1660,8 +1660,8 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
 
 def _run_fit_settings(run_settings: Mapping[str, Any], where: str = "results.yaml") -> FitSettings:
     """The `FitSettings` an estimate run was made with (its results.yaml `settings.fit`), for
-    the final fit; runs without them (older runs, diagnosis refits) get the defaults with
-    the run's scale mode and seed. A hand-edited value of the wrong type raises
+    the final fit; runs without them (older runs, diagnosis refits) get the defaults for the
+    Mitsuba variant in use (`FitSettings.for_variant`) with the run's scale mode and seed. A hand-edited value of the wrong type raises
     `ModelParameterError` naming the key and `where`."""
     recorded = run_settings.get("fit")
     if recorded is not None and not isinstance(recorded, Mapping):
@@ -1675,6 +1675,6 @@ def _run_fit_settings(run_settings: Mapping[str, Any], where: str = "results.yam
         if not (isinstance(seed, int) and not isinstance(seed, bool)):
             raise ModelParameterError(f"{where}: settings.seed = {seed!r} is not a whole number; correct it")
         kw["seed"] = seed
-    return FitSettings(**kw)
+    return FitSettings.for_variant(**kw)
 
 

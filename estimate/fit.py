@@ -188,9 +188,23 @@ def _finite_number(x: Any) -> bool:
     return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
 
 
+#: samples per pixel of the polish and the final evaluation on the CPU (`llvm_ad_*` variants)
+CPU_FINAL_SPP = 1024
+#: ... and on a GPU (`cuda_ad_*`), where renders cost about a tenth: session 39 on an H200, the
+#: paper simulation's four sigma_t-6 cases on 16384-spp recordings, two seeds. At 8192 the
+#: loss reached its floor (unbiased ratio <= 1.10) on 7 of 8 fits (3 of 8 at 1024), the
+#: sigma_t intervals held the errors (RMS z 1.0; 1.7 at 1024, errors to 2.7 sigma), in 32-44 s
+#: a fit (6-12 s at 1024). sigma_t itself was no closer to the truth (see docs/estimation-log.md).
+GPU_FINAL_SPP = 8192
+
+
 @dataclass
 class FitSettings:
-    """Optimiser settings (defaults: the paper's exp3 fit within ~2 min on 2 cores)."""
+    """Optimiser settings (defaults: the paper's exp3 fit within ~2 min on 2 cores).
+
+    `FitSettings.for_variant` gives the defaults for the Mitsuba variant in use (more samples
+    per pixel on a GPU); `rig estimate` starts from those.
+    """
 
     max_iterations: int = 80
     #: with a polish (polish_steps > 0), the iterations hand over to it after this many
@@ -198,7 +212,7 @@ class FitSettings:
     iterations_before_polish: int | None = 10
     spp_start: int = 128
     spp_max: int = 128               # the iterations' largest spp (the polish and final evaluation: final_spp)
-    final_spp: int = 1024
+    final_spp: int = CPU_FINAL_SPP   # the polish's and final evaluation's spp (for_variant: more on a GPU)
     start_spp: int = 32               # coarse joint grid (estimate.start)
     window: int = 8
     lr_scale: float = 1.0
@@ -250,6 +264,20 @@ class FitSettings:
     lm_spp: int = 1024
     uncertainties: bool = True
     scale: str = "free"              # "free": fitted (profiled) per channel; "calibrated": from the beam power
+
+    @classmethod
+    def for_variant(cls, variant: str | None = None, **kw: Any) -> FitSettings:
+        """The defaults for a Mitsuba variant (None: `estimate.mitsuba_env.default_variant()`,
+        the one `init_mitsuba` will pick): `final_spp` = `GPU_FINAL_SPP` on a `cuda_*` variant,
+        `CPU_FINAL_SPP` otherwise; keyword arguments set fields as in the constructor (an
+        explicit `final_spp` wins)."""
+        if "final_spp" not in kw:
+            if variant is None:
+                from estimate.mitsuba_env import default_variant
+
+                variant = default_variant()
+            kw["final_spp"] = GPU_FINAL_SPP if variant.startswith("cuda") else CPU_FINAL_SPP
+        return cls(**kw)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -473,7 +501,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     Raises:
         DataError: calibrated scale without a beam power in the session's calibration.
     """
-    st = settings or FitSettings()
+    st = settings or FitSettings.for_variant()
     t0 = time.monotonic()
     stage_times: dict[str, float] = {}
     t_stage = t0

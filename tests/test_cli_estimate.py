@@ -71,6 +71,7 @@ def test_json_shape_and_runs_never_overwritten(session, capsys):
     (["--channels", "x"], "unknown channel 'x'"),
     (["--polish-steps", "-1"], "--polish-steps -1: use 0..20"),
     (["--spp-max", "0"], "--spp-max 0: use a positive number"),
+    (["--final-spp", "1"], "--final-spp 1: use at least 2 samples per pixel"),
 ])
 def test_bad_input_one_line_exit_2(session, capsys, extra, message):
     assert main(["estimate", str(session), "--max-iterations", "1", *extra]) == 2
@@ -79,10 +80,13 @@ def test_bad_input_one_line_exit_2(session, capsys, extra, message):
 
 
 def test_free_scale_is_fitted(session, capsys):
+    # --final-spp after --spp-max: the polish and final evaluation take it, the uncertainties
+    # at most it.
     assert main(["estimate", str(session), "--channels", "g", "--columns", "32", "--max-iterations", "2",
-                 "--spp-max", "64", "--scale", "free", "--json"]) == 0
+                 "--spp-max", "64", "--final-spp", "96", "--scale", "free", "--json"]) == 0
     (run,) = json.loads(capsys.readouterr().out)["runs"]
     doc = yaml.safe_load((Path(run["path"]) / "results.yaml").read_text())
+    assert doc["settings"]["fit"]["final_spp"] == 96 and doc["settings"]["fit"]["uncertainty_spp"] == 96
     assert doc["settings"]["scale"] == "free" and doc["settings"]["scale_calibration"] == {}
     assert doc["channels"]["g"]["scale"] != pytest.approx(2e5, rel=1e-6)
 

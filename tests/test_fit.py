@@ -10,7 +10,14 @@ from scipy.stats import chi2 as chi2_dist
 from synth_session import make_session
 
 from estimate.errors import DataError, ModelParameterError
-from estimate.fit import FitSettings, fit_channel, loss_at, sandwich_uncertainties
+from estimate.fit import (
+    CPU_FINAL_SPP,
+    GPU_FINAL_SPP,
+    FitSettings,
+    fit_channel,
+    loss_at,
+    sandwich_uncertainties,
+)
 from estimate.loss import (
     DEFAULT_CALIBRATION_ND,
     DEFAULT_COLLECTION_SR,
@@ -496,6 +503,17 @@ def test_with_a_polish_the_iterations_hand_over_after_their_count(problem, monke
                      settings=FitSettings(**base, polish_steps=0))
     assert r0.iterations == 7 and r0.stop_reason == "max_iterations" and not r0.polish
     assert r0.optimizer_spread["sigma_t"] > 0.0
+
+
+def test_final_spp_default_follows_the_variant(monkeypatch):
+    assert FitSettings.for_variant("cuda_ad_mono").final_spp == GPU_FINAL_SPP > CPU_FINAL_SPP
+    assert FitSettings.for_variant("llvm_ad_mono", seed=3).final_spp == CPU_FINAL_SPP == FitSettings().final_spp
+    assert FitSettings.for_variant("cuda_ad_mono", final_spp=64).final_spp == 64
+    # None: the variant init_mitsuba would pick (RIG_MITSUBA_VARIANT first).
+    monkeypatch.setenv("RIG_MITSUBA_VARIANT", "cuda_ad_mono")
+    assert FitSettings.for_variant(scale="calibrated").final_spp == GPU_FINAL_SPP
+    monkeypatch.setenv("RIG_MITSUBA_VARIANT", "llvm_ad_mono")
+    assert FitSettings.for_variant().final_spp == CPU_FINAL_SPP
 
 
 def test_iterations_before_polish_setting_is_checked():

@@ -1,0 +1,39 @@
+#!/usr/bin/env bash
+# Packs what a GPU check needs into .gpu/ (ignored by git; carry it to the device machine):
+#   .gpu/site.tar.xz   Python 3.12 packages the device image lacks: mitsuba 3.9.1 pruned to the
+#                      variants rig uses (cuda_ad_mono, llvm_ad_mono, scalar_rgb) to fit the
+#                      64 MiB a device call may carry, drjit 1.5.0, OpenEXR, pyserial, pyusb,
+#                      miepython (numpy, scipy, numba, matplotlib, yaml, rich are in the image).
+#   .gpu/est_session   bench_estimate.py's synthetic session (made here: --keep-session).
+#   .gpu/stray/session a bench diagnose session (stray_light-2) with only its base exp3 fit.
+# Run from the repository root on a machine with pip and the .venv; then benchmarks/gpu_run.sh
+# runs there. Used in session 39 (docs/estimation-log.md).
+set -euo pipefail
+root=$(pwd)
+mkdir -p .gpu
+tmp=$(mktemp -d)
+trap 'rm -rf "$tmp"' EXIT
+python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+  --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
+  --platform manylinux2014_x86_64 --platform manylinux1_x86_64 -d "$tmp/whl" \
+  mitsuba==3.9.1 drjit==1.5.0 OpenEXR==3.5.3 pyserial pyusb miepython==3.3.0
+mkdir "$tmp/site"
+for w in "$tmp"/whl/*.whl; do (cd "$tmp/site" && unzip -q -o "$w"); done
+# Variants rig never selects, headers and stubs: 194 MB unpacked is over the carry limit.
+for v in cuda_ad_mono_polarized cuda_ad_rgb cuda_ad_spectral cuda_ad_spectral_polarized \
+         llvm_ad_mono_polarized llvm_ad_rgb llvm_ad_spectral llvm_ad_spectral_polarized \
+         scalar_spectral scalar_spectral_polarized; do
+  rm -f "$tmp"/site/mitsuba/$v.cpython-312-x86_64-linux-gnu.so
+done
+rm -rf "$tmp"/site/mitsuba/{include,cmake,pkgconfig,mitsuba_stubs}
+find "$tmp/site/mitsuba" -name '*.pyi' -delete
+(cd "$tmp/site" && tar cf - .) | xz -T0 -6 > .gpu/site.tar.xz
+if [ ! -d .gpu/est_session ]; then
+  .venv/bin/python benchmarks/bench_estimate.py --keep-session .gpu/est_session --out "$tmp/cpu.json"
+fi
+src=benchmarks/results/diagnose_cases/bench/stray_light-2/session
+if [ -d "$src" ] && [ ! -d .gpu/stray/session ]; then
+  mkdir -p .gpu/stray && cp -r "$src" .gpu/stray/
+  rm -rf .gpu/stray/session/diagnoses .gpu/stray/session/estimates/*+diagnosis .gpu/stray/session/session.lock
+fi
+du -sh .gpu "$root"/.gpu/*

@@ -1,0 +1,57 @@
+#!/usr/bin/env bash
+# Runs on the device machine (one NVIDIA GPU, Python 3.12 image, no network), from the
+# repository root with what benchmarks/gpu_pack.sh put in .gpu/ carried. Logs and JSON go to $OUT.
+#
+#   benchmarks/gpu_run.sh estimate   rig doctor; bench_estimate.py on the kept synthetic session
+#                                    (rig picks cuda_ad_mono itself); rig diagnose on the
+#                                    stray_light-2 bench session, channel g, its base fit given
+#   benchmarks/gpu_run.sh paper      bench_paper_sim.py's four sigma_t-6 cases on their
+#                                    16384-spp recordings (.gpu/paper_s6.tar.xz), exp3, at the
+#                                    default settings, then with the final / polish renders at
+#                                    PAPER_FINAL_SPP (8192); fit seed PAPER_SEED (0)
+# Each step runs under `timeout` so the call ends inside the device's 10-minute limit.
+set -uo pipefail
+job=${1:-estimate}
+OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1
+mkdir -p /tmp/site && tar xJf .gpu/site.tar.xz -C /tmp/site || exit 3
+export PYTHONPATH=/tmp/site:$(pwd)
+nvidia-smi -L
+python3 -c "import mitsuba, drjit, numpy, scipy; print('mitsuba', mitsuba.__version__, 'drjit', drjit.__version__, 'numpy', numpy.__version__, 'scipy', scipy.__version__)"
+python3 - <<'PY' || { echo "cuda_ad_mono failed"; ldconfig -p | grep -i -E "optix|libcuda"; exit 4; }
+from estimate.mitsuba_env import init_mitsuba
+print("variant:", init_mitsuba().variant())
+PY
+t0=$(date +%s)
+case $job in
+estimate)
+  python3 -m rig.cli doctor 2>&1 | tee "$OUT/doctor.log"
+  echo "== bench_estimate (GPU) =="
+  timeout "${EST_LIMIT_S:-220}" python3 benchmarks/bench_estimate.py --keep-session .gpu/est_session \
+    --out "$OUT/bench_estimate_gpu.json" 2>&1 | tee "$OUT/bench_estimate.log"
+  echo "== rig diagnose stray_light-2 (GPU) =="
+  fit=$(ls .gpu/stray/session/estimates | head -1)
+  t=$(date +%s)
+  timeout "${DIAG_LIMIT_S:-300}" python3 -m rig.cli diagnose .gpu/stray/session --fit "$fit" --channels g \
+    --no-plots --json --no-progress > "$OUT/diagnose_gpu.json" 2> "$OUT/diagnose.log"
+  echo "diagnose rc $? wall $(( $(date +%s) - t )) s"
+  tail -5 "$OUT/diagnose.log"
+  ;;
+paper)
+  mkdir -p benchmarks/results/paper_sim && tar xJf .gpu/paper_s6.tar.xz -C benchmarks/results/paper_sim || exit 5
+  cases=d0.5_s6,d0.3_s6,d0.01_s6,d0.2_s6
+  t=$(date +%s)
+  timeout "${PAPER_DEFAULT_LIMIT_S:-200}" python3 benchmarks/bench_paper_sim.py --models exp3 --truth-spp 16384 \
+    --cases $cases --seed "${PAPER_SEED:-0}" --unbiased --out "$OUT/paper_gpu_default.json" 2>&1 | tee "$OUT/paper_default.log"
+  echo "default settings: wall $(( $(date +%s) - t )) s"
+  t=$(date +%s)
+  timeout "${PAPER_SPP_LIMIT_S:-300}" python3 benchmarks/bench_paper_sim.py --models exp3 --truth-spp 16384 \
+    --cases $cases --seed "${PAPER_SEED:-0}" --unbiased --setting final_spp=${PAPER_FINAL_SPP:-8192} \
+    --out "$OUT/paper_gpu_spp.json" 2>&1 | tee "$OUT/paper_spp.log"
+  echo "final_spp ${PAPER_FINAL_SPP:-8192}: wall $(( $(date +%s) - t )) s"
+  # The fits cached so far, also those of a run stopped by its timeout.
+  (cd benchmarks/results/paper_sim && tar cf "$OUT/paper_fits.tar" */fit_*.json)
+  ;;
+*) echo "unknown job $job (estimate or paper)"; exit 2 ;;
+esac
+echo "total $(( $(date +%s) - t0 )) s"
