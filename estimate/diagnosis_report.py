@@ -141,6 +141,13 @@ def summary_text(doc: Mapping[str, Any]) -> str:
             tag = "second pass: " if e.get("pass") == 2 else ""
             print(f"  {tag}refit with {e['effect']}: BIC improves by {e['delta_bic']:.1f}{held}{mag}"
                   f" -> {'confirmed' if e['confirmed'] else 'not confirmed'}", file=out)
+        part = d.get("partial") or {}
+        if part:
+            print(f"  not named: {', '.join(part['effects'])} removed {100 * part['share_explained']:.0f}% of the "
+                  f"excess (reduced chi2 at the floor {part['reduced_chi2_adjusted_before']:.2f} -> "
+                  f"{part['reduced_chi2_adjusted_with']:.2f}; needs {100 * part['min_share']:.0f}%), with "
+                  + ", ".join(f"{k} {v:.4g}" for k, v in part["material_with"].items() if k in ("sigma_t", "albedo")),
+                  file=out)
         for e in d.get("pruned") or []:
             final = e.get("stage") == "final fit"
             if e.get("leading"):

@@ -373,6 +373,58 @@ def test_final_fit_by_the_estimator_replaces_the_refit_of_a_confirmed_effect():
     assert f"time {d.time_s:.0f} s: evaluating the fit " in text and "the estimator's final fit" in text
 
 
+def test_partial_explanation_needs_a_remaining_mismatch_and_a_small_share():
+    from estimate.diagnose import QUICK_MIN_SHARE, explained_share, partial_explanation
+
+    NS = SimpleNamespace
+
+    def ev(chi2: float, significant: bool) -> SimpleNamespace:
+        return NS(residuals=NS(reduced_chi2_adjusted=chi2, significant=significant),
+                  parameters={"sigma_t": 3.6, "albedo": 0.9, "lens_blur.tail_fraction": 0.1})
+
+    before = ev(11.80, True)
+    # The bench boundary session's --quick glare tail: 18 % of the excess, a mismatch left.
+    p = partial_explanation(before, ev(9.90, True), ["lens_blur"], ["sigma_t", "albedo"], QUICK_MIN_SHARE)
+    assert p["effects"] == ["lens_blur"] and p["share_explained"] == pytest.approx(1.9 / 10.8)
+    assert p["material_with"] == {"sigma_t": 3.6, "albedo": 0.9} and p["reduced_chi2_adjusted_with"] == 9.90
+    # Most of the excess removed, or no significant mismatch left (a weak effect near
+    # detection moves chi^2 little): named.
+    assert partial_explanation(before, ev(1.20, True), ["lens_blur"], [], QUICK_MIN_SHARE) == {}
+    assert partial_explanation(ev(1.11, True), ev(1.09, False), ["sensor_nonlinearity"], [], QUICK_MIN_SHARE) == {}
+    assert partial_explanation(before, ev(9.90, True), ["lens_blur"], [], 0.0) == {}   # the full run: off
+    assert explained_share(ev(0.98, True), ev(0.84, False)) == 1.0   # no excess to explain
+
+
+def test_quick_names_no_effect_that_removes_too_little_of_the_excess(monkeypatch):
+    """Where the Levenberg-Marquardt refit is the final model (`--quick`), confirmed effects
+    are named only if that model removes `min_share` of the excess reduced chi^2 at the floor
+    or leaves no significant mismatch; else they are reported as partial and the verdict
+    names no cause."""
+    import estimate.diagnose as dmod
+    from estimate.diagnose import QUICK_MIN_SHARE, explained_share, summary_text
+
+    rec = record({"stray_light.offset": 0.01})
+    pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
+    kw = dict(candidates=["stray_light"], spp=128, repeats=3, iterations=8)
+    named = diagnose_channel(pb, BaseFit(dict(TRUE), 1e4, "hg"), make_model, min_share=QUICK_MIN_SHARE, **kw)
+    assert named.confirmed == ["stray_light"] and not named.partial
+    share = explained_share(named.before, named.after)
+    assert QUICK_MIN_SHARE <= share <= 1.05
+    # The same diagnosis with a bar above what any model can reach, and the refit taken to
+    # leave a significant mismatch: confirmed, not named.
+    monkeypatch.setattr(dmod, "_still_significant", lambda ev: True)
+    d = diagnose_channel(pb, BaseFit(dict(TRUE), 1e4, "hg"), make_model, min_share=1.5,
+                         reuse=named.first_round, **kw)
+    assert [e["effect"] for e in d.confirmations if e["confirmed"]] == ["stray_light"]
+    assert d.confirmed == [] and d.after is None and not d.importance and not d.fixed_seed_after
+    assert d.partial["effects"] == ["stray_light"] and d.partial["share_explained"] == pytest.approx(share)
+    assert "no cause is named; run the diagnosis without --quick" in d.verdict and "left-out physics" not in d.verdict
+    doc = d.as_dict()
+    assert doc["confirmed_effects"] == {} and doc["partial"]["min_share"] == 1.5
+    text = summary_text({"channels": {"g": doc}, "run_id": "x", "refit_run": None})
+    assert "not named: stray_light removed" in text and "left-out physics:" not in text
+
+
 def test_with_the_final_fit_to_follow_the_last_round_leaves_the_joint_refit_to_it():
     """`rig diagnose` (not --quick): once no further round can screen at the joint refit,
     the model stage is the last candidate's refit evaluated on all angles; the estimator's

@@ -36,8 +36,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="skip the estimator's final fit of the confirmed effects (on the simulated bench it saves "
                         "about 2 min of a 9-11 min diagnosis per channel on 2 cores); the Levenberg-Marquardt refit "
                         "is then the final model: a fast first look. It cannot walk a base fit that is far off (a left-out boundary: sigma_t 57 %% high) "
-                        "to the data, and may then name a stand-in effect, first or beside the real one; the full "
-                        "run is the reference")
+                        "to the data, and an effect may then stand in for the real one: confirmed effects are named "
+                        "only if that model removes at least half of the excess reduced chi2 at the noise floor, "
+                        "else no cause is named; the full run is the reference")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     p.add_argument("--json", action="store_true", help="print the diagnosis as JSON")
     p.add_argument("--no-progress", action="store_true",
