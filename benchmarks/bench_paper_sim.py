@@ -146,19 +146,25 @@ def case_session(d: float, s: float) -> tuple[Path, Path]:
     return ses, world
 
 
+def case_inputs(d: float, s: float) -> tuple:
+    """The case's fitting problem (channel g of its recorded session, captured on first use)
+    and the world's material (its true model and parameters)."""
+    from estimate.problem import load_problem
+    from sim_devices.world import load_world
+
+    ses, world = case_session(d, s)
+    return load_problem(ses, "g"), load_world(world).materials["g"]
+
+
 def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
     from fit_overrides import settings_with
 
     from estimate.fit import fit_channel, loss_at
     from estimate.mitsuba_env import init_mitsuba
-    from estimate.problem import load_problem
-    from sim_devices.world import load_world
 
     name = case_name(d, s)
     cdir = CACHE / case_key(d, s)
-    ses, world = case_session(d, s)
-    pb = load_problem(ses, "g")
-    mat = load_world(world).materials["g"]
+    pb, mat = case_inputs(d, s)
     truth = mat.parameters()
     rows = []
     for model in models:
@@ -218,15 +224,12 @@ def unbiased_losses(row: dict, seed: int = 4242) -> dict:
     noisy parameter set rather than the better one. Cached into the fit's JSON."""
     from estimate.fit import loss_at
     from estimate.loss import calibrated_scale
-    from estimate.problem import load_problem
-    from sim_devices.world import load_world
 
     if row.get("unbiased_spp") == UNBIASED_SPP:
         return row
     d, s = row["diameter_um"], row["sigma_t_true"]
     cdir = CACHE / case_key(d, s)
-    pb = load_problem(cdir / "session", "g")
-    mat = load_world(world_file(d, s)).materials["g"]
+    pb, mat = case_inputs(d, s)
     fs = calibrated_scale(pb.session_path, "g", pb.beam.power()).scale if row.get("scale_mode") == "calibrated" else None
     fit = loss_at(pb, row["model"], row["parameters"], spp=UNBIASED_SPP, seed=seed, fixed_scale=fs)
     tru = loss_at(pb, mat.model, mat.parameters(), spp=UNBIASED_SPP, seed=seed,
@@ -249,13 +252,9 @@ def recording_noise(d: float, s: float, spp: int = 16384, seed: int = 11) -> dic
     import numpy as np
 
     from estimate.forward import ForwardModel
-    from estimate.problem import load_problem
     from estimate.refit import best_scale, recording_variance
-    from sim_devices.world import load_world
 
-    ses, world = case_session(d, s)
-    pb = load_problem(ses, "g")
-    mat = load_world(world).materials["g"]
+    pb, mat = case_inputs(d, s)
     fm = ForwardModel(pb.geometry, pb.beam, phase=mat.model, profile_y_shape=pb.y_shapes())
     angles = [float(a) for a in pb.angles_deg]
     meas = np.asarray(pb.measured, dtype=float)
@@ -282,14 +281,13 @@ def truth_check(d: float, s: float, model: str, seed: int) -> dict:
     from fit_overrides import settings_with
 
     from estimate.fit import fit_channel
-    from estimate.problem import load_problem
 
     cdir = CACHE / case_key(d, s)
     f = check_cache(cdir, model)
     if f.exists():
         return json.loads(f.read_text())
     free = json.loads(fit_cache(cdir, model).read_text())
-    pb = load_problem(cdir / "session", "g")
+    pb, _ = case_inputs(d, s)
     st = settings_with(OVERRIDES, seed=seed, scale=SCALE, uncertainties=False)
     r = fit_channel(pb, model, settings=st, fixed={"sigma_t": s, "albedo": ALBEDO})
     row = {"case": case_name(d, s), "model": r.model, "loss_fixed_at_truth": r.loss,

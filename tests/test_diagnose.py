@@ -405,7 +405,7 @@ def test_quick_names_no_effect_that_removes_too_little_of_the_excess(monkeypatch
 
     rec = record({"stray_light.offset": 0.01})
     pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
-    kw = dict(candidates=["stray_light"], spp=128, repeats=3, iterations=8)
+    kw = {"candidates": ["stray_light"], "spp": 128, "repeats": 3, "iterations": 8}
     named = diagnose_channel(pb, BaseFit(dict(TRUE), 1e4, "hg"), make_model, min_share=QUICK_MIN_SHARE, **kw)
     assert named.confirmed == ["stray_light"] and not named.partial
     share = explained_share(named.before, named.after)
