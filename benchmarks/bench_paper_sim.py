@@ -304,7 +304,8 @@ def truth_check(d: float, s: float, model: str, seed: int) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--cases", default=None, help="comma list like d0.5_s2 (default: all 8)")
-    ap.add_argument("--models", default="exp3,tthg")
+    ap.add_argument("--models", default="exp3,tthg", help="comma list of models to fit (exp3,tthg); '' fits none "
+                    "(the cases are still captured: e.g. with --noise-check alone)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--table-only", action="store_true", help="print / write the cached fits only, compute nothing")
     ap.add_argument("--truth-check", action="store_true",
@@ -315,7 +316,8 @@ def main() -> int:
                     help="results JSON (a run of some models or cases only may keep the full table's file)")
     ap.add_argument("--noise-check", action="store_true",
                     help="also measure each case's recording scatter against its truth rendered at 2 x 16384 spp "
-                         "(after the case's fits; not with --table-only, which computes nothing)")
+                         "(after the case's fits, none with --models ''; not with --table-only, which computes "
+                         "nothing)")
     ap.add_argument("--truth-spp", type=int, default=DEFAULT_TRUTH_SPP,
                     help="samples per pixel of the simulated camera's profile rows (the recording's frozen render "
                          "noise; worlds and caches of other values are kept apart)")
