@@ -75,6 +75,12 @@ def default_variant() -> str:
     return "cuda_ad_mono" if _gpu_usable() else "llvm_ad_mono"
 
 
+def active_variant() -> str | None:
+    """The variant `init_mitsuba` set in this process (None before the first call)."""
+    v = _state.get("variant")
+    return str(v) if v is not None else None
+
+
 def _prepare_llvm() -> None:
     path = os.environ.get("DRJIT_LIBLLVM_PATH")
     if not path:

@@ -68,6 +68,10 @@ def _software() -> dict[str, str]:
             out[pkg] = metadata.version(pkg)
         except metadata.PackageNotFoundError:
             pass
+    from estimate.mitsuba_env import active_variant
+
+    # The renders' backend: a GPU's (cuda_*) draws other samples than the CPU's (llvm_*).
+    out["mitsuba_variant"] = active_variant() or "unknown"
     return out
 
 

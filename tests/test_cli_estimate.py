@@ -48,6 +48,10 @@ def test_json_shape_and_runs_never_overwritten(session, capsys):
     fit = doc["settings"]["fit"]
     assert 2 <= len(doc["channels"]["g"]["polish"]) <= 4 and fit["polish_steps"] == 2
     assert fit["final_spp"] == 256 and fit["uncertainty_spp"] == 256
+    # The renders' backend is recorded (this process's variant: the CPU's without a GPU).
+    from estimate.mitsuba_env import default_variant
+
+    assert doc["software"]["mitsuba_variant"] == default_variant()
     stages = doc["channels"]["g"]["stage_times_s"]
     assert list(stages) == ["start", "iterations", "polish", "evaluation", "uncertainties"]
     assert 0 < sum(stages.values()) <= doc["channels"]["g"]["time_s"] + 0.05   # rounded to 0.01 s each

@@ -115,6 +115,11 @@ def run(args: argparse.Namespace) -> int:
         # default) never uses more samples than the final evaluation.
         settings.uncertainty_spp = min(settings.uncertainty_spp, settings.final_spp)
     out: dict[str, Any] = {"session": str(session), "runs": []}
+    if not args.json:
+        from estimate.mitsuba_env import default_variant
+
+        print(f"rendering with Mitsuba's {default_variant()}; the polish and final evaluation at "
+              f"{settings.final_spp} spp", file=sys.stderr, flush=True)
     for m in models:
         phase = model_phase(m, args.degree)
         fits = []
