@@ -6,6 +6,11 @@
 #                      miepython (numpy, scipy, numba, matplotlib, yaml, rich are in the image).
 #   .gpu/est_session   bench_estimate.py's synthetic session (made here: --keep-session).
 #   .gpu/stray/session a bench diagnose session (stray_light-2) with only its base exp3 fit.
+#   .gpu/paper_s6.tar.xz the paper simulation's four sigma_t-6 cases on 16384-spp recordings
+#                      (bench_paper_sim.py --truth-spp 16384 made them here), their raw
+#                      frames and fits left out (12 MB).
+# What one device call carries must stay under 64 MiB: name only the files the job needs
+# (estimate: site.tar.xz, est_session, stray; paper: site.tar.xz, paper_s6.tar.xz).
 # Run from the repository root on a machine with pip and the .venv; then benchmarks/gpu_run.sh
 # runs there. Used in session 39 (docs/estimation-log.md).
 set -euo pipefail
@@ -35,5 +40,10 @@ src=benchmarks/results/diagnose_cases/bench/stray_light-2/session
 if [ -d "$src" ] && [ ! -d .gpu/stray/session ]; then
   mkdir -p .gpu/stray && cp -r "$src" .gpu/stray/
   rm -rf .gpu/stray/session/diagnoses .gpu/stray/session/estimates/*+diagnosis .gpu/stray/session/session.lock
+fi
+if [ -d benchmarks/results/paper_sim/d0.5_s6_spp16384 ] && [ ! -f .gpu/paper_s6.tar.xz ]; then
+  (cd benchmarks/results/paper_sim && tar cf - --exclude='fit_*' --exclude='check_*' --exclude=session.lock \
+     --exclude='session/raw' --exclude='cal/raw' --exclude='cal/beam_g.exr' d*_s6_spp16384) \
+    | xz -T0 -9 > .gpu/paper_s6.tar.xz
 fi
 du -sh .gpu "$root"/.gpu/*
