@@ -11,7 +11,7 @@
 #                                    PAPER_FINAL_SPP (8192); fit seed PAPER_SEED (0)
 # Each step runs under `timeout` so the call ends inside the device's 10-minute limit.
 # Session 39's calls (device tool `run`): `bash benchmarks/gpu_run.sh estimate` carrying
-# [".gpu"] (136 s on an H200), and `PAPER_SEED=1 bash benchmarks/gpu_run.sh paper` carrying
+# [".gpu/site.tar.xz", ".gpu/est_session", ".gpu/stray"] (136 s on an H200), and `PAPER_SEED=1 bash benchmarks/gpu_run.sh paper` carrying
 # [".gpu/site.tar.xz", ".gpu/paper_s6.tar.xz"] (235-240 s each); a machine's start adds 1-2 min.
 set -uo pipefail
 job=${1:-estimate}
