@@ -30,6 +30,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -146,7 +147,7 @@ def case_session(d: float, s: float) -> tuple[Path, Path]:
     return ses, world
 
 
-def case_inputs(d: float, s: float) -> tuple:
+def case_inputs(d: float, s: float) -> tuple[Any, Any]:
     """The case's fitting problem (channel g of its recorded session, captured on first use)
     and the world's material (its true model and parameters)."""
     from estimate.problem import load_problem

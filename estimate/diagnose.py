@@ -1726,8 +1726,8 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
 def _run_fit_settings(run_settings: Mapping[str, Any], where: str = "results.yaml") -> FitSettings:
     """The `FitSettings` an estimate run was made with (its results.yaml `settings.fit`), for
     the final fit; runs without them (older runs, diagnosis refits) get the defaults for the
-    Mitsuba variant in use (`FitSettings.for_variant`) with the run's scale mode and seed. A hand-edited value of the wrong type raises
-    `ModelParameterError` naming the key and `where`."""
+    Mitsuba variant in use (`FitSettings.for_variant`) with the run's scale mode and seed. A
+    hand-edited value of the wrong type raises `ModelParameterError` naming the key and `where`."""
     recorded = run_settings.get("fit")
     if recorded is not None and not isinstance(recorded, Mapping):
         raise ModelParameterError(f"{where}: settings.fit is {type(recorded).__name__}, not a mapping of fit "

@@ -9,6 +9,7 @@ before Mitsuba is imported and refuses 15/16 with a Python exception.
 
 from __future__ import annotations
 
+import functools
 import glob
 import os
 import re
@@ -56,8 +57,11 @@ def find_libllvm() -> str | None:
     return None
 
 
+@functools.cache
 def _gpu_usable() -> bool:
-    """True when an NVIDIA driver answers (the CUDA variants need one)."""
+    """True when an NVIDIA driver answers (the CUDA variants need one). Asked once a process:
+    `nvidia-smi` can take seconds, and `FitSettings.for_variant` and the benchmarks' caches
+    ask for the default variant many times."""
     if shutil.which("nvidia-smi") is None:
         return False
     try:

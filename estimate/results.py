@@ -70,7 +70,8 @@ def _software() -> dict[str, str]:
             pass
     from estimate.mitsuba_env import active_variant
 
-    # The renders' backend: a GPU's (cuda_*) draws other samples than the CPU's (llvm_*).
+    # The renders' backend: a GPU's (cuda_*) and the CPU's (llvm_*) start from the same seeds
+    # but part in floating-point details, so their fits differ within render noise.
     out["mitsuba_variant"] = active_variant() or "unknown"
     return out
 
