@@ -1,0 +1,34 @@
+"""The proof suite's plan of detection-limit fits (`benchmarks/bench_diagnose.py`)."""
+
+import math
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+
+import bench_diagnose as bd  # noqa: E402
+
+
+def test_optimum_gain_plan_leaves_out_each_effect_of_a_pair_and_both():
+    plan = bd.optimum_gain_plan(bd.cases(quick=False))
+    by_case: dict[str, list[list[str]]] = {}
+    for case, left in plan:
+        by_case.setdefault(case["id"], []).append(left)
+    assert by_case["beam_halo-1"] == [["beam_halo"]]
+    assert by_case["clean-1"] == [[]]
+    pair = "sensor_nonlinearity+filter_bandwidth"
+    assert sorted(map(tuple, by_case[pair])) == [("filter_bandwidth",), ("filter_bandwidth", "sensor_nonlinearity"),
+                                                 ("sensor_nonlinearity",)]
+    # every single-effect and clean case once, every pair three times
+    n_pairs = len(bd.PAIRS)
+    assert len(plan) == len(bd.cases(quick=False)) + 2 * n_pairs
+
+
+def test_bic_threshold_counts_free_parameters_only():
+    n = 400
+    # the sensor's full-well radiance is held, so one free parameter: ln n + BIC_STRONG
+    one = bd.bic_threshold(["sensor_nonlinearity"], n)
+    two = bd.bic_threshold(["beam_halo"], n)
+    assert math.isclose(one, math.log(n) + 10.0)
+    assert math.isclose(two, 2 * math.log(n) + 10.0)
+    assert math.isnan(bd.bic_threshold([], n))
