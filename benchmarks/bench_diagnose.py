@@ -105,9 +105,15 @@ BASE_SPP = 1024
 SYNTHETIC_VERSION = "v11"
 
 
-def synthetic_recording(case: dict[str, Any], excess: float = 0.0) -> tuple[Any, Callable[..., Any], dict[str, float]]:
+#: Width of the synthetic profile window, in pixels centred on the spot (0.04 mm each: the
+#: suite's 40 px span 1.6 mm; `rig estimate`'s default window is 256 px, 10.2 mm).
+SYNTHETIC_COLUMNS = 40
+
+
+def synthetic_recording(case: dict[str, Any], excess: float = 0.0,
+                        columns: int = SYNTHETIC_COLUMNS) -> tuple[Any, Callable[..., Any], dict[str, float]]:
     """The case's recording (deterministic: fixed seeds), the model factory, and the true
-    parameters (material and the concealed effects')."""
+    parameters (material and the concealed effects'), on a profile window of `columns` pixels."""
     from dataclasses import dataclass
 
     from estimate.beam import BeamProfile
@@ -115,7 +121,8 @@ def synthetic_recording(case: dict[str, Any], excess: float = 0.0) -> tuple[Any,
     from estimate.geometry import RigGeometry
     from estimate.refit import smoothed_variance
 
-    geometry = RigGeometry(thickness_mm=1.0, magnification=0.5, profile_columns=(236, 276))
+    c0 = 256 - columns // 2
+    geometry = RigGeometry(thickness_mm=1.0, magnification=0.5, profile_columns=(c0, c0 + columns))
     beam = BeamProfile.disk(0.3)
     angles = np.array([15.0, 30.0, 45.0, 60.0, 75.0, 105.0, 120.0, 135.0, 150.0, 165.0])
     models: dict[tuple[str, ...], Any] = {}
@@ -156,7 +163,8 @@ def synthetic_recording(case: dict[str, Any], excess: float = 0.0) -> tuple[Any,
     return rec, make_model, params
 
 
-def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp: int = BASE_SPP) -> dict[str, Any]:
+def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp: int = BASE_SPP,
+                  columns: int = SYNTHETIC_COLUMNS) -> dict[str, Any]:
     from estimate.diagnose import (
         BaseFit,
         _free_names,
@@ -165,7 +173,7 @@ def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp:
         refit,
     )
 
-    recording = synthetic_recording(case, excess)
+    recording = synthetic_recording(case, excess, columns)
     rec, make_model, _ = recording
     m0 = make_model([])
     t0 = time.perf_counter()
@@ -213,7 +221,7 @@ def detectability(case: dict[str, Any], excess: float, base_params: dict[str, fl
 
 
 def optimum_gain(case: dict[str, Any], left_out: list[str], *, spp: int = 4096, eval_spp: int = 2048,
-                 repeats: int = 4, excess: float = 0.0) -> dict[str, Any]:
+                 repeats: int = 4, excess: float = 0.0, columns: int = SYNTHETIC_COLUMNS) -> dict[str, Any]:
     """The detection limit without the fit's own Monte Carlo misfit: the model without
     `left_out` (the case's other effects kept) fitted by Levenberg-Marquardt at `spp` from the
     true parameters, then chi^2 of that optimum minus chi^2 of the truth with the true model,
@@ -224,7 +232,7 @@ def optimum_gain(case: dict[str, Any], left_out: list[str], *, spp: int = 4096, 
     whose own Monte Carlo misfit (about 50-60 chi^2 on a clean session) it includes."""
     from estimate.diagnose import _free_names, evaluate, refit
 
-    recording = synthetic_recording(case, excess)
+    recording = synthetic_recording(case, excess, columns)
     rec, make_model, truth = recording
     kept = sorted(set(case["effects"]) - set(left_out))
     m = make_model(kept)
@@ -243,7 +251,8 @@ def optimum_gain(case: dict[str, Any], left_out: list[str], *, spp: int = 4096, 
     return {"case": case["id"], "left_out": sorted(left_out), "kept": kept, "fit_spp": spp,
             "material_at_optimum": {k: fit.parameters[k] for k in TRUE}, "chi2_optimum": at_opt.residuals.chi2_adjusted,
             "chi2_truth": at_truth.residuals.chi2_adjusted, "gain": gain, "threshold": bar,
-            "reachable": bool(left_out) and bool(gain > bar), "pixels": n, "time_s": time.perf_counter() - t0}
+            "reachable": bool(left_out) and bool(gain > bar), "pixels": n, "columns": columns,
+            "time_s": time.perf_counter() - t0}
 
 
 def optimum_gain_plan(plan: list[dict[str, Any]]) -> list[tuple[dict[str, Any], list[str]]]:
@@ -551,9 +560,11 @@ def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tup
     return "\n".join(lines), summary
 
 
-def run_optimum_gain(plan: list[dict[str, Any]], excess: float, fit_spp: int, fresh: bool) -> int:
+def run_optimum_gain(plan: list[dict[str, Any]], excess: float, fit_spp: int, fresh: bool,
+                     columns: int = SYNTHETIC_COLUMNS) -> int:
     """`--optimum-gain`: every (case, left-out effects) of `optimum_gain_plan`, cached, as a table."""
-    cache = RESULTS / "diagnose_cases" / f"optimum-gain-{SYNTHETIC_VERSION}-excess{excess:g}-fit{fit_spp}"
+    cols_tag = "" if columns == SYNTHETIC_COLUMNS else f"-cols{columns}"
+    cache = RESULTS / "diagnose_cases" / f"optimum-gain-{SYNTHETIC_VERSION}-excess{excess:g}-fit{fit_spp}{cols_tag}"
     cache.mkdir(parents=True, exist_ok=True)
     rows = []
     for case, left in optimum_gain_plan(plan):
@@ -561,13 +572,13 @@ def run_optimum_gain(plan: list[dict[str, Any]], excess: float, fit_spp: int, fr
         if f.is_file() and not fresh:
             res = json.loads(f.read_text())
         else:
-            res = optimum_gain(case, left, spp=fit_spp, excess=excess)
+            res = optimum_gain(case, left, spp=fit_spp, excess=excess, columns=columns)
             f.write_text(json.dumps(res, default=float))
         rows.append(res)
         print(f"{case['id']} without {'+'.join(left) or 'nothing'}: gain {res['gain']:.1f} "
               f"(bar {res['threshold']:.1f}), {res['time_s']:.0f} s", flush=True)
     lines = [(f"Converged detection limit (`bench_diagnose.py --optimum-gain`): the model without the "
-              f"left-out effects fitted at {fit_spp} spp from the truth; chi^2 gain of the truth with the "
+              f"left-out effects fitted at {fit_spp} spp from the truth, on a {columns}-px profile window; chi^2 gain of the truth with the "
               f"true model over that optimum, at the data's noise (excess {excess:g}); the confirmation's "
               f"bar is k ln n + BIC_STRONG."), "",
              "| case | left out | gain | bar | reachable | material at the optimum (sigma_t, albedo, g) |",
@@ -581,7 +592,7 @@ def run_optimum_gain(plan: list[dict[str, Any]], excess: float, fit_spp: int, fr
     text = "\n".join(lines)
     print()
     print(text)
-    label = f"synthetic_optimum-gain-fit{fit_spp}"
+    label = f"synthetic_optimum-gain-fit{fit_spp}{cols_tag}"
     (RESULTS / f"bench_diagnose_{label}.md").write_text(text + "\n")
     jpath = RESULTS / "bench_diagnose.json"
     doc = json.loads(jpath.read_text()) if jpath.is_file() else {}
@@ -610,6 +621,9 @@ def main() -> int:
     ap.add_argument("--base-spp", type=int, default=BASE_SPP,
                     help=f"synthetic: spp of the base fit (default {BASE_SPP}, as `rig estimate`'s final "
                          "evaluation on the CPU; a GPU's is 8192); cached and reported apart when not the default")
+    ap.add_argument("--columns", type=int, default=SYNTHETIC_COLUMNS,
+                    help=f"synthetic: profile window width in pixels (default {SYNTHETIC_COLUMNS}; `rig estimate`'s "
+                         "default is 256); cached and reported apart when not the default")
     ap.add_argument("--angles", type=int, default=8, help="bench: light angles captured")
     ap.add_argument("--excess", type=float, default=30.0,
                     help="synthetic: frozen white pixel noise, in units of the variance channel (default 30)")
@@ -633,11 +647,14 @@ def main() -> int:
         args.spp = 512 if args.source == "synthetic" else 256
     if args.base_spp < 2:
         ap.error(f"--base-spp {args.base_spp}: must be at least 2")
+    if not 2 <= args.columns <= 512:
+        ap.error(f"--columns {args.columns}: must lie within 2..512 (the sensor row)")
     base_tag = "" if args.source == "bench" or args.base_spp == BASE_SPP else f"-base{args.base_spp}"
+    if args.source == "synthetic" and args.columns != SYNTHETIC_COLUMNS:
+        base_tag += f"-cols{args.columns}"
     # The bench cache keeps the captured sessions (expensive): one spp per cache, --fresh to redo.
     cache = RESULTS / "diagnose_cases" / (args.source if args.source == "bench"
                                           else f"synthetic-{SYNTHETIC_VERSION}-excess{args.excess:g}-spp{args.spp}{base_tag}")
-    cache.mkdir(parents=True, exist_ok=True)
     plan = limit_cases() if args.limits else cases(args.quick)
     if args.only:
         keep = set(args.only.split(","))
@@ -645,7 +662,9 @@ def main() -> int:
     if args.optimum_gain:
         if args.source != "synthetic":
             ap.error("--optimum-gain is for --source synthetic (it needs the recording's true parameters)")
-        return run_optimum_gain(plan, args.excess, args.base_spp if base_tag else 4096, args.fresh)
+        return run_optimum_gain(plan, args.excess, args.base_spp if args.base_spp != BASE_SPP else 4096, args.fresh,
+                                args.columns)
+    cache.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     rows = []
     quick_rig = args.source == "bench" and args.no_final_fit
@@ -655,7 +674,8 @@ def main() -> int:
         if f.is_file() and not args.fresh:
             res = json.loads(f.read_text())
             if args.source == "synthetic" and args.detectability and "detectability" not in res:
-                res["detectability"] = detectability(case, args.excess, res["material_before"])
+                res["detectability"] = detectability(case, args.excess, res["material_before"],
+                                                     recording=synthetic_recording(case, args.excess, args.columns))
                 f.write_text(json.dumps(res, default=float))
             if args.source == "bench" and "truth_reduced_chi2_adjusted" not in res:
                 res["truth_reduced_chi2_adjusted"] = truth_at_floor(cache / case["id"], args.channel, args.spp,
@@ -668,7 +688,7 @@ def main() -> int:
             tc = time.perf_counter()
             try:
                 if args.source == "synthetic":
-                    res = run_synthetic(case, args.spp, args.excess, args.base_spp)
+                    res = run_synthetic(case, args.spp, args.excess, args.base_spp, args.columns)
                 else:
                     res = run_bench(case, cache / case["id"], args.channel, args.angles, args.spp,
                                     final_fit=not quick_rig)
@@ -688,7 +708,8 @@ def main() -> int:
     if args.source == "synthetic":
         text = text.replace("recordings,", f"recordings with frozen white noise {args.excess:g} x the variance "
                             f"channel, diagnosis at {args.spp} spp"
-                            f"{f', base fit at {args.base_spp} spp' if base_tag else ''},", 1)
+                            f"{f', base fit at {args.base_spp} spp' if args.base_spp != BASE_SPP else ''}"
+                            f"{f', {args.columns}-px profile window' if args.columns != SYNTHETIC_COLUMNS else ''},", 1)
         summary["excess"] = args.excess
     print()
     print(text)
