@@ -163,8 +163,12 @@ def synthetic_recording(case: dict[str, Any], excess: float = 0.0,
     return rec, make_model, params
 
 
+#: Levenberg-Marquardt iterations of the synthetic diagnosis' refits.
+REFIT_ITERATIONS = 8
+
+
 def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp: int = BASE_SPP,
-                  columns: int = SYNTHETIC_COLUMNS) -> dict[str, Any]:
+                  columns: int = SYNTHETIC_COLUMNS, refit_iterations: int = REFIT_ITERATIONS) -> dict[str, Any]:
     from estimate.diagnose import (
         BaseFit,
         _free_names,
@@ -191,7 +195,7 @@ def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp:
                model_variance=e0.model_variance * 3, noise_scale=e0.residuals.noise_scale)
     t_base = time.perf_counter() - t0
     d = diagnose_channel(rec, BaseFit(bf.parameters, bf.scale, "hg", [], bf.uncertainties), make_model, spp=spp,
-                         iterations=8, repeats=6)
+                         iterations=refit_iterations, repeats=6)
     out = d.as_dict()
     out["base_fit_time_s"] = t_base
     out["base_fit_spp"] = base_spp
@@ -624,6 +628,9 @@ def main() -> int:
     ap.add_argument("--columns", type=int, default=SYNTHETIC_COLUMNS,
                     help=f"synthetic: profile window width in pixels (default {SYNTHETIC_COLUMNS}; `rig estimate`'s "
                          "default is 256); cached and reported apart when not the default")
+    ap.add_argument("--refit-iterations", type=int, default=REFIT_ITERATIONS,
+                    help=f"synthetic: LM iterations of the diagnosis' refits (default {REFIT_ITERATIONS}); "
+                         "cached and reported apart when not the default")
     ap.add_argument("--angles", type=int, default=8, help="bench: light angles captured")
     ap.add_argument("--excess", type=float, default=30.0,
                     help="synthetic: frozen white pixel noise, in units of the variance channel (default 30)")
@@ -652,6 +659,10 @@ def main() -> int:
     base_tag = "" if args.source == "bench" or args.base_spp == BASE_SPP else f"-base{args.base_spp}"
     if args.source == "synthetic" and args.columns != SYNTHETIC_COLUMNS:
         base_tag += f"-cols{args.columns}"
+    if args.refit_iterations < 1:
+        ap.error(f"--refit-iterations {args.refit_iterations}: must be at least 1")
+    if args.source == "synthetic" and args.refit_iterations != REFIT_ITERATIONS:
+        base_tag += f"-it{args.refit_iterations}"
     # The bench cache keeps the captured sessions (expensive): one spp per cache, --fresh to redo.
     cache = RESULTS / "diagnose_cases" / (args.source if args.source == "bench"
                                           else f"synthetic-{SYNTHETIC_VERSION}-excess{args.excess:g}-spp{args.spp}{base_tag}")
@@ -688,7 +699,8 @@ def main() -> int:
             tc = time.perf_counter()
             try:
                 if args.source == "synthetic":
-                    res = run_synthetic(case, args.spp, args.excess, args.base_spp, args.columns)
+                    res = run_synthetic(case, args.spp, args.excess, args.base_spp, args.columns,
+                                        args.refit_iterations)
                 else:
                     res = run_bench(case, cache / case["id"], args.channel, args.angles, args.spp,
                                     final_fit=not quick_rig)
