@@ -6,7 +6,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 
-import bench_diagnose as bd  # noqa: E402
+import bench_diagnose as bd
 
 
 def test_optimum_gain_plan_leaves_out_each_effect_of_a_pair_and_both():
