@@ -40,7 +40,7 @@ import os
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -163,6 +163,8 @@ def synthetic_recording(case: dict[str, Any], excess: float = 0.0,
     return rec, make_model, params
 
 
+#: spp of `optimum_gain`'s converged fit (`--optimum-gain` without `--base-spp`).
+OPTIMUM_FIT_SPP = 4096
 #: Levenberg-Marquardt iterations of the synthetic diagnosis' refits.
 REFIT_ITERATIONS = 8
 
@@ -205,26 +207,28 @@ def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp:
 
 
 def detectability(case: dict[str, Any], excess: float, base_params: dict[str, float],
-                  spp: int = 1024, repeats: int = 4, recording: tuple | None = None) -> dict[str, float]:
+                  spp: int = 1024, repeats: int = 4, recording: tuple | None = None,
+                  kept: Sequence[str] = ()) -> dict[str, float]:
     """How much the concealed effects could lower chi^2 at all on this recording: chi^2 of
-    the base fit (base model) minus chi^2 of the true parameters (true model), both at the
-    data's real noise (variance channel x (1 + excess)), scale refitted, renders averaged.
-    Confirmation needs a BIC gain above k ln n + BIC_STRONG, so a concealed effect whose
-    gain here is below that threshold cannot be named by any refit-based test."""
+    the base fit (the model with the `kept` effects only) minus chi^2 of the true parameters
+    (true model), both at the data's real noise (variance channel x (1 + excess)), scale
+    refitted, renders averaged. Confirmation needs a BIC gain above k ln n + BIC_STRONG (k
+    counting the effects not kept), so a concealed effect whose gain here is below that
+    threshold cannot be named by any refit-based test."""
     from estimate.diagnose import evaluate
 
     rec, make_model, params = recording or synthetic_recording(case, excess)
     noise = rec.variance * (1.0 + excess)
-    base = evaluate(make_model([]), base_params, rec, 0, spp=spp, repeats=repeats, noise_variance=noise)
+    base = evaluate(make_model(sorted(kept)), base_params, rec, 0, spp=spp, repeats=repeats, noise_variance=noise)
     exts = sorted(case["effects"])
     true = evaluate(make_model(exts), params, rec, 0, spp=spp, repeats=repeats, noise_variance=noise)
     n = int(np.sum(np.isfinite(base.residuals.r)))
     return {"chi2_base_fit": base.residuals.chi2_adjusted, "chi2_truth": true.residuals.chi2_adjusted,
             "gain": base.residuals.chi2_adjusted - true.residuals.chi2_adjusted,
-            "threshold": bic_threshold(exts, n), "pixels": n}
+            "threshold": bic_threshold(sorted(set(exts) - set(kept)), n), "pixels": n}
 
 
-def optimum_gain(case: dict[str, Any], left_out: list[str], *, spp: int = 4096, eval_spp: int = 2048,
+def optimum_gain(case: dict[str, Any], left_out: list[str], *, spp: int = OPTIMUM_FIT_SPP, eval_spp: int = 2048,
                  repeats: int = 4, excess: float = 0.0, columns: int = SYNTHETIC_COLUMNS) -> dict[str, Any]:
     """The detection limit without the fit's own Monte Carlo misfit: the model without
     `left_out` (the case's other effects kept) fitted by Levenberg-Marquardt at `spp` from the
@@ -245,18 +249,12 @@ def optimum_gain(case: dict[str, Any], left_out: list[str], *, spp: int = 4096, 
     e0 = evaluate(m, start, rec, 0, spp=spp, repeats=2)
     fit = refit(m, rec, start, _free_names(m, kept), spp=spp, seed=11, iterations=12,
                 model_variance=e0.model_variance * 2, noise_scale=e0.residuals.noise_scale, uncertainties=False)
-    noise = rec.variance * (1.0 + excess)
-    at_opt = evaluate(m, fit.parameters, rec, 0, spp=eval_spp, repeats=repeats, noise_variance=noise)
-    at_truth = evaluate(make_model(sorted(case["effects"])), truth, rec, 0, spp=eval_spp, repeats=repeats,
-                        noise_variance=noise)
-    n = int(np.sum(np.isfinite(at_opt.residuals.r)))
-    gain = at_opt.residuals.chi2_adjusted - at_truth.residuals.chi2_adjusted
-    bar = bic_threshold(sorted(left_out), n)
+    d = detectability(case, excess, fit.parameters, spp=eval_spp, repeats=repeats, recording=recording, kept=kept)
     return {"case": case["id"], "left_out": sorted(left_out), "kept": kept, "fit_spp": spp,
-            "material_at_optimum": {k: fit.parameters[k] for k in TRUE}, "chi2_optimum": at_opt.residuals.chi2_adjusted,
-            "chi2_truth": at_truth.residuals.chi2_adjusted, "gain": gain, "threshold": bar,
-            "reachable": bool(left_out) and bool(gain > bar), "pixels": n, "columns": columns,
-            "time_s": time.perf_counter() - t0}
+            "material_at_optimum": {k: fit.parameters[k] for k in TRUE}, "chi2_optimum": d["chi2_base_fit"],
+            "chi2_truth": d["chi2_truth"], "gain": d["gain"], "threshold": d["threshold"],
+            "reachable": bool(left_out) and bool(d["gain"] > d["threshold"]), "pixels": d["pixels"],
+            "columns": columns, "time_s": time.perf_counter() - t0}
 
 
 def optimum_gain_plan(plan: list[dict[str, Any]]) -> list[tuple[dict[str, Any], list[str]]]:
@@ -656,16 +654,16 @@ def main() -> int:
         ap.error(f"--base-spp {args.base_spp}: must be at least 2")
     if not 2 <= args.columns <= 512:
         ap.error(f"--columns {args.columns}: must lie within 2..512 (the sensor row)")
-    base_tag = "" if args.source == "bench" or args.base_spp == BASE_SPP else f"-base{args.base_spp}"
+    variant_tag = "" if args.source == "bench" or args.base_spp == BASE_SPP else f"-base{args.base_spp}"
     if args.source == "synthetic" and args.columns != SYNTHETIC_COLUMNS:
-        base_tag += f"-cols{args.columns}"
+        variant_tag += f"-cols{args.columns}"
     if args.refit_iterations < 1:
         ap.error(f"--refit-iterations {args.refit_iterations}: must be at least 1")
     if args.source == "synthetic" and args.refit_iterations != REFIT_ITERATIONS:
-        base_tag += f"-it{args.refit_iterations}"
+        variant_tag += f"-it{args.refit_iterations}"
     # The bench cache keeps the captured sessions (expensive): one spp per cache, --fresh to redo.
     cache = RESULTS / "diagnose_cases" / (args.source if args.source == "bench"
-                                          else f"synthetic-{SYNTHETIC_VERSION}-excess{args.excess:g}-spp{args.spp}{base_tag}")
+                                          else f"synthetic-{SYNTHETIC_VERSION}-excess{args.excess:g}-spp{args.spp}{variant_tag}")
     plan = limit_cases() if args.limits else cases(args.quick)
     if args.only:
         keep = set(args.only.split(","))
@@ -673,7 +671,7 @@ def main() -> int:
     if args.optimum_gain:
         if args.source != "synthetic":
             ap.error("--optimum-gain is for --source synthetic (it needs the recording's true parameters)")
-        return run_optimum_gain(plan, args.excess, args.base_spp if args.base_spp != BASE_SPP else 4096, args.fresh,
+        return run_optimum_gain(plan, args.excess, args.base_spp if args.base_spp != BASE_SPP else OPTIMUM_FIT_SPP, args.fresh,
                                 args.columns)
     cache.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -726,7 +724,7 @@ def main() -> int:
     print()
     print(text)
     RESULTS.mkdir(parents=True, exist_ok=True)
-    label = args.source if args.source == "bench" else f"synthetic-excess{args.excess:g}-spp{args.spp}{base_tag}"
+    label = args.source if args.source == "bench" else f"synthetic-excess{args.excess:g}-spp{args.spp}{variant_tag}"
     if quick_rig:
         label += "_quick"
     if args.limits:
