@@ -139,7 +139,9 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                                                                                      or 0.0) else "")
                 mag = f", magnitude {e['magnitude_sigma']:.1f} sigma from absent{by}"
             tag = "second pass: " if e.get("pass") == 2 else ""
-            print(f"  {tag}refit with {e['effect']}: BIC improves by {e['delta_bic']:.1f}{held}{mag}"
+            ind = (f" ({e['delta_bic_independent']:.1f} rendered independently)"
+                   if e.get("delta_bic_independent") is not None else "")
+            print(f"  {tag}refit with {e['effect']}: BIC improves by {e['delta_bic']:.1f}{ind}{held}{mag}"
                   f" -> {'confirmed' if e['confirmed'] else 'not confirmed'}", file=out)
         part = d.get("partial") or {}
         if part:
