@@ -9,6 +9,15 @@
 #                                    16384-spp recordings (.gpu/paper_s6.tar.xz), exp3, at the
 #                                    default settings, then with the final / polish renders at
 #                                    PAPER_FINAL_SPP (8192); fit seed PAPER_SEED (0)
+#   benchmarks/gpu_run.sh diagnose256 the synthetic diagnosis suite on rig estimate's 256-px
+#                                    window at 2048 spp from 4096-spp base fits (session 41: what
+#                                    that window needs; 20-25 min a case on 2 cores); the cases in
+#                                    DIAG_CASES (comma-separated ids, default the three spot-checked
+#                                    on the CPU), new cases stop after DIAG_BUDGET_S (default 420);
+#                                    no data carried beyond site.tar.xz. The case JSONs come back
+#                                    in $OUT/diagnose256_cases.tar: unpack into
+#                                    benchmarks/results/diagnose_cases/ and run the same command
+#                                    here to tabulate; cached cases are not run again.
 # Each step runs under `timeout` so the call ends inside the device's 10-minute limit.
 # Session 39's calls (device tool `run`): `bash benchmarks/gpu_run.sh estimate` carrying
 # [".gpu/site.tar.xz", ".gpu/est_session", ".gpu/stray"] (136 s on an H200), and `PAPER_SEED=1 bash benchmarks/gpu_run.sh paper` carrying
@@ -55,6 +64,16 @@ paper)
   # The fits cached so far, also those of a run stopped by its timeout.
   (cd benchmarks/results/paper_sim && tar cf "$OUT/paper_fits.tar" */fit_*.json)
   ;;
-*) echo "unknown job $job (estimate or paper)"; exit 2 ;;
+diagnose256)
+  cache=synthetic-v11-excess0-spp2048-base4096-cols256
+  mkdir -p benchmarks/results/diagnose_cases/$cache
+  t=$(date +%s)
+  timeout "${DIAG_LIMIT_S:-560}" python3 benchmarks/bench_diagnose.py --excess 0 --spp 2048 --base-spp 4096 \
+    --columns 256 --only "${DIAG_CASES:-clean-1,beam_halo-1,beam_halo-2}" --time-budget "${DIAG_BUDGET_S:-420}" \
+    --label gpu 2>&1 | tee "$OUT/diagnose256.log"
+  echo "diagnose256: wall $(( $(date +%s) - t )) s"
+  (cd benchmarks/results/diagnose_cases && tar cf "$OUT/diagnose256_cases.tar" $cache/*.json)
+  ;;
+*) echo "unknown job $job (estimate, paper or diagnose256)"; exit 2 ;;
 esac
 echo "total $(( $(date +%s) - t0 )) s"
