@@ -65,7 +65,8 @@ paper)
   (cd benchmarks/results/paper_sim && tar cf "$OUT/paper_fits.tar" */fit_*.json)
   ;;
 diagnose256)
-  cache=synthetic-v11-excess0-spp2048-base4096-cols256
+  # bench_diagnose.py's cache folder for these options (its SYNTHETIC_VERSION, not a copy of it)
+  cache=synthetic-$(python3 -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_diagnose as b; print(b.SYNTHETIC_VERSION)")-excess0-spp2048-base4096-cols256
   mkdir -p benchmarks/results/diagnose_cases/$cache
   t=$(date +%s)
   timeout "${DIAG_LIMIT_S:-560}" python3 benchmarks/bench_diagnose.py --excess 0 --spp 2048 --base-spp 4096 \

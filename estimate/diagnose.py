@@ -800,12 +800,12 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         choice = _choose([e for e, _ in passed.values()], independent=refit_checks_decide)
         if choice is None:
             break
-        best = (passed[choice][0]["delta_bic"], choice, passed[choice][1])
+        chosen_fit = passed[choice][1]
         for e in confirmations:
-            if e["round"] == len(confirmed) + 1 and e["effect"] != best[1]:
+            if e["round"] == len(confirmed) + 1 and e["effect"] != choice:
                 e["confirmed"] = False
-        confirmed.append(best[1])
-        current_exts = current_exts + [best[1]]
+        confirmed.append(choice)
+        current_exts = current_exts + [choice]
         if final_fit_follows and (len(confirmed) >= max_effects or all(c in confirmed for c in cands)):
             # No round follows to screen at the joint refit, and the final fit replaces it.
             # On the simulated bench the model stage took 131-247 s of a 560-797 s diagnosis
@@ -815,7 +815,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             free = _free_names(m, current_exts)
             # The last model's uncertainties are this refit's (the final fit's replace them
             # where it is kept); `cand_how` is this round's.
-            deferred = _with_uncertainties(problem, m, free, best[2], cand_how)
+            deferred = _with_uncertainties(problem, m, free, chosen_fit, cand_how)
             current = evaluate(m, deferred.parameters, problem, len(free) + 1, spp=spp, seed=seed, repeats=repeats)
             say(f"  with {', '.join(confirmed)}: reduced chi2 {current.residuals.reduced_chi2:.3f} (HDR), "
                 f"{current.residuals.reduced_chi2_adjusted:.3f} at the noise floor (the candidate's refit; "
@@ -825,7 +825,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         # The final model's parameters carry the Monte-Carlo error of the fixed-seed
         # refit: render it with FINAL_SPP_FACTOR x the samples.
         full_mv = current.model_variance * repeats / FINAL_SPP_FACTOR
-        full, current = settle(current_exts, best[2].parameters, full_mv)
+        full, current = settle(current_exts, chosen_fit.parameters, full_mv)
         last_full = (full, full_mv)
         laps("model")
     pruned: list[dict[str, Any]] = []
