@@ -87,6 +87,18 @@ def cases(quick: bool) -> list[dict[str, Any]]:
     return out
 
 
+def select_cases(plan: list[dict[str, Any]], only: str) -> list[dict[str, Any]]:
+    """The cases of `plan` named in `only` (comma-separated ids), in the order given, so that a
+    run under --time-budget starts with the cases that matter most; ValueError on an id the
+    plan lacks."""
+    by_id = {c["id"]: c for c in plan}
+    wanted = list(dict.fromkeys(i for i in only.split(",") if i))
+    unknown = [i for i in wanted if i not in by_id]
+    if unknown:
+        raise ValueError(f"no case {', '.join(unknown)} in this plan (cases: {', '.join(by_id)})")
+    return [by_id[i] for i in wanted]
+
+
 def limit_cases() -> list[dict[str, Any]]:
     """The detection-limit series (`LIMIT_MAGNITUDES`), ids <effect>-L1, -L2."""
     return [{"id": f"{name}-L{k + 1}", "effects": {name: m}}
@@ -201,6 +213,9 @@ def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp:
     out = d.as_dict()
     out["base_fit_time_s"] = t_base
     out["base_fit_spp"] = base_spp
+    # Which renderer ran (the times are the device's): like bench_estimate and bench_paper_sim.
+    from estimate.mitsuba_env import init_mitsuba
+    out["variant"] = init_mitsuba().variant()
     out["truth"] = {k: TRUE[k] for k in TRUE}
     out["detectability"] = detectability(case, excess, out["material_before"], recording=recording)
     return out
@@ -439,7 +454,10 @@ def score(case: dict[str, Any], res: dict[str, Any], source: str = "synthetic") 
             "material_z": material_z(res),
             "material_z_fixed_seed": material_z(res, "material_fixed_seed_after"),
             "time_s": res.get("diagnose_wall_s", res.get("time_s")),
-            "time_by_stage_s": res.get("time_by_stage_s")}
+            "time_by_stage_s": res.get("time_by_stage_s"),
+            # a GPU's time is not a 2-core time: the table marks it (cases cached before
+            # session 42 carry no variant; they ran on the CPU)
+            "gpu": str(res.get("variant", "")).startswith("cuda")}
 
 
 #: The stages that the target "screening plus confirmation" counts (`estimate.diagnose.DIAGNOSIS_STAGES`):
@@ -517,7 +535,7 @@ def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tup
                      + (f" ({r['truth_reduced_chi2_adjusted']:.2f})" if r.get("truth_reduced_chi2_adjusted") else "")
                      + " | "
                      f"{100 * e['before']['sigma_t_rel']:.1f}% -> {100 * e['after']['sigma_t_rel']:.1f}% | "
-                     f"{_gain(r.get('detectability'))} | {(r['time_s'] or 0):.0f} | "
+                     f"{_gain(r.get('detectability'))} | {(r['time_s'] or 0):.0f}{' (GPU)' if r.get('gpu') else ''} | "
                      + (f"{sc:.0f} |" if sc is not None else "- |"))
     names = sorted({r["concealed"][0] for r in singles})
     cols = names + ["none"]
@@ -538,7 +556,9 @@ def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tup
                f"{100 * summary['after_reduced_chi2_le_truth_or_1.2']:.0f} % of named cases |"),
               f"| one channel's diagnosis <= 300 s | max {summary['max_channel_time_s'] or 0:.0f} s"
               + (f" (screening + confirmation: max {summary['max_screen_confirm_s']:.0f} s)"
-                 if summary["max_screen_confirm_s"] else "") + " |"]
+                 if summary["max_screen_confirm_s"] else "")
+              + ("; the cases ran on different devices: see the time column" if len({bool(r.get("gpu")) for r in rows}) > 1
+                 else " (on a GPU)" if rows and rows[0].get("gpu") else "") + " |"]
     if zs:
         mz = summary["magnitude_z"]
         lines += ["", ("Named effects' magnitudes against the truth, z = (fitted - true) / reported uncertainty "
@@ -607,7 +627,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--source", choices=("synthetic", "bench"), default="synthetic")
     ap.add_argument("--quick", action="store_true", help="one magnitude per effect, two pairs, two clean cases")
-    ap.add_argument("--only", default=None, help="comma-separated case ids")
+    ap.add_argument("--only", default=None, help="comma-separated case ids, run in this order")
     ap.add_argument("--fresh", action="store_true", help="ignore cached case results")
     ap.add_argument("--limits", action="store_true",
                     help="run the detection-limit series (stronger magnitudes of the effects the suite missed) "
@@ -666,8 +686,10 @@ def main() -> int:
                                           else f"synthetic-{SYNTHETIC_VERSION}-excess{args.excess:g}-spp{args.spp}{variant_tag}")
     plan = limit_cases() if args.limits else cases(args.quick)
     if args.only:
-        keep = set(args.only.split(","))
-        plan = [c for c in plan if c["id"] in keep]
+        try:
+            plan = select_cases(plan, args.only)
+        except ValueError as e:
+            ap.error(f"--only: {e}")
     if args.optimum_gain:
         if args.source != "synthetic":
             ap.error("--optimum-gain is for --source synthetic (it needs the recording's true parameters)")

@@ -12,7 +12,7 @@
 #   benchmarks/gpu_run.sh diagnose256 the synthetic diagnosis suite on rig estimate's 256-px
 #                                    window at 2048 spp from 4096-spp base fits (session 41: what
 #                                    that window needs; 20-25 min a case on 2 cores); the cases in
-#                                    DIAG_CASES (comma-separated ids, default the three spot-checked
+#                                    DIAG_CASES (comma-separated ids, run in that order; default the three spot-checked
 #                                    on the CPU), new cases stop after DIAG_BUDGET_S (default 420);
 #                                    no data carried beyond site.tar.xz. The case JSONs come back
 #                                    in $OUT/diagnose256_cases.tar: unpack into

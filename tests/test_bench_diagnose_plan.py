@@ -4,6 +4,8 @@ import math
 import sys
 from pathlib import Path
 
+import pytest
+
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 
 import bench_diagnose as bd
@@ -32,3 +34,11 @@ def test_bic_threshold_counts_free_parameters_only():
     assert math.isclose(one, math.log(n) + 10.0)
     assert math.isclose(two, 2 * math.log(n) + 10.0)
     assert math.isnan(bd.bic_threshold([], n))
+
+
+def test_select_cases_keeps_the_given_order_and_rejects_unknown_ids():
+    plan = bd.cases(quick=False)
+    got = bd.select_cases(plan, "clean-2,refractive_boundary+beam_halo,clean-2,beam_halo-1")
+    assert [c["id"] for c in got] == ["clean-2", "refractive_boundary+beam_halo", "beam_halo-1"]
+    with pytest.raises(ValueError, match="no_such_case"):
+        bd.select_cases(plan, "clean-1,no_such_case")
