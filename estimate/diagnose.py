@@ -1556,6 +1556,19 @@ def _unconverged(ev: Evaluation) -> str | None:
             "the fit stopped short of its optimum (rerun rig estimate with more iterations)")
 
 
+def _best_unconfirmed(best: CandidateScore) -> str:
+    """What became of the best-screened candidate when nothing was named: how much of the
+    excess its score test says it could remove, and whether it was refitted at all (only
+    candidates below the screening's Bonferroni threshold are)."""
+    share = ("could by its score test remove all of the excess" if best.explained >= 1.0 else
+             f"could by its score test remove only {100 * best.explained:.0f}% of the excess")
+    if best.log10_p < SCREEN_LOG10_P:
+        return f"the best candidate, {best.name}, {share}, but its refit did not confirm it"
+    return (f"the best candidate, {best.name}, {share}, but that test (p = {10 ** best.log10_p:.2g}) is "
+            f"not significant among {len(CANDIDATES)} candidates (needs p < {10 ** SCREEN_LOG10_P:.2g}), so it was "
+            "not refitted")
+
+
 def _verdict(before: Evaluation, loc: dict[str, Any], scores: list[CandidateScore], confirmed: list[str],
              after: Evaluation | None, dropped: Sequence[str] = (), partial: Mapping[str, Any] | None = None) -> str:
     b = before.residuals
@@ -1585,8 +1598,7 @@ def _verdict(before: Evaluation, loc: dict[str, Any], scores: list[CandidateScor
                        "physics that the quick refit cannot reach from this fit, so no cause is named; run the "
                        "diagnosis without --quick")
     if not confirmed:
-        lead = (f"; the best candidate, {scores[0].name}, would remove only {100 * min(1.0, scores[0].explained):.0f}% "
-                "of the excess and was not confirmed by a refit" if scores else "")
+        lead = f"; {_best_unconfirmed(scores[0])}" if scores else ""
         return head + "; no candidate in the catalogue explains it" + lead + ": no cause is named"
     a = after.residuals if after else b
     return (head + f"; left-out physics: {', '.join(confirmed)}; reduced chi2 at the noise floor "

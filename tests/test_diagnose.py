@@ -1310,3 +1310,24 @@ def test_round_choice_ranks_by_the_independently_rendered_gain():
     old = {"effect": "stray_light", "delta_bic": 120.0}
     assert _rank_key(old) == 120.0
     assert _choose([old, halo]) == "stray_light"
+
+
+@pytest.mark.parametrize("log10_p, explained, refitted", [(-9.6, 5.2, True), (-2.5, 1.01, False), (-5.0, 0.3, True)])
+def test_unexplained_verdict_says_whether_the_best_candidate_was_refitted(log10_p, explained, refitted):
+    """When nothing is named, the verdict says what the best-screened candidate could remove
+    by its score test, never "only 100 %", and whether it was refitted at all: a candidate
+    above the screening's Bonferroni threshold never is (the 256-px filter_bandwidth-2 session
+    of session 42: the spread screened second at p 0.003 and was not refitted)."""
+    from estimate.diagnose import SCREEN_LOG10_P, _verdict
+    from estimate.screening import CandidateScore
+
+    best = CandidateScore("filter_bandwidth", 8.5, 1, 10 ** log10_p, log10_p, explained)
+    before = SimpleNamespace(residuals=SimpleNamespace(
+        noise_scale=np.array([1.0]), significant=True, extra={}, p_value_smooth=1e-9, reduced_chi2_adjusted=1.1,
+        reduced_chi2=1.1, dof=100))
+    verdict = _verdict(before, {"summary": "spread over all angles"}, [best], [], None)
+    assert "only 100%" not in verdict and verdict.endswith("no cause is named")
+    assert ("all of the excess" in verdict) is (explained >= 1.0)
+    assert ("its refit did not confirm it" in verdict) is refitted
+    assert ("so it was not refitted" in verdict) is (not refitted)
+    assert (log10_p < SCREEN_LOG10_P) is refitted
