@@ -138,7 +138,8 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                 by = (" (likelihood ratio)" if (e.get("magnitude_lr_sigma") or 0.0) > (e.get("magnitude_wald_sigma")
                                                                                      or 0.0) else "")
                 mag = f", magnitude {e['magnitude_sigma']:.1f} sigma from absent{by}"
-            tag = "second pass: " if e.get("pass") == 2 else ""
+            tag = ("second pass: " if e.get("pass") == 2 else
+                   "runner-up (no leading candidate confirmed): " if e.get("runner_up") else "")
             ind = (f" ({e['delta_bic_independent']:.1f} rendered independently)"
                    if e.get("delta_bic_independent") is not None else "")
             print(f"  {tag}refit with {e['effect']}: BIC improves by {e['delta_bic']:.1f}{ind}{held}{mag}"

@@ -1312,13 +1312,14 @@ def test_round_choice_ranks_by_the_independently_rendered_gain():
     assert _choose([old, halo]) == "stray_light"
 
 
-@pytest.mark.parametrize("log10_p, explained, refitted", [(-9.6, 5.2, True), (-2.5, 1.01, False), (-5.0, 0.3, True)])
+@pytest.mark.parametrize("log10_p, explained, refitted",
+                         [(-9.6, 5.2, True), (-2.5, 1.01, True), (-1.5, 1.01, False), (-5.0, 0.3, True)])
 def test_unexplained_verdict_says_whether_the_best_candidate_was_refitted(log10_p, explained, refitted):
     """When nothing is named, the verdict says what the best-screened candidate could remove
-    by its score test, never "only 100 %", and whether it was refitted at all: a candidate
-    above the screening's Bonferroni threshold never is (the 256-px filter_bandwidth-2 session
-    of session 42: the spread screened second at p 0.003 and was not refitted)."""
-    from estimate.diagnose import SCREEN_LOG10_P, _verdict
+    by its score test, never "only 100 %" (as it said of the sensor compression on the 256-px
+    filter_bandwidth-2 session, session 42), and whether it was refitted at all: a first
+    round refits candidates down to p < RUNNER_UP_P (`runner_ups`), none above."""
+    from estimate.diagnose import RUNNER_UP_LOG10_P, _verdict
     from estimate.screening import CandidateScore
 
     best = CandidateScore("filter_bandwidth", 8.5, 1, 10 ** log10_p, log10_p, explained)
@@ -1329,5 +1330,55 @@ def test_unexplained_verdict_says_whether_the_best_candidate_was_refitted(log10_
     assert "only 100%" not in verdict and verdict.endswith("no cause is named")
     assert ("all of the excess" in verdict) is (explained >= 1.0)
     assert ("its refit did not confirm it" in verdict) is refitted
-    assert ("so it was not refitted" in verdict) is (not refitted)
-    assert (log10_p < SCREEN_LOG10_P) is refitted
+    assert ("so none was refitted" in verdict) is (not refitted)
+    assert (log10_p < RUNNER_UP_LOG10_P) is refitted
+
+
+def test_runner_ups_are_the_next_candidates_down_to_their_level():
+    """A first round whose leading refits are all turned away refits the next candidates
+    whose score test has p < RUNNER_UP_P: the flagged ones that MAX_CONFIRM cut off first,
+    then those above the screening's Bonferroni threshold (the 256-px filter_bandwidth-2
+    session: the spread at p 0.003 behind a sensor compression whose refit failed)."""
+    from estimate.diagnose import RUNNER_UP_P, SCREEN_LOG10_P, runner_ups
+    from estimate.screening import CandidateScore
+
+    def cs(name, log10_p):
+        return CandidateScore(name, 10.0, 1, 10 ** log10_p, log10_p, 0.5)
+
+    scores = [cs("lens_blur", -4.8), cs("beam_halo", -4.4), cs("sensor_nonlinearity", -4.1),
+              cs("filter_bandwidth", -2.5), cs("stray_light", -1.2)]
+    assert scores[2].log10_p < SCREEN_LOG10_P < scores[3].log10_p < math.log10(RUNNER_UP_P) < scores[4].log10_p
+    got = runner_ups(scores, scores[:2], max_confirm=2)
+    assert [c.name for c in got] == ["sensor_nonlinearity", "filter_bandwidth"]
+    assert [c.name for c in runner_ups(scores, scores[:2], max_confirm=1)] == ["sensor_nonlinearity"]
+    # nothing flagged at all: the runner-ups are the best ones down to RUNNER_UP_P
+    assert [c.name for c in runner_ups(scores[3:], [], max_confirm=2)] == ["filter_bandwidth"]
+    assert runner_ups(scores[4:], [], max_confirm=2) == []
+
+
+def test_a_first_round_that_confirms_nothing_refits_the_runner_up(monkeypatch):
+    """The screening ranks a glare tail first (forced here) on a recording with stray light;
+    the tail's refit is turned away, and the stray light, screened at p 0.005 (above the
+    Bonferroni threshold, below RUNNER_UP_P), is refitted as the runner-up and named."""
+    import estimate.diagnose as dg
+
+    rec = record({"stray_light.offset": 0.01})
+    pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
+    real_screen = dg._screen
+
+    def ranked(*a, **k):
+        scores = {c.name: c for c in real_screen(*a, **k)}
+        return [dataclasses.replace(scores["lens_blur"], p_value=1e-6, log10_p=-6.0),
+                dataclasses.replace(scores["stray_light"], p_value=0.005, log10_p=math.log10(0.005))]
+
+    monkeypatch.setattr(dg, "_screen", ranked)
+    d = diagnose_channel(pb, BaseFit(dict(TRUE), 1e4, "hg"), make_model, candidates=["lens_blur", "stray_light"],
+                         spp=128, repeats=3, iterations=8, final_fit_follows=True, max_confirm=1, max_effects=1)
+    by = {e["effect"]: e for e in d.confirmations}
+    assert not by["lens_blur"]["confirmed"] and not by["lens_blur"].get("runner_up")
+    assert by["stray_light"]["runner_up"] and by["stray_light"]["confirmed"]
+    assert d.confirmed == ["stray_light"]
+    from estimate.diagnose import summary_text
+
+    text = summary_text({"channels": {"g": d.as_dict()}, "run_id": "x", "refit_run": None})
+    assert "runner-up (no leading candidate confirmed): refit with stray_light" in text
