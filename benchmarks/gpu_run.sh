@@ -22,6 +22,9 @@
 # Session 39's calls (device tool `run`): `bash benchmarks/gpu_run.sh estimate` carrying
 # [".gpu/site.tar.xz", ".gpu/est_session", ".gpu/stray"] (136 s on an H200), and `PAPER_SEED=1 bash benchmarks/gpu_run.sh paper` carrying
 # [".gpu/site.tar.xz", ".gpu/paper_s6.tar.xz"] (235-240 s each); a machine's start adds 1-2 min.
+# Session 42's calls on an H100: `DIAG_CASES=refractive_boundary+beam_halo,... DIAG_BUDGET_S=400 DIAG_LIMIT_S=570
+# bash benchmarks/gpu_run.sh diagnose256` carrying [".gpu/site.tar.xz"] (one pair case 381 s, singles 13-59 s;
+# four calls in the 15 minutes, logs in benchmarks/results/gpu_session42/).
 set -uo pipefail
 job=${1:-estimate}
 OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT"
