@@ -190,6 +190,7 @@ def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp:
         evaluate,
         refit,
     )
+    from estimate.mitsuba_env import init_mitsuba
 
     recording = synthetic_recording(case, excess, columns)
     rec, make_model, _ = recording
@@ -214,7 +215,6 @@ def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp:
     out["base_fit_time_s"] = t_base
     out["base_fit_spp"] = base_spp
     # Which renderer ran (the times are the device's): like bench_estimate and bench_paper_sim.
-    from estimate.mitsuba_env import init_mitsuba
     out["variant"] = init_mitsuba().variant()
     out["truth"] = {k: TRUE[k] for k in TRUE}
     out["detectability"] = detectability(case, excess, out["material_before"], recording=recording)

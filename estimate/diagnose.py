@@ -788,10 +788,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         if runners_first:
             say("  no candidate flagged by the screening: refitting the runner-up" + ("s " if len(leading) > 1 else " ")
                 + ", ".join(c.name for c in leading))
-        batches = [(list(leading), runners_first)]
-        choice = None
-        while batches:
-            tried, runner_up = batches.pop(0)
+        tried, runner_up = list(leading), runners_first
+        while True:
             for cand in tried:
                 if round_one and cand.name in first_round.refits:
                     cached, fit = first_round.refits[cand.name]
@@ -818,15 +816,16 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                     passed[cand.name] = (entry, fit)
             laps("confirmation")
             choice = _choose([e for e, _ in passed.values()], independent=refit_checks_decide)
-            runners = (runner_ups(scores, leading, max_confirm) if choice is None and runners_allowed
-                       and not runner_up else [])
-            if runners:
-                # A significant mismatch that none of the leading candidates' refits
-                # explains: the screening only ordered what to refit, so the next
-                # candidates are refitted too, under the same tests.
-                say("  no leading candidate confirmed: refitting the runner-up" + ("s " if len(runners) > 1 else " ")
-                    + ", ".join(c.name for c in runners))
-                batches.append((runners, True))
+            if choice is not None or runner_up or not runners_allowed:
+                break
+            # A significant mismatch that none of the leading candidates' refits explains:
+            # the screening only ordered what to refit, so the next candidates are refitted
+            # too, under the same tests.
+            tried, runner_up = runner_ups(scores, leading, max_confirm), True
+            if not tried:
+                break
+            say("  no leading candidate confirmed: refitting the runner-up" + ("s " if len(tried) > 1 else " ")
+                + ", ".join(c.name for c in tried))
         if choice is None:
             break
         chosen_fit = passed[choice][1]
