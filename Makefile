@@ -15,7 +15,8 @@ demo: $(STAMP)
 	VENV=$(VENV) DEMO_OUT=$(DEMO_OUT) ./scripts/demo.sh
 
 test: $(STAMP)
-	$(VENV)/bin/python -m pytest -q -p no:cacheprovider
+	# --durations: the slowest tests in every CI log, to see where its time grows.
+	$(VENV)/bin/python -m pytest -q -p no:cacheprovider --durations=15
 
 bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/run_all.py
