@@ -14,8 +14,8 @@ setup: $(STAMP)
 demo: $(STAMP)
 	VENV=$(VENV) DEMO_OUT=$(DEMO_OUT) ./scripts/demo.sh
 
+# --durations: the slowest tests in every CI log, to see where its time grows.
 test: $(STAMP)
-	# --durations: the slowest tests in every CI log, to see where its time grows.
 	$(VENV)/bin/python -m pytest -q -p no:cacheprovider --durations=15
 
 bench: $(STAMP)
