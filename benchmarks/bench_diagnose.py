@@ -482,6 +482,25 @@ def _gain(d: dict[str, Any] | None) -> str:
     return f"{d['gain']:.0f}" + (f" ({thr:.0f})" if thr is not None and np.isfinite(thr) else "")
 
 
+def material_fallback(rows: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """The target "the material parameter errors fall back to those of clean sessions": of the
+    cases that name an effect, the share whose sigma_t (relative) and albedo (absolute) errors
+    after the refit are no larger than the largest of the clean sessions' (whose base fit is
+    the whole diagnosis there). None without both clean and named cases."""
+    clean = [r["material_error"]["before"] for r in rows if not r["concealed"]]
+    named = [r for r in rows if r["concealed"] and r["named"]]
+    if not clean or not named:
+        return None
+    bar = {k: max(e[k] for e in clean) for k in ("sigma_t_rel", "albedo_abs")}
+    within = [r["id"] for r in named
+              if all(r["material_error"]["after"][k] <= bar[k] for k in bar)]
+    return {"fraction": len(within) / len(named), "named_cases": len(named),
+            "beyond": [r["id"] for r in named if r["id"] not in within],
+            "clean_sigma_t_rel_max": bar["sigma_t_rel"], "clean_albedo_abs_max": bar["albedo_abs"],
+            "named_sigma_t_rel_max": max(r["material_error"]["after"]["sigma_t_rel"] for r in named),
+            "named_albedo_abs_max": max(r["material_error"]["after"]["albedo_abs"] for r in named)}
+
+
 def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tuple[str, dict[str, Any]]:
     singles = [r for r in rows if len(r["concealed"]) == 1]
     pairs = [r for r in rows if len(r["concealed"]) == 2]
@@ -505,6 +524,7 @@ def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tup
                                                         for r in singles + pairs])) if singles + pairs else None,
         "effect_sigma_t_rel_err_after": float(np.mean([r["material_error"]["after"]["sigma_t_rel"]
                                                        for r in singles + pairs])) if singles + pairs else None,
+        "material_fallback": material_fallback(rows),
         "max_channel_time_s": max((r["time_s"] or 0.0) for r in rows) if rows else None,
         "max_screen_confirm_s": max((screen_confirm_s(r) or 0.0) for r in rows) if rows else None,
     }
@@ -559,6 +579,12 @@ def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tup
                  if summary["max_screen_confirm_s"] else "")
               + ("; the cases ran on different devices: see the time column" if len({bool(r.get("gpu")) for r in rows}) > 1
                  else " (on a GPU)" if rows and rows[0].get("gpu") else "") + " |"]
+    mf = summary["material_fallback"]
+    if mf:
+        lines.append(f"| sigma_t and albedo errors after <= the clean sessions' largest ({100 * mf['clean_sigma_t_rel_max']:.1f} %, "
+                     f"{mf['clean_albedo_abs_max']:.4f}) | {100 * mf['fraction']:.0f} % of {mf['named_cases']} named cases "
+                     f"(largest after: {100 * mf['named_sigma_t_rel_max']:.1f} %, {mf['named_albedo_abs_max']:.4f})"
+                     + (f"; beyond: {', '.join(mf['beyond'])}" if mf["beyond"] else "") + " |")
     if zs:
         mz = summary["magnitude_z"]
         lines += ["", ("Named effects' magnitudes against the truth, z = (fitted - true) / reported uncertainty "

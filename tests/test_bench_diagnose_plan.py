@@ -42,3 +42,26 @@ def test_select_cases_keeps_the_given_order_and_rejects_unknown_ids():
     assert [c["id"] for c in got] == ["clean-2", "refractive_boundary+beam_halo", "beam_halo-1"]
     with pytest.raises(ValueError, match="no_such_case"):
         bd.select_cases(plan, "clean-1,no_such_case")
+
+
+def _row(id_: str, concealed: list[str], named: list[str], before: tuple[float, float],
+         after: tuple[float, float]) -> dict:
+    err = lambda e: {"sigma_t_rel": e[0], "albedo_abs": e[1]}
+    return {"id": id_, "concealed": concealed, "named": named,
+            "material_error": {"before": err(before), "after": err(after)}}
+
+
+def test_material_fallback_bars_named_cases_by_the_clean_sessions_largest_errors():
+    rows = [_row("clean-1", [], [], (0.018, 0.004), (0.018, 0.004)),
+            _row("clean-2", [], [], (0.008, 0.006), (0.008, 0.006)),
+            _row("a-1", ["a"], ["a"], (0.10, 0.02), (0.005, 0.002)),
+            # sigma_t back within the clean sessions' but the albedo is not
+            _row("b-1", ["b"], ["b"], (0.10, 0.02), (0.010, 0.014)),
+            # named nothing: not a refit, not counted
+            _row("c-1", ["c"], [], (0.05, 0.01), (0.05, 0.01))]
+    mf = bd.material_fallback(rows)
+    assert mf["named_cases"] == 2 and mf["fraction"] == 0.5 and mf["beyond"] == ["b-1"]
+    assert mf["clean_sigma_t_rel_max"] == 0.018 and mf["clean_albedo_abs_max"] == 0.006
+    assert mf["named_albedo_abs_max"] == 0.014
+    assert bd.material_fallback(rows[2:]) is None  # no clean session to compare with
+    assert bd.material_fallback(rows[:2]) is None  # nothing named
