@@ -25,6 +25,9 @@
 # Session 42's calls on an H100: `DIAG_CASES=refractive_boundary+beam_halo,... DIAG_BUDGET_S=400 DIAG_LIMIT_S=570
 # bash benchmarks/gpu_run.sh diagnose256` carrying [".gpu/site.tar.xz"] (one pair case 381 s, singles 13-59 s;
 # four calls in the 15 minutes, logs in benchmarks/results/gpu_session42/).
+# Session 43's calls on an H100: the same with DIAG_BUDGET_S=430 DIAG_LIMIT_S=540 (465 s, three strong singles) and
+# DIAG_BUDGET_S=250 DIAG_LIMIT_S=330 (337 s, two singles; the third, lens_blur-2, was cut by the timeout: the budget
+# stops new cases, not a running one, so leave DIAG_LIMIT_S - DIAG_BUDGET_S above the longest case, ~200 s for a single).
 set -uo pipefail
 job=${1:-estimate}
 OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT"
