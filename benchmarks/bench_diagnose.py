@@ -492,13 +492,12 @@ def material_fallback(rows: list[dict[str, Any]]) -> dict[str, Any] | None:
     if not clean or not named:
         return None
     bar = {k: max(e[k] for e in clean) for k in ("sigma_t_rel", "albedo_abs")}
-    within = [r["id"] for r in named
-              if all(r["material_error"]["after"][k] <= bar[k] for k in bar)]
-    return {"fraction": len(within) / len(named), "named_cases": len(named),
-            "beyond": [r["id"] for r in named if r["id"] not in within],
+    after = {r["id"]: r["material_error"]["after"] for r in named}
+    beyond = [i for i, e in after.items() if any(e[k] > bar[k] for k in bar)]
+    return {"fraction": 1.0 - len(beyond) / len(named), "named_cases": len(named), "beyond": beyond,
             "clean_sigma_t_rel_max": bar["sigma_t_rel"], "clean_albedo_abs_max": bar["albedo_abs"],
-            "named_sigma_t_rel_max": max(r["material_error"]["after"]["sigma_t_rel"] for r in named),
-            "named_albedo_abs_max": max(r["material_error"]["after"]["albedo_abs"] for r in named)}
+            "named_sigma_t_rel_max": max(e["sigma_t_rel"] for e in after.values()),
+            "named_albedo_abs_max": max(e["albedo_abs"] for e in after.values())}
 
 
 def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tuple[str, dict[str, Any]]:
