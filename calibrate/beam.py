@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
+import numpy.typing as npt
 import yaml
 
 from capture.atomic import atomic_write_text
@@ -169,7 +170,7 @@ def check_output_dir(out: str | os.PathLike[str]) -> Path:
     return p
 
 
-def fit_rotation_zero(angles: Sequence[float], signal: Sequence[float], sigma: Sequence[float],
+def fit_rotation_zero(angles: npt.ArrayLike, signal: npt.ArrayLike, sigma: npt.ArrayLike,
                       resolution_deg: float = 0.0) -> tuple[float, float, float, float]:
     """Fit A exp(-(a - a0)^2 / 2 s^2) to a scan.
 

@@ -92,7 +92,7 @@ class CapturePlan:
 
     def keys(self) -> list[StackKey]:
         """Every stack of the plan in acquisition order."""
-        out = []
+        out: list[StackKey] = []
         for i in range(len(self.angles_deg)):
             order = self.filters if i % 2 == 0 else tuple(reversed(self.filters))
             out.extend(StackKey(i, f) for f in order)

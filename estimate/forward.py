@@ -32,6 +32,7 @@ from dataclasses import replace
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from estimate.beam import BeamProfile
 from estimate.errors import ModelParameterError
@@ -308,7 +309,7 @@ class ForwardModel:
                             y_shape=y_shape)
         return img
 
-    def _check_call(self, angles: Sequence[float], spp: int, seed: int) -> list[float]:
+    def _check_call(self, angles: npt.ArrayLike, spp: int, seed: int) -> list[float]:
         a = [float(x) for x in np.atleast_1d(np.asarray(angles, dtype=np.float64))]
         for x in a:
             if not math.isfinite(x) or not -360.0 <= x <= 360.0:
@@ -319,7 +320,7 @@ class ForwardModel:
             raise ModelParameterError(f"seed={seed!r} must be >= 0")
         return a
 
-    def render_profiles(self, params: Mapping[str, float], angles_deg: Sequence[float], *,
+    def render_profiles(self, params: Mapping[str, float], angles_deg: npt.ArrayLike, *,
                         spp: int = 128, seed: int = 0) -> np.ndarray:
         """Profile rows for every angle, shape (N, W), image-space extensions applied.
 
@@ -331,7 +332,7 @@ class ForwardModel:
         """
         return self.render(params, angles_deg, spp=spp, seed=seed)[:, 0, :]
 
-    def render(self, params: Mapping[str, float], angles_deg: Sequence[float], *,
+    def render(self, params: Mapping[str, float], angles_deg: npt.ArrayLike, *,
                columns: tuple[int, int] | None = None, rows: tuple[int, int] | None = None,
                spp: int = 128, seed: int = 0) -> np.ndarray:
         """Images of a pixel window for every angle, shape (N, H, W), numpy float64.
@@ -348,7 +349,7 @@ class ForwardModel:
         return self._post(rad, values, profile_only=window.height == 1, y_shape=self._y_shape(angles, window))
 
     # ------------------------------------------------------------------ derivatives
-    def linearize(self, params: Mapping[str, float], angles_deg: Sequence[float], *, spp: int = 128,
+    def linearize(self, params: Mapping[str, float], angles_deg: npt.ArrayLike, *, spp: int = 128,
                   seed: int = 0, columns: tuple[int, int] | None = None) -> Linearization:
         """Render the profiles and keep what their vector-Jacobian product needs.
 
@@ -396,7 +397,7 @@ class ForwardModel:
         profiles = self._post(rad, values, profile_only=window.height == 1, y_shape=y_shape)[:, 0, :]
         return Linearization(self, values, angles, window, int(spp), int(seed), columns, rad, profiles, kept)
 
-    def vjp(self, params: Mapping[str, float], angles_deg: Sequence[float], cotangent: np.ndarray, *,
+    def vjp(self, params: Mapping[str, float], angles_deg: npt.ArrayLike, cotangent: np.ndarray, *,
             spp: int = 128, seed: int = 0, columns: tuple[int, int] | None = None,
             fd_parameters: bool = True, base_profiles: np.ndarray | None = None) -> dict[str, float]:
         """Vector-Jacobian product: d/dtheta sum(cotangent * profiles(theta)) for every parameter.
@@ -439,7 +440,7 @@ class ForwardModel:
             cot = ext.vjp_input(inp, cot, v, pixel_mm=pm, profile_only=profile_only, y_shape=y_shape)
         return cot, grads
 
-    def value_and_grad(self, params: Mapping[str, float], angles_deg: Sequence[float],
+    def value_and_grad(self, params: Mapping[str, float], angles_deg: npt.ArrayLike,
                        loss: Callable[[np.ndarray], tuple[float, np.ndarray]], *, spp: int = 128,
                        seed: int = 0, fd_parameters: bool = True) -> tuple[float, np.ndarray, dict[str, float]]:
         """Loss, profiles and the loss gradient for every parameter.
@@ -453,7 +454,7 @@ class ForwardModel:
         grads = lin.vjp(cot, fd_parameters=fd_parameters, base_profiles=lin.profiles)
         return float(value), lin.profiles, grads
 
-    def jacobian(self, params: Mapping[str, float], angles_deg: Sequence[float], names: Sequence[str], *,
+    def jacobian(self, params: Mapping[str, float], angles_deg: npt.ArrayLike, names: Sequence[str], *,
                  spp: int = 128, seed: int = 0, steps: Mapping[str, float] | None = None,
                  columns: tuple[int, int] | None = None,
                  base_profiles: np.ndarray | None = None, backward: bool = False) -> dict[str, np.ndarray]:

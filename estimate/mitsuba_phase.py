@@ -216,7 +216,7 @@ def register_plugins() -> None:
     import drjit as dr
     import mitsuba as mi
 
-    variant = mi.variant()
+    variant = str(mi.variant())
     if variant in _registered:
         return
     cls = _make_plugin_class(mi, dr)

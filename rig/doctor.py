@@ -126,7 +126,9 @@ def check_packages(
 
     reqs = [Requirement(r) for r in (requirements if requirements is not None else _rig_requirements()[1])]
     reqs = [r for r in reqs if r.marker is None or r.marker.evaluate({"extra": ""})]
-    missing, wrong, good = [], [], []
+    missing: list[Requirement] = []
+    wrong: list[tuple[Requirement, str]] = []
+    good: list[tuple[Requirement, str]] = []
     for r in reqs:
         try:
             v = version_of(r.name)
@@ -330,7 +332,7 @@ def check_cuda(
         forced_variant: the value of ``RIG_MITSUBA_VARIANT``, if set.
         libllvm: the libLLVM the child process loads (Dr.Jit loads it for every variant).
     """
-    forced_cpu = bool(forced_variant) and not forced_variant.startswith("cuda")
+    forced_cpu = bool(forced_variant) and not (forced_variant or "").startswith("cuda")
     if gpu is None:
         if forced_variant and not forced_cpu:
             return Check("mitsuba-cuda", "fail", f"RIG_MITSUBA_VARIANT={forced_variant} but no NVIDIA GPU is present",
