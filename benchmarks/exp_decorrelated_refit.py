@@ -2,10 +2,11 @@
 low spp avoid fitting their own render noise on the 256-px window, where the diagnosis'
 fixed-seed refits do (session 41)?
 
-    .venv/bin/python benchmarks/exp_decorrelated_refit.py [CASE] [SPP] [refits]
+    .venv/bin/python benchmarks/exp_decorrelated_refit.py [CASE] [SPP] [refits] [EXT]
 
 CASE a synthetic suite case whose 256-px, 2048-spp result is cached (default beam_halo-1);
-refits a comma list of dec-cand, dec-control, fs-cand, fs-control. Writes
+refits a comma list of dec-cand, dec-control, fs-cand, fs-control; EXT the candidate effect
+(default: the case's own). Writes
 benchmarks/results/exp_decorrelated_refit_<CASE>_<SPP>.json; a few minutes on 2 cores.
 
 beam_halo-1 (3 %, 1 mm), the suite's recording and 4096-spp base fit; the confirmation's
@@ -32,7 +33,7 @@ from estimate.gauss_newton import secant_steps
 CASE = sys.argv[1] if len(sys.argv) > 1 else "beam_halo-1"
 SPP = int(sys.argv[2]) if len(sys.argv) > 2 else 512
 which = sys.argv[3].split(",") if len(sys.argv) > 3 else ["dec-control", "dec-cand", "fs-control", "fs-cand"]
-EXT = CASE.rsplit("-", 1)[0]
+EXT = sys.argv[4] if len(sys.argv) > 4 else CASE.rsplit("-", 1)[0]  # the candidate (a clean case needs one)
 case = [c for c in cases(False) if c["id"] == CASE][0]
 t0 = time.perf_counter()
 rec, make_model, truth = synthetic_recording(case, 0.0, 256)
@@ -108,4 +109,4 @@ for w in which:
     c = indep(model, p)
     out[w] = {"params": {k: p[k] for k in free}, "chi2_indep": c, "hist": hist, "time_s": time.perf_counter() - t}
     print(f"{w}: indep {c:.1f}  {({k: round(p[k], 4) for k in free})}  {time.perf_counter() - t:.0f} s", flush=True)
-    (ROOT / f"benchmarks/results/exp_decorrelated_refit_{CASE}_{SPP}.json").write_text(json.dumps(out, indent=1))
+    (ROOT / f"benchmarks/results/exp_decorrelated_refit_{CASE}_{SPP}{'' if EXT in CASE else '_' + EXT}.json").write_text(json.dumps(out, indent=1))
