@@ -44,7 +44,7 @@ base = dict(cached["material_before"])
 m0 = make_model([])
 m1 = make_model([EXT])
 n = len(rec.angles_deg)
-train, held = _holdout(n)
+train, _ = _holdout(n)
 t = time.perf_counter()
 before = evaluate(m0, base, rec, 4, spp=SPP, seed=DEFAULT_SEED, repeats=6)
 yard = _yardstick(rec, before)
@@ -70,19 +70,28 @@ def dlm(model, start, free, seed, iters=8):
         theta[k] = float(np.clip(theta[k], lo, hi))
     sb = seed + 1000
 
+    last: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+
     def both(th):
-        return (model.render_profiles(th, angles, spp=SPP, seed=seed), model.render_profiles(th, angles, spp=SPP, seed=sb))
+        # The accepted trial of `decorrelated_step` is the next iteration's point: keep its
+        # renders (the last pair only) instead of rendering them again.
+        key = tuple(sorted(th.items()))
+        if key not in last:
+            last.clear()
+            last[key] = (model.render_profiles(th, angles, spp=SPP, seed=seed),
+                         model.render_profiles(th, angles, spp=SPP, seed=sb))
+        return last[key]
 
     f_a, f_b = both(theta)
     hist = []
     for it in range(iters):
-        loss, s = decorrelated_chi2(meas, np.sqrt(var * f2), f_a, f_b)
+        _, s = decorrelated_chi2(meas, np.sqrt(var * f2), f_a, f_b)  # the scale for the weights
         sig = np.sqrt((var + s * s * mv) * f2)
         loss, s = decorrelated_chi2(meas, sig, f_a, f_b)
         steps = secant_steps(model, theta, free)
         a = refit_columns(model.jacobian(theta, angles, free, spp=SPP, seed=seed, steps=steps), f_a, s, sig)
         b = refit_columns(model.jacobian(theta, angles, free, spp=SPP, seed=sb, steps=steps), f_b, s, sig)
-        new, s_new = decorrelated_step(both, meas, sig, theta, s, f_a, f_b, a, b, free, bounds, halvings=3)
+        new, _ = decorrelated_step(both, meas, sig, theta, s, f_a, f_b, a, b, free, bounds, halvings=3)
         hist.append(round(loss, 1))
         print(f"  it {it + 1}: dec chi2 {loss:.1f} {({k: round(v, 4) for k, v in new.items() if k in free})}", flush=True)
         if new == theta:

@@ -50,7 +50,7 @@ __all__ = ["PLUGIN_NAME", "BeamProfile", "beam_frame", "map_from_pixel_image", "
 PLUGIN_NAME = "collimated_beam"
 #: How far beyond the lit face a shadow ray ends when it may cross the boundary (mm).
 _FACE_MARGIN_MM = 1.0
-_registered: set[str] = set()
+_registered: set[str | None] = set()
 
 
 def beam_frame(phi_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -461,7 +461,7 @@ def register_plugins() -> None:
     import drjit as dr
     import mitsuba as mi
 
-    variant = str(mi.variant())
+    variant = mi.variant()
     if variant in _registered:
         return
     cls = _make_plugin_class(mi, dr)

@@ -49,7 +49,7 @@ _CDF_NODES = 16385
 #: |b_i| above this overflows float32 in exp(); refuse rather than render NaNs.
 MAX_ABS_B = 1000.0
 
-_registered: set[str] = set()
+_registered: set[str | None] = set()
 
 
 def exp_normalisation_nodes(n: int = _NORM_NODES) -> tuple[np.ndarray, np.ndarray]:
@@ -216,7 +216,7 @@ def register_plugins() -> None:
     import drjit as dr
     import mitsuba as mi
 
-    variant = str(mi.variant())
+    variant = mi.variant()
     if variant in _registered:
         return
     cls = _make_plugin_class(mi, dr)

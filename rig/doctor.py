@@ -332,7 +332,7 @@ def check_cuda(
         forced_variant: the value of ``RIG_MITSUBA_VARIANT``, if set.
         libllvm: the libLLVM the child process loads (Dr.Jit loads it for every variant).
     """
-    forced_cpu = bool(forced_variant) and not (forced_variant or "").startswith("cuda")
+    forced_cpu = bool(forced_variant and not forced_variant.startswith("cuda"))
     if gpu is None:
         if forced_variant and not forced_cpu:
             return Check("mitsuba-cuda", "fail", f"RIG_MITSUBA_VARIANT={forced_variant} but no NVIDIA GPU is present",
