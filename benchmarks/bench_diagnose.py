@@ -182,7 +182,17 @@ REFIT_ITERATIONS = 8
 
 
 def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp: int = BASE_SPP,
-                  columns: int = SYNTHETIC_COLUMNS, refit_iterations: int = REFIT_ITERATIONS) -> dict[str, Any]:
+                  columns: int = SYNTHETIC_COLUMNS, refit_iterations: int = REFIT_ITERATIONS,
+                  refits: str = "fixed-seed", base_from: Path | None = None) -> dict[str, Any]:
+    """One synthetic case: its recording, the base fit, the diagnosis.
+
+    `base_from`: a cache directory of another run of the suite with the same recording and
+    base fit settings (version, excess, base spp, window) whose result for this case holds
+    the base fit (`material_before`, `scale_before`): it is taken instead of fitted again
+    (deterministic: seed 11, the same renders), which saves the 4-11 min a 256-px base fit
+    takes on 2 cores. The base fit's uncertainties, which the diagnosis does not use, are
+    then left out.
+    """
     from estimate.diagnose import (
         BaseFit,
         _free_names,
@@ -200,20 +210,34 @@ def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp:
     # The base fit stands in for a converged `rig estimate` run (final spp 1024): a fixed-seed
     # fit at low spp leaves a Monte-Carlo misfit along the material parameters that hides
     # weak effects.
-    e0 = evaluate(m0, start, rec, 0, spp=base_spp, repeats=3)
-    # The base is the LM's fixed-seed optimum, whose albedo leans low (render-noise bias; a
-    # converged estimator run does not). Session 22 tried the decorrelated step from it as
-    # the base: on refractive_boundary-1 that step moved the misfitting base model's sigma_t
-    # by 15 % and the diagnosis then named sensor_nonlinearity beside the boundary. Kept as
-    # in v7, so that v8 differs from v7 only in the final refit's decorrelated step.
-    bf = refit(m0, rec, start, _free_names(m0, []), spp=base_spp, seed=11, iterations=20,
-               model_variance=e0.model_variance * 3, noise_scale=e0.residuals.noise_scale)
-    t_base = time.perf_counter() - t0
-    d = diagnose_channel(rec, BaseFit(bf.parameters, bf.scale, "hg", [], bf.uncertainties), make_model, spp=spp,
-                         iterations=refit_iterations, repeats=6)
+    cached = base_from / f"{case['id']}.json" if base_from is not None else None
+    if cached is not None and cached.is_file():
+        prior = json.loads(cached.read_text())
+        if prior.get("base_fit_spp", base_spp) != base_spp:
+            raise ValueError(f"{cached}: its base fit is at {prior.get('base_fit_spp')} spp, not {base_spp}")
+        base = BaseFit({k: float(v) for k, v in prior["material_before"].items()}, float(prior["scale_before"]),
+                       "hg", [], {})
+        t_base = float(prior.get("base_fit_time_s") or 0.0)
+    else:
+        if cached is not None:
+            raise FileNotFoundError(f"{cached}: no cached result to take the base fit from")
+        e0 = evaluate(m0, start, rec, 0, spp=base_spp, repeats=3)
+        # The base is the LM's fixed-seed optimum, whose albedo leans low (render-noise bias; a
+        # converged estimator run does not). Session 22 tried the decorrelated step from it as
+        # the base: on refractive_boundary-1 that step moved the misfitting base model's sigma_t
+        # by 15 % and the diagnosis then named sensor_nonlinearity beside the boundary. Kept as
+        # in v7, so that v8 differs from v7 only in the final refit's decorrelated step.
+        bf = refit(m0, rec, start, _free_names(m0, []), spp=base_spp, seed=11, iterations=20,
+                   model_variance=e0.model_variance * 3, noise_scale=e0.residuals.noise_scale)
+        base = BaseFit(bf.parameters, bf.scale, "hg", [], bf.uncertainties)
+        t_base = time.perf_counter() - t0
+    d = diagnose_channel(rec, base, make_model, spp=spp, iterations=refit_iterations, repeats=6,
+                         refit_objective=refits)
     out = d.as_dict()
     out["base_fit_time_s"] = t_base
     out["base_fit_spp"] = base_spp
+    if cached is not None:
+        out["base_fit_from"] = str(cached.relative_to(ROOT)) if cached.is_relative_to(ROOT) else str(cached)
     # Which renderer ran (the times are the device's): like bench_estimate and bench_paper_sim.
     out["variant"] = init_mitsuba().variant()
     out["truth"] = {k: TRUE[k] for k in TRUE}
@@ -674,6 +698,13 @@ def main() -> int:
     ap.add_argument("--refit-iterations", type=int, default=REFIT_ITERATIONS,
                     help=f"synthetic: LM iterations of the diagnosis' refits (default {REFIT_ITERATIONS}); "
                          "cached and reported apart when not the default")
+    ap.add_argument("--refits", choices=("fixed-seed", "decorrelated"), default="fixed-seed",
+                    help="synthetic: what the diagnosis' refits minimise (rig diagnose --refits); "
+                         "decorrelated is cached and reported apart")
+    ap.add_argument("--base-from", default=None, metavar="CACHE",
+                    help="synthetic: take each case's base fit from this cache directory (a name under "
+                         "benchmarks/results/diagnose_cases/ or a path) of a run with the same recording and "
+                         "base fit settings, instead of fitting it again")
     ap.add_argument("--angles", type=int, default=8, help="bench: light angles captured")
     ap.add_argument("--excess", type=float, default=30.0,
                     help="synthetic: frozen white pixel noise, in units of the variance channel (default 30)")
@@ -706,6 +737,20 @@ def main() -> int:
         ap.error(f"--refit-iterations {args.refit_iterations}: must be at least 1")
     if args.source == "synthetic" and args.refit_iterations != REFIT_ITERATIONS:
         variant_tag += f"-it{args.refit_iterations}"
+    if args.refits != "fixed-seed":
+        if args.source != "synthetic":
+            ap.error("--refits is for --source synthetic (the bench runs rig diagnose with its defaults)")
+        variant_tag += "-dec"
+    base_from = None
+    if args.base_from is not None:
+        if args.source != "synthetic":
+            ap.error("--base-from is for --source synthetic")
+        base_from = Path(args.base_from)
+        if not base_from.is_dir():
+            base_from = RESULTS / "diagnose_cases" / args.base_from
+        if not base_from.is_dir():
+            ap.error(f"--base-from {args.base_from}: no such cache directory (here or under "
+                     f"{RESULTS / 'diagnose_cases'})")
     # The bench cache keeps the captured sessions (expensive): one spp per cache, --fresh to redo.
     cache = RESULTS / "diagnose_cases" / (args.source if args.source == "bench"
                                           else f"synthetic-{SYNTHETIC_VERSION}-excess{args.excess:g}-spp{args.spp}{variant_tag}")
@@ -745,7 +790,7 @@ def main() -> int:
             try:
                 if args.source == "synthetic":
                     res = run_synthetic(case, args.spp, args.excess, args.base_spp, args.columns,
-                                        args.refit_iterations)
+                                        args.refit_iterations, args.refits, base_from)
                 else:
                     res = run_bench(case, cache / case["id"], args.channel, args.angles, args.spp,
                                     final_fit=not quick_rig)
@@ -766,7 +811,8 @@ def main() -> int:
         text = text.replace("recordings,", f"recordings with frozen white noise {args.excess:g} x the variance "
                             f"channel, diagnosis at {args.spp} spp"
                             f"{f', base fit at {args.base_spp} spp' if args.base_spp != BASE_SPP else ''}"
-                            f"{f', {args.columns}-px profile window' if args.columns != SYNTHETIC_COLUMNS else ''},", 1)
+                            f"{f', {args.columns}-px profile window' if args.columns != SYNTHETIC_COLUMNS else ''}"
+                            f"{', decorrelated refits' if args.refits == 'decorrelated' else ''},", 1)
         summary["excess"] = args.excess
     print()
     print(text)

@@ -69,7 +69,7 @@ from typing import Any, ClassVar, NamedTuple
 import numpy as np
 from scipy import stats
 
-from estimate.diagnosis_report import plot_diagnosis, summary_text
+from estimate.diagnosis_report import plot_diagnosis, refit_name, summary_text
 from estimate.errors import DataError, EstimateError, ModelParameterError
 from estimate.extensions import EXTENSIONS
 from estimate.fit import FitResult, FitSettings, fit_channel
@@ -78,6 +78,8 @@ from estimate.loss import ScaleCalibration, calibrated_scale, reference_delta
 from estimate.refit import (
     DEFAULT_REPEATS,
     DEFAULT_SEED,
+    FIXED_SEED,
+    OBJECTIVES,
     Evaluation,
     RefitResult,
     evaluate,
@@ -223,7 +225,8 @@ class FirstRound:
     about 105 s of the pass's 229 s (session 37). Kept in memory only, never in the report.
     """
 
-    #: (spp, seed, repeats, iterations, base parameters, base extensions): reused only where all match
+    #: (spp, seed, repeats, iterations, refit objective, base parameters, base extensions):
+    #: reused only where all match
     key: tuple[Any, ...]
     before: Evaluation
     localisation: dict[str, Any]
@@ -234,8 +237,8 @@ class FirstRound:
 
 
 def _first_round_key(problem: Any, base: BaseFit, spp: int, seed: int, repeats: int,
-                     iterations: int) -> tuple[Any, ...]:
-    return (id(problem), spp, seed, repeats, iterations, tuple(sorted(base.parameters.items())),
+                     iterations: int, objective: str = FIXED_SEED) -> tuple[Any, ...]:
+    return (id(problem), spp, seed, repeats, iterations, objective, tuple(sorted(base.parameters.items())),
             tuple(base.extensions))
 
 
@@ -296,6 +299,8 @@ class ChannelDiagnosis:
     #: excess (`diagnose_channel`'s `min_share`): the effects, the share, the reduced chi^2 at
     #: the floor before and with them, the material with them
     partial: dict[str, Any] = field(default_factory=dict)
+    #: what the refits minimised (`estimate.refit.OBJECTIVES`)
+    refit_objective: str = FIXED_SEED
 
     #: the fields that describe the named model and its fits (`adopt_named_model`)
     NAMED_MODEL_FIELDS: ClassVar[tuple[str, ...]] = (
@@ -356,6 +361,7 @@ class ChannelDiagnosis:
             "time_s": self.time_s,
             "time_by_stage_s": {k: self.stage_times_s[k] for k in DIAGNOSIS_STAGES if k in self.stage_times_s},
             "model_stage": self.model_stage or None,
+            "refit_objective": self.refit_objective,
             "refit_lm": ({"parameters": _plain(self.lm_after.parameters), "scale": self.lm_after.scale,
                           "reduced_chi2": self.lm_after.residuals.reduced_chi2,
                           "reduced_chi2_adjusted": self.lm_after.residuals.reduced_chi2_adjusted,
@@ -561,7 +567,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                      log: Callable[[str], None] | None = None,
                      final_fit_follows: bool = False, max_confirm: int = MAX_CONFIRM,
                      max_effects: int = MAX_EFFECTS, refit_checks_decide: bool = True,
-                     reuse: FirstRound | None = None, min_share: float = 0.0) -> ChannelDiagnosis:
+                     reuse: FirstRound | None = None, min_share: float = 0.0,
+                     refit_objective: str = FIXED_SEED) -> ChannelDiagnosis:
     """Diagnose one channel.
 
     Args:
@@ -593,7 +600,15 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             this share of the excess (`explained_share`; `QUICK_MIN_SHARE` where this
             diagnosis' model is the final one); else they are reported in `partial` and no
             cause is named.
+        refit_objective: what every refit minimises (`estimate.refit.OBJECTIVES`): the
+            chi^2 of one render seed (FIXED_SEED, Levenberg-Marquardt) or the decorrelated
+            chi^2 of two (DECORRELATED, Gauss-Newton): the control, the candidates, their
+            neutral points and the joint refit alike, so that every paired comparison is
+            between losses of one kind. With DECORRELATED the final refit needs no
+            decorrelated step of its own.
     """
+    if refit_objective not in OBJECTIVES:
+        raise ModelParameterError(f"refit objective {refit_objective!r}: expected one of {', '.join(OBJECTIVES)}")
     laps = _Laps()
     say = log or (lambda s: None)
     cands = [c for c in (candidates or CANDIDATES) if c not in base.extensions]
@@ -605,7 +620,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         raise EstimateError(f"channel {problem.channel}: at least two light angles are needed to diagnose a fit")
     base_model = make_model(base.extensions)
     base_free = _free_names(base_model, base.extensions)
-    key = _first_round_key(problem, base, spp, seed, repeats, iterations)
+    key = _first_round_key(problem, base, spp, seed, repeats, iterations, refit_objective)
     if reuse is not None and (reuse.key != key or not set(cands) <= {c.name for c in reuse.scores}):
         reuse = None
     if reuse is not None:
@@ -640,7 +655,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         m = make_model(exts)
         p0 = {k: v for k, v in start.items() if k in m.parameter_names}
         return refit(m, problem, p0, _free_names(m, exts), spp=FINAL_SPP_FACTOR * spp, seed=seed + 303,
-                     model_variance=mv, noise_scale=floor, **how)
+                     model_variance=mv, noise_scale=floor, objective=refit_objective, **how)
 
     def settle(exts: list[str], start: Mapping[str, float], mv: np.ndarray) -> tuple[RefitResult, Evaluation]:
         """`joint_refit`, evaluated; without uncertainties: only the last model's are wanted,
@@ -771,7 +786,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             control = first_round.control
         else:
             control = _control(problem, cur_model, current, current_exts, train, held, spp=spp, seed=seed,
-                               repeats=repeats, iterations=iterations, floor=floor, yardstick=yardstick)
+                               repeats=repeats, iterations=iterations, floor=floor, yardstick=yardstick,
+                               objective=refit_objective)
             if round_one:
                 first_round.control = control
         cur_train, ctrl_tr = control.train_before, control.train_control
@@ -783,7 +799,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             f"{ctrl_tr.residuals.chi2_adjusted:.0f}")
         # The candidates' refits: the control's seed, spp, angles and weights.
         cand_how = {"angle_idx": train, "spp": spp, "seed": seed + 202,
-                    "model_variance": current.model_variance * repeats, "noise_scale": floor}
+                    "model_variance": current.model_variance * repeats, "noise_scale": floor,
+                    "objective": refit_objective}
 
         if runners_first:
             say("  no candidate flagged by the screening: refitting the runner-up" + ("s " if len(leading) > 1 else " ")
@@ -863,7 +880,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         full = finish(current_exts, full, last_full[1])
         pruned, rises = _prune(problem, make_model, confirmed, current_exts, full, spp=spp, seed=seed,
                                model_variance=last_full[1], floor=floor,
-                               n_obs=int(np.sum(np.isfinite(current.residuals.r))))
+                               n_obs=int(np.sum(np.isfinite(current.residuals.r))), objective=refit_objective)
         drop = [e["effect"] for e in pruned if e["dropped"]]
         for e in pruned:
             say(f"  {e['effect']} with the others in the model: setting it to absent raises chi2 by "
@@ -925,7 +942,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                             importance=importance, fixed_seed_after=fixed_seed, parameter_ranges=ranges,
                             stage_times_s=dict(laps.seconds),
                             model_stage="deferred" if deferred is not None else "refit" if confirmed else "",
-                            first_round=first_round, partial=partial)
+                            first_round=first_round, partial=partial, refit_objective=refit_objective)
 
 
 def explained_share(before: Evaluation, after: Evaluation) -> float:
@@ -960,7 +977,7 @@ def partial_explanation(before: Evaluation, after: Evaluation, effects: Sequence
 
 def _control(problem: Any, model: Any, current: Evaluation, exts: Sequence[str], train: Sequence[int],
              held: Sequence[int], *, spp: int, seed: int, repeats: int, iterations: int, floor: np.ndarray,
-             yardstick: np.ndarray) -> Control:
+             yardstick: np.ndarray, objective: str = FIXED_SEED) -> Control:
     """The control of a confirmation round: the current model refitted alone, with the
     candidates' optimiser, seeds and training angles. A candidate must beat this, not the fit
     as given: when the fit to diagnose stopped far from its optimum, any extension's refit
@@ -970,7 +987,7 @@ def _control(problem: Any, model: Any, current: Evaluation, exts: Sequence[str],
                          angle_idx=train, noise_variance=yardstick)
     ctrl = refit(model, problem, current.parameters, _free_names(model, exts), angle_idx=train,
                  spp=spp, seed=seed + 202, iterations=iterations, model_variance=current.model_variance * repeats,
-                 noise_scale=floor, uncertainties=False)
+                 noise_scale=floor, uncertainties=False, objective=objective)
     ctrl_tr = evaluate(model, ctrl.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats,
                        angle_idx=train, noise_variance=yardstick)
     # Candidates are judged against the control in pairs: same seed, spp, angles,
@@ -1161,7 +1178,7 @@ def _prune_final(problem: Any, model: Any, params: Mapping[str, float], confirme
 
 def _prune(problem: Any, make_model: ModelFactory, confirmed: Sequence[str], exts: Sequence[str],
            full: RefitResult, *, spp: int, seed: int, model_variance: np.ndarray, floor: np.ndarray,
-           n_obs: int) -> tuple[list[dict[str, Any]], dict[str, float]]:
+           n_obs: int, objective: str = FIXED_SEED) -> tuple[list[dict[str, Any]], dict[str, float]]:
     """Backward check of the effects confirmed before the last one, in the joint model.
 
     Effects are added one per round, each judged against the model of the rounds before it.
@@ -1195,7 +1212,7 @@ def _prune(problem: Any, make_model: ModelFactory, confirmed: Sequence[str], ext
     for e in confirmed:
         neutral = refit(m, problem, _neutral_magnitudes(m, full.parameters, e), free,
                         spp=FINAL_SPP_FACTOR * spp, seed=seed + 303, iterations=0,
-                        model_variance=model_variance, noise_scale=floor, uncertainties=False)
+                        model_variance=model_variance, noise_scale=floor, uncertainties=False, objective=objective)
         rises[e] = float(neutral.chi2 - full.chi2)
         if e == confirmed[-1]:
             continue  # the last one passed its bar in the model with all the others
@@ -1314,7 +1331,8 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
     d.final_fit = info
     if not kept:
         info["reason"] = (f"the estimator's fit ends at reduced chi2 {a.reduced_chi2_adjusted:.3g} at the noise floor, "
-                          f"above the base fit's {b.reduced_chi2_adjusted:.3g}: the Levenberg-Marquardt refit is kept")
+                          f"above the base fit's {b.reduced_chi2_adjusted:.3g}: the "
+                          f"{refit_name(d.refit_objective)} is kept")
         say(f"  {info['reason']}")
         if d.model_stage == "deferred" or len(d.confirmed) == 1:
             # The joint refit's backward check was left to the final fit; the refit kept
@@ -1433,7 +1451,8 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
         f"({', '.join(flagged)}) from the base fit")
     d2 = diagnose_channel(problem, base, make_model, candidates=flagged, spp=spp, seed=seed, repeats=repeats,
                           iterations=iterations, log=log, final_fit_follows=True, max_confirm=len(flagged),
-                          max_effects=1, refit_checks_decide=False, reuse=d.first_round)
+                          max_effects=1, refit_checks_decide=False, reuse=d.first_round,
+                          refit_objective=d.refit_objective)
     chosen = list(d2.confirmed)
     fr2 = None
     if chosen:
@@ -1696,7 +1715,7 @@ def _check_same_session(session_dir: Any, run_doc: Mapping[str, Any], run_dir: A
 def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[str] | None = None,
                   channels: Sequence[str] | None = None, spp: int = 256, repeats: int = DEFAULT_REPEATS,
                   iterations: int = 8, seed: int = DEFAULT_SEED, plots: bool = True, log: Callable[[str], None] | None = None,
-                  refine: bool = True,
+                  refine: bool = True, refit_objective: str = FIXED_SEED,
                   fit_progress: Callable[[str, str], tuple[Callable[[int, float, int], None], Callable[[str], None]]]
                   | None = None) -> dict[str, Any]:
     """Diagnose every channel of an estimate run of a session and write the results.
@@ -1726,6 +1745,8 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
     for e in effects or ():
         if e not in EXTENSIONS:
             raise ModelParameterError(f"unknown effect {e!r}; known: {', '.join(sorted(EXTENSIONS))}")
+    if refit_objective not in OBJECTIVES:
+        raise ModelParameterError(f"refit objective {refit_objective!r}: expected one of {', '.join(OBJECTIVES)}")
     session = Path(session_dir)
     run_dir = _resolve_fit(session, fit_run)
     doc = read_run(run_dir)
@@ -1740,6 +1761,7 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
     out: dict[str, Any] = {"format": "rig-diagnosis/1", "fit_run": str(run_dir), "session": str(session.resolve()),
                            "created": datetime.now(UTC).isoformat(timespec="seconds"),
                            "settings": {"spp": spp, "repeats": repeats, "iterations": iterations, "seed": seed,
+                                        "refit_objective": refit_objective,
                                         "effects": list(effects) if effects else list(CANDIDATES),
                                         "final_fit": "estimator" if refine else "levenberg-marquardt"},
                            "channels": {}}
@@ -1769,7 +1791,7 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
                                           if v is not None})
         d = diagnose_channel(pb, base, make_model, candidates=effects, spp=spp, seed=seed, repeats=repeats,
                              iterations=iterations, log=log, final_fit_follows=refine,
-                             min_share=0.0 if refine else QUICK_MIN_SHARE)
+                             min_share=0.0 if refine else QUICK_MIN_SHARE, refit_objective=refit_objective)
         if refine and d.confirmed:
             cb_progress, cb_stage = fit_progress(ch, phase) if fit_progress else (None, None)
             fr = refine_channel(pb, d, make_model, fit_settings, spp=spp, seed=seed, repeats=repeats, log=log,
@@ -1801,7 +1823,7 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
                 uncertainties=dict(d.uncertainties_after) if d.after else dict(d.before_uncertainties),
                 fixed={}, scale=ev.scale, scale_uncertainty=float("nan"), loss=float("nan"), delta_rel=float("nan"),
                 chi2=ev.residuals.chi2, dof=ev.residuals.dof, reduced_chi2=ev.residuals.reduced_chi2,
-                iterations=0, time_s=d.time_s, stop_reason="diagnosis refit (Levenberg-Marquardt)",
+                iterations=0, time_s=d.time_s, stop_reason=f"diagnosis {refit_name(d.refit_objective)}",
                 spp_schedule=[[0, spp]], loss_curve=[float(ev.residuals.chi2)],
                 angles_deg=[float(a) for a in problems[ch].angles_deg], fitted=ev.model,
                 model_variance=ev.model_variance, start=dict(d.before.parameters), settings={},

@@ -14,7 +14,7 @@ import numpy as np
 if TYPE_CHECKING:
     from estimate.diagnose import ChannelDiagnosis
 
-__all__ = ["plot_diagnosis", "summary_text"]
+__all__ = ["plot_diagnosis", "refit_name", "summary_text"]
 
 
 def plot_diagnosis(out_dir: Any, d: ChannelDiagnosis, problem: Any) -> list[Any]:
@@ -85,6 +85,12 @@ def _exit_bar_text(e: Mapping[str, Any]) -> str:
 #: How the summary names the stages of `estimate.diagnose.DIAGNOSIS_STAGES`.
 STAGE_WORDS = {"locate": "evaluating the fit", "screening": "screening", "confirmation": "confirming refits",
                "model": "the model with the confirmed effects", "final_fit": "the estimator's final fit"}
+
+
+def refit_name(objective: str | None) -> str:
+    """What the diagnosis' refits were, in words, from their objective (`estimate.refit.OBJECTIVES`)."""
+    return ("decorrelated Gauss-Newton refit" if objective == "decorrelated"
+            else "Levenberg-Marquardt refit")
 
 
 def summary_text(doc: Mapping[str, Any]) -> str:
@@ -197,7 +203,7 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                 # last confirmed candidate's refit (`estimate.diagnose.diagnose_channel`).
                 which = "the last candidate's" if d.get("model_stage") == "deferred" else "the"
                 print(f"  (final model fitted by the estimator, {ff['iterations']} iterations, {ff['time_s']:.0f} s; "
-                      f"{which} Levenberg-Marquardt refit had reduced chi2 {lm['reduced_chi2_adjusted']:.3f} at the floor, "
+                      f"{which} {refit_name(d.get('refit_objective'))} had reduced chi2 {lm['reduced_chi2_adjusted']:.3f} at the floor, "
                       + ", ".join(f"{k} {v:.4g}" for k, v in lm["material"].items() if k in ("sigma_t", "albedo"))
                       + ")", file=out)
             elif ff:
@@ -209,6 +215,10 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                       + ", ".join(f"{k} {v:.4g}" for k, v in fixed.items() if k in ("sigma_t", "albedo"))
                       + "), whose render noise biases it low in albedo; the estimator's final fit, without "
                       "--quick, is the reference)", file=out)
+            elif not ff.get("kept") and d.get("refit_objective") == "decorrelated":
+                print("  (sigma_t, albedo and the phase after are the decorrelated refit's: Gauss-Newton steps on the "
+                      "decorrelated chi^2 of two render seeds, which a fixed seed's render-noise bias does not reach; "
+                      "the estimator's final fit, without --quick, is the reference)", file=out)
             elif not ff.get("kept"):
                 spp = (doc.get("settings") or {}).get("spp")
                 print("  (sigma_t, albedo and the phase after are the Levenberg-Marquardt refit's: "

@@ -1,6 +1,7 @@
 """``rig diagnose SESSION/``: where a fit and the recording disagree, and which physics is missing.
 
-    rig diagnose SESSION/ [--fit RUN] [--effects a,b,...] [--channels rgb] [--spp 256] [--quick] [--json]
+    rig diagnose SESSION/ [--fit RUN] [--effects a,b,...] [--channels rgb] [--spp 256]
+                 [--refits fixed-seed|decorrelated] [--quick] [--json]
 
 Diagnoses the latest estimate run (or `--fit RUN`: a run id under SESSION/estimates/ or its
 path): tests the whole fit against the noise (the HDR variance scaled by an empirical
@@ -39,6 +40,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "to the data, and an effect may then stand in for the real one: confirmed effects are named "
                         "only if that model removes at least half of the excess reduced chi2 at the noise floor, "
                         "else no cause is named; the full run is the reference")
+    p.add_argument("--refits", choices=("fixed-seed", "decorrelated"), default="fixed-seed",
+                   help="what the confirmation's refits minimise: the chi2 of one render seed (fixed-seed, "
+                        "Levenberg-Marquardt; its optimum leans towards quieter renders, so a 256-px window wants "
+                        "about 2048 spp) or the decorrelated chi2 of two seeds (decorrelated, Gauss-Newton; no such "
+                        "lean, so fewer spp serve: see docs/diagnosis-log.md, session 45)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     p.add_argument("--json", action="store_true", help="print the diagnosis as JSON")
     p.add_argument("--no-progress", action="store_true",
@@ -74,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     with FitProgress(enabled=not (args.json or args.no_progress)) as live:
         doc = run_diagnosis(session, args.fit, effects=effects, channels=_list(args.channels, True), spp=args.spp,
                             seed=args.seed, plots=not args.no_plots, log=log, refine=not args.quick,
-                            fit_progress=live.channel)
+                            fit_progress=live.channel, refit_objective=args.refits)
     if args.json:
         print(json.dumps(doc, indent=1, default=float))
     else:
