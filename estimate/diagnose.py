@@ -78,6 +78,7 @@ from estimate.loss import ScaleCalibration, calibrated_scale, reference_delta
 from estimate.refit import (
     DEFAULT_REPEATS,
     DEFAULT_SEED,
+    DECORRELATED,
     FIXED_SEED,
     OBJECTIVES,
     Evaluation,
@@ -605,7 +606,9 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             chi^2 of two (DECORRELATED, Gauss-Newton): the control, the candidates, their
             neutral points and the joint refit alike, so that every paired comparison is
             between losses of one kind. With DECORRELATED the final refit needs no
-            decorrelated step of its own.
+            decorrelated step of its own, and the refits divide by the data's noise
+            (the yardstick, `_yardstick`) rather than by f^2 (var + s^2 var_model): that
+            loss has no render-variance term for the weights to hold.
     """
     if refit_objective not in OBJECTIVES:
         raise ModelParameterError(f"refit objective {refit_objective!r}: expected one of {', '.join(OBJECTIVES)}")
@@ -638,6 +641,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         f"(smooth structure as fitted p={before.residuals.p_value_smooth:.2g}; the test that decides comes "
         f"with the screening); {loc['summary']}")
     train, held = _holdout(n)
+    # Decorrelated refits divide by the data's noise alone (`refit`'s `noise_variance`).
+    noise_how: dict[str, Any] = {"noise_variance": yardstick} if refit_objective == DECORRELATED else {}
     laps("locate")
     current = before
     current_exts = list(base.extensions)
@@ -655,7 +660,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         m = make_model(exts)
         p0 = {k: v for k, v in start.items() if k in m.parameter_names}
         return refit(m, problem, p0, _free_names(m, exts), spp=FINAL_SPP_FACTOR * spp, seed=seed + 303,
-                     model_variance=mv, noise_scale=floor, objective=refit_objective, **how)
+                     model_variance=mv, noise_scale=floor, objective=refit_objective, **noise_how, **how)
 
     def settle(exts: list[str], start: Mapping[str, float], mv: np.ndarray) -> tuple[RefitResult, Evaluation]:
         """`joint_refit`, evaluated; without uncertainties: only the last model's are wanted,
@@ -800,7 +805,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         # The candidates' refits: the control's seed, spp, angles and weights.
         cand_how = {"angle_idx": train, "spp": spp, "seed": seed + 202,
                     "model_variance": current.model_variance * repeats, "noise_scale": floor,
-                    "objective": refit_objective}
+                    "objective": refit_objective, **noise_how}
 
         if runners_first:
             say("  no candidate flagged by the screening: refitting the runner-up" + ("s " if len(leading) > 1 else " ")
@@ -880,7 +885,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         full = finish(current_exts, full, last_full[1])
         pruned, rises = _prune(problem, make_model, confirmed, current_exts, full, spp=spp, seed=seed,
                                model_variance=last_full[1], floor=floor,
-                               n_obs=int(np.sum(np.isfinite(current.residuals.r))), objective=refit_objective)
+                               n_obs=int(np.sum(np.isfinite(current.residuals.r))), objective=refit_objective,
+                               noise_variance=noise_how.get("noise_variance"))
         drop = [e["effect"] for e in pruned if e["dropped"]]
         for e in pruned:
             say(f"  {e['effect']} with the others in the model: setting it to absent raises chi2 by "
@@ -987,7 +993,8 @@ def _control(problem: Any, model: Any, current: Evaluation, exts: Sequence[str],
                          angle_idx=train, noise_variance=yardstick)
     ctrl = refit(model, problem, current.parameters, _free_names(model, exts), angle_idx=train,
                  spp=spp, seed=seed + 202, iterations=iterations, model_variance=current.model_variance * repeats,
-                 noise_scale=floor, uncertainties=False, objective=objective)
+                 noise_scale=floor, uncertainties=False, objective=objective,
+                 noise_variance=yardstick if objective == DECORRELATED else None)
     ctrl_tr = evaluate(model, ctrl.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats,
                        angle_idx=train, noise_variance=yardstick)
     # Candidates are judged against the control in pairs: same seed, spp, angles,
@@ -1178,7 +1185,8 @@ def _prune_final(problem: Any, model: Any, params: Mapping[str, float], confirme
 
 def _prune(problem: Any, make_model: ModelFactory, confirmed: Sequence[str], exts: Sequence[str],
            full: RefitResult, *, spp: int, seed: int, model_variance: np.ndarray, floor: np.ndarray,
-           n_obs: int, objective: str = FIXED_SEED) -> tuple[list[dict[str, Any]], dict[str, float]]:
+           n_obs: int, objective: str = FIXED_SEED,
+           noise_variance: np.ndarray | None = None) -> tuple[list[dict[str, Any]], dict[str, float]]:
     """Backward check of the effects confirmed before the last one, in the joint model.
 
     Effects are added one per round, each judged against the model of the rounds before it.
@@ -1212,7 +1220,8 @@ def _prune(problem: Any, make_model: ModelFactory, confirmed: Sequence[str], ext
     for e in confirmed:
         neutral = refit(m, problem, _neutral_magnitudes(m, full.parameters, e), free,
                         spp=FINAL_SPP_FACTOR * spp, seed=seed + 303, iterations=0,
-                        model_variance=model_variance, noise_scale=floor, uncertainties=False, objective=objective)
+                        model_variance=model_variance, noise_scale=floor, uncertainties=False, objective=objective,
+                        noise_variance=noise_variance)
         rises[e] = float(neutral.chi2 - full.chi2)
         if e == confirmed[-1]:
             continue  # the last one passed its bar in the model with all the others

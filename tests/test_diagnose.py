@@ -1317,6 +1317,16 @@ def test_a_decorrelated_refits_loss_is_its_end_points_and_pairs_with_an_evaluati
     assert full.chi2 < fixed.chi2
     with pytest.raises(ValueError, match="objective"):
         refit(toy, rec, truth, ["toy.w"], objective="both")
+    with pytest.raises(ValueError, match="noise_variance"):
+        refit(toy, rec, truth, ["toy.w"], noise_variance=np.ones(mean.shape))
+    # dividing by the data's noise alone (the diagnosis' yardstick) weighs the same loss
+    # without the render-variance term in its weights: larger, the same point function
+    nv = np.full(mean.shape, 1e-4)
+    own = refit(toy, rec, full.parameters, ["toy.w", "toy.c"], iterations=0, uncertainties=False,
+                noise_variance=nv, **kw)
+    assert own.chi2 > full.chi2
+    assert refit(toy, rec, full.parameters, ["toy.w", "toy.c"], iterations=0, uncertainties=False,
+                 noise_variance=nv, **kw).chi2 == own.chi2
 
 
 class _Fireflies:
