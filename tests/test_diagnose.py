@@ -1206,20 +1206,25 @@ class _NoisyWidth:
         return out
 
 
+def _width_recordings(count: int, seed: int = 3) -> tuple[_NoisyWidth, dict[str, float], np.ndarray, list[Recording]]:
+    """`count` recordings of `_NoisyWidth` at w = 1, c = 0.2 (three angles, noise 0.01)."""
+    toy = _NoisyWidth()
+    truth = {"toy.w": 1.0, "toy.c": 0.2}
+    rng = np.random.default_rng(seed)
+    mean = np.tile(toy.mean(truth), (3, 1))
+    recs = [Recording(np.array([10.0, 20.0, 30.0]), toy.x, mean + rng.normal(0.0, 0.01, mean.shape),
+                      np.full(mean.shape, 1e-4), None, None) for _ in range(count)]
+    return toy, truth, mean, recs
+
+
 def test_decorrelated_step_removes_the_fixed_seed_refits_render_noise_bias():
     """Twelve recordings of w = 1, each refitted at its own seed: the LM's fixed-seed
     optimum sits several of its standard errors narrow; one Gauss-Newton step on the two
     seeds' decorrelated chi^2 lands within 2.5 of the truth. The scale (the noise grows
     with it too) follows."""
-    toy = _NoisyWidth()
-    truth = {"toy.w": 1.0, "toy.c": 0.2}
-    angles = [10.0, 20.0, 30.0]
-    rng = np.random.default_rng(3)
-    mean = np.tile(toy.mean(truth), (3, 1))
+    toy, truth, mean, recs = _width_recordings(12)
     lm, dec, scales = [], [], []
-    for k in range(12):
-        rec = Recording(np.array(angles), toy.x, mean + rng.normal(0.0, 0.01, mean.shape), np.full(mean.shape, 1e-4),
-                  None, None)
+    for k, rec in enumerate(recs):
         r = refit(toy, rec, truth, ["toy.w", "toy.c"], spp=64, seed=100 + k, iterations=20,
                   model_variance=(0.3 * mean) ** 2, decorrelate=True)
         lm.append(r.parameters["toy.w"])
@@ -1239,12 +1244,7 @@ def test_a_refits_uncertainties_can_be_skipped_and_added_later_from_its_optimum(
     """`uncertainties=False` returns the same optimum without the uncertainties' renders;
     `iterations=0` from that optimum adds them (and the decorrelated step) as the full
     refit would have: the diagnosis's rounds skip them and only the last model gets them."""
-    toy = _NoisyWidth()
-    truth = {"toy.w": 1.0, "toy.c": 0.2}
-    angles = [10.0, 20.0, 30.0]
-    mean = np.tile(toy.mean(truth), (3, 1))
-    rec = Recording(np.array(angles), toy.x, mean + np.random.default_rng(5).normal(0.0, 0.01, mean.shape),
-                    np.full(mean.shape, 1e-4), None, None)
+    toy, _, mean, (rec,) = _width_recordings(1, seed=5)
     kw = {"spp": 64, "seed": 100, "model_variance": (0.3 * mean) ** 2}
     counts = []
     fits = []
@@ -1269,15 +1269,9 @@ def test_decorrelated_refit_iterates_to_the_truth_where_the_fixed_seed_refit_lea
     """Twelve recordings of w = 1, refitted from w 1.4 at their own seeds: the fixed-seed LM
     ends several standard errors narrow; the refit on the two seeds' decorrelated chi^2
     (`objective=DECORRELATED`) ends within 2.5 of the truth, in more than one step."""
-    toy = _NoisyWidth()
-    truth = {"toy.w": 1.0, "toy.c": 0.2}
-    angles = [10.0, 20.0, 30.0]
-    rng = np.random.default_rng(3)
-    mean = np.tile(toy.mean(truth), (3, 1))
+    toy, _, mean, recs = _width_recordings(12)
     lm, dec, its = [], [], []
-    for k in range(12):
-        rec = Recording(np.array(angles), toy.x, mean + rng.normal(0.0, 0.01, mean.shape),
-                        np.full(mean.shape, 1e-4), None, None)
+    for k, rec in enumerate(recs):
         kw = {"spp": 64, "seed": 100 + k, "iterations": 20, "model_variance": (0.3 * mean) ** 2,
               "uncertainties": False}
         lm.append(refit(toy, rec, {"toy.w": 1.4, "toy.c": 0.0}, ["toy.w", "toy.c"], **kw).parameters["toy.w"])
@@ -1297,12 +1291,7 @@ def test_a_decorrelated_refits_loss_is_its_end_points_and_pairs_with_an_evaluati
     uncertainties, so a candidate's neutral point and its control compare in one metric.
     The loss is the decorrelated chi^2 of the two seeds' renders, below the fixed-seed
     chi^2 at the same point by about the render noise's share."""
-    toy = _NoisyWidth()
-    truth = {"toy.w": 1.0, "toy.c": 0.2}
-    angles = [10.0, 20.0, 30.0]
-    mean = np.tile(toy.mean(truth), (3, 1))
-    rec = Recording(np.array(angles), toy.x, mean + np.random.default_rng(5).normal(0.0, 0.01, mean.shape),
-                    np.full(mean.shape, 1e-4), None, None)
+    toy, truth, mean, (rec,) = _width_recordings(1, seed=5)
     kw = {"spp": 64, "seed": 100, "model_variance": (0.3 * mean) ** 2, "objective": DECORRELATED}
     full = refit(toy, rec, {"toy.w": 1.4, "toy.c": 0.0}, ["toy.w", "toy.c"], iterations=20, **kw)
     bare = refit(toy, rec, {"toy.w": 1.4, "toy.c": 0.0}, ["toy.w", "toy.c"], iterations=20, uncertainties=False,
