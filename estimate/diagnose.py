@@ -76,9 +76,9 @@ from estimate.fit import FitResult, FitSettings, fit_channel
 from estimate.gauss_newton import secant_steps
 from estimate.loss import ScaleCalibration, calibrated_scale, reference_delta
 from estimate.refit import (
+    DECORRELATED,
     DEFAULT_REPEATS,
     DEFAULT_SEED,
-    DECORRELATED,
     FIXED_SEED,
     OBJECTIVES,
     Evaluation,
@@ -641,8 +641,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         f"(smooth structure as fitted p={before.residuals.p_value_smooth:.2g}; the test that decides comes "
         f"with the screening); {loc['summary']}")
     train, held = _holdout(n)
-    # Decorrelated refits divide by the data's noise alone (`refit`'s `noise_variance`).
-    noise_how: dict[str, Any] = {"noise_variance": yardstick} if refit_objective == DECORRELATED else {}
+    noise_how = _refit_noise(refit_objective, yardstick)
     laps("locate")
     current = before
     current_exts = list(base.extensions)
@@ -981,6 +980,12 @@ def partial_explanation(before: Evaluation, after: Evaluation, effects: Sequence
             "material_with": {k: after.parameters[k] for k in material}}
 
 
+def _refit_noise(objective: str, yardstick: np.ndarray) -> dict[str, Any]:
+    """`refit`'s noise argument for a diagnosis' refits: decorrelated refits divide by the
+    data's noise alone (the yardstick); fixed-seed ones keep their render's variance."""
+    return {"noise_variance": yardstick} if objective == DECORRELATED else {}
+
+
 def _control(problem: Any, model: Any, current: Evaluation, exts: Sequence[str], train: Sequence[int],
              held: Sequence[int], *, spp: int, seed: int, repeats: int, iterations: int, floor: np.ndarray,
              yardstick: np.ndarray, objective: str = FIXED_SEED) -> Control:
@@ -993,8 +998,7 @@ def _control(problem: Any, model: Any, current: Evaluation, exts: Sequence[str],
                          angle_idx=train, noise_variance=yardstick)
     ctrl = refit(model, problem, current.parameters, _free_names(model, exts), angle_idx=train,
                  spp=spp, seed=seed + 202, iterations=iterations, model_variance=current.model_variance * repeats,
-                 noise_scale=floor, uncertainties=False, objective=objective,
-                 noise_variance=yardstick if objective == DECORRELATED else None)
+                 noise_scale=floor, uncertainties=False, objective=objective, **_refit_noise(objective, yardstick))
     ctrl_tr = evaluate(model, ctrl.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats,
                        angle_idx=train, noise_variance=yardstick)
     # Candidates are judged against the control in pairs: same seed, spp, angles,

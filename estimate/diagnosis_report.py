@@ -11,6 +11,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from estimate.refit import DECORRELATED
+
 if TYPE_CHECKING:
     from estimate.diagnose import ChannelDiagnosis
 
@@ -89,7 +91,7 @@ STAGE_WORDS = {"locate": "evaluating the fit", "screening": "screening", "confir
 
 def refit_name(objective: str | None) -> str:
     """What the diagnosis' refits were, in words, from their objective (`estimate.refit.OBJECTIVES`)."""
-    return ("decorrelated Gauss-Newton refit" if objective == "decorrelated"
+    return ("decorrelated Gauss-Newton refit" if objective == DECORRELATED
             else "Levenberg-Marquardt refit")
 
 
@@ -215,7 +217,7 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                       + ", ".join(f"{k} {v:.4g}" for k, v in fixed.items() if k in ("sigma_t", "albedo"))
                       + "), whose render noise biases it low in albedo; the estimator's final fit, without "
                       "--quick, is the reference)", file=out)
-            elif not ff.get("kept") and d.get("refit_objective") == "decorrelated":
+            elif not ff.get("kept") and d.get("refit_objective") == DECORRELATED:
                 print("  (sigma_t, albedo and the phase after are the decorrelated refit's: Gauss-Newton steps on the "
                       "decorrelated chi^2 of two render seeds, which a fixed seed's render-noise bias does not reach; "
                       "the estimator's final fit, without --quick, is the reference)", file=out)

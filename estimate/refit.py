@@ -491,12 +491,7 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
         model.jacobian(theta, angles, free, spp=spp, seed=seed, steps=steps), f, s, sig)
     As = [a_own, refit_columns(model.jacobian(theta, angles, free, spp=spp, seed=seed_b, steps=steps),
                                f_b, s, sig)]
-    n_obs = int(np.sum(np.isfinite(sig)))
-    red = chi2 / max(1, n_obs - len(free) - 1)
-    cov = cross_covariance(As[0], As[1]) * max(1.0, red)
-    unc = {n: float(math.sqrt(max(cov[j, j], 0.0))) if np.isfinite(cov[j, j]) else float("nan")
-           for j, n in enumerate(free)}
-    covd = {(a, b): float(cov[i, j]) for i, a in enumerate(free) for j, b in enumerate(free)}
+    unc, covd = _uncertainties(As[0], As[1], free, chi2, sig)
     dec: dict[str, float] | None = None
     dec_s: float | None = None
     if decorrelate:
@@ -506,6 +501,19 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
 
         dec, dec_s = decorrelated_step(both, meas, sig, theta, s, f, f_b, As[0], As[1], free, bounds)
     return RefitResult(theta, s, unc, chi2, it, covd, dec, dec_s)
+
+
+def _uncertainties(a: np.ndarray, b: np.ndarray, free: Sequence[str], chi2: float,
+                   sig: np.ndarray) -> tuple[dict[str, float], dict[tuple[str, str], float]]:
+    """A refit's 1-sigma uncertainties and covariance of `free` from two Jacobians with
+    independent render noise (`cross_covariance`), inflated by the reduced chi^2 where it
+    exceeds 1 (NaN where a parameter constrains nothing)."""
+    n_obs = int(np.sum(np.isfinite(sig)))
+    cov = cross_covariance(a, b) * max(1.0, chi2 / max(1, n_obs - len(free) - 1))
+    unc = {n: float(math.sqrt(max(cov[j, j], 0.0))) if np.isfinite(cov[j, j]) else float("nan")
+           for j, n in enumerate(free)}
+    covd = {(p, q): float(cov[i, j]) for i, p in enumerate(free) for j, q in enumerate(free)}
+    return unc, covd
 
 
 def _decorrelated_weights(meas: np.ndarray, var: np.ndarray, mv: np.ndarray | None, floor2: np.ndarray,
@@ -550,11 +558,11 @@ def _refit_decorrelated(model: Any, angles: Sequence[float], meas: np.ndarray, v
                          model.render_profiles(th, angles, spp=spp, seed=seed_b))
         return last[key]
 
+    fixed_sig = (None if noise_variance is None else
+                 np.sqrt(np.where(np.isfinite(var) & (noise_variance > 0), noise_variance, np.inf)))
+
     def weights(fa: np.ndarray, fb: np.ndarray) -> np.ndarray:
-        if noise_variance is not None:
-            nv = np.where(np.isfinite(var) & (noise_variance > 0), noise_variance, np.inf)
-            return np.sqrt(nv)
-        return _decorrelated_weights(meas, var, mv, floor2, fa, fb)
+        return fixed_sig if fixed_sig is not None else _decorrelated_weights(meas, var, mv, floor2, fa, fb)
 
     f_a, f_b = both(theta)
     sig = weights(f_a, f_b)
@@ -574,8 +582,8 @@ def _refit_decorrelated(model: Any, angles: Sequence[float], meas: np.ndarray, v
     for it in range(1, iterations + 1):
         a, b = jacobians(theta, s)
         jac_at = dict(theta)
-        new, s_new = decorrelated_step(both, meas, sig, theta, s, f_a, f_b, a, b, free, bounds, halvings=3,
-                                       max_noise=max_noise)
+        new, _ = decorrelated_step(both, meas, sig, theta, s, f_a, f_b, a, b, free, bounds, halvings=3,
+                                   max_noise=max_noise)
         if new == theta:
             _log.debug("decorrelated iteration %d: loss %.3f, no step", it, loss)
             break
@@ -587,18 +595,15 @@ def _refit_decorrelated(model: Any, angles: Sequence[float], meas: np.ndarray, v
         if gain < DECORRELATED_RTOL * max(abs(loss), 1.0):
             break
     if theta != start:
-        # The end point's loss at its own weights (its Jacobians then too).
-        sig = weights(f_a, f_b)
-        loss, s = decorrelated_chi2(meas, sig, f_a, f_b)
-        jac_at = None
+        # The end point's loss at its own weights; the Jacobians too where those moved.
+        end_sig = weights(f_a, f_b)
+        if end_sig is not sig:
+            sig = end_sig
+            loss, s = decorrelated_chi2(meas, sig, f_a, f_b)
+            jac_at = None
     if not uncertainties:
         return RefitResult(theta, s, {}, loss, it, objective=DECORRELATED)
     if jac_at != theta:
         a, b = jacobians(theta, s)
-    n_obs = int(np.sum(np.isfinite(sig)))
-    red = loss / max(1, n_obs - len(free) - 1)
-    cov = cross_covariance(a, b) * max(1.0, red)
-    unc = {n: float(math.sqrt(max(cov[j, j], 0.0))) if np.isfinite(cov[j, j]) else float("nan")
-           for j, n in enumerate(free)}
-    covd = {(p, q): float(cov[i, j]) for i, p in enumerate(free) for j, q in enumerate(free)}
+    unc, covd = _uncertainties(a, b, free, loss, sig)
     return RefitResult(theta, s, unc, loss, it, covd, objective=DECORRELATED)
