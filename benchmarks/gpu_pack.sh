@@ -33,6 +33,8 @@ done
 rm -rf "$tmp"/site/mitsuba/{include,cmake,pkgconfig,mitsuba_stubs}
 find "$tmp/site/mitsuba" -name '*.pyi' -delete
 (cd "$tmp/site" && tar cf - .) | xz -T0 -6 > .gpu/site.tar.xz
+# GPU_PACK=site packs the packages alone (what diagnose256 carries).
+if [ "${GPU_PACK:-all}" = site ]; then du -sh .gpu/site.tar.xz; exit 0; fi
 if [ ! -d .gpu/est_session ]; then
   .venv/bin/python benchmarks/bench_estimate.py --keep-session .gpu/est_session --out "$tmp/cpu.json"
 fi

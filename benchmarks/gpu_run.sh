@@ -72,12 +72,17 @@ paper)
   ;;
 diagnose256)
   # bench_diagnose.py's cache folder for these options (its SYNTHETIC_VERSION, not a copy of it)
-  cache=synthetic-$(python3 -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_diagnose as b; print(b.SYNTHETIC_VERSION)")-excess0-spp2048-base4096-cols256
+  # DIAG_SPP (2048) and DIAG_REFITS (fixed-seed; decorrelated adds the cache's -dec tag);
+  # DIAG_BASE_FROM names a cache whose base fits are reused (bench_diagnose.py --base-from).
+  spp=${DIAG_SPP:-2048}; refits=${DIAG_REFITS:-fixed-seed}
+  tag=""; [ "$refits" = decorrelated ] && tag=-dec
+  base_from=(); [ -n "${DIAG_BASE_FROM:-}" ] && base_from=(--base-from "$DIAG_BASE_FROM")
+  cache=synthetic-$(python3 -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_diagnose as b; print(b.SYNTHETIC_VERSION)")-excess0-spp$spp-base4096-cols256$tag
   mkdir -p benchmarks/results/diagnose_cases/$cache
   t=$(date +%s)
-  timeout "${DIAG_LIMIT_S:-560}" python3 benchmarks/bench_diagnose.py --excess 0 --spp 2048 --base-spp 4096 \
-    --columns 256 --only "${DIAG_CASES:-clean-1,beam_halo-1,beam_halo-2}" --time-budget "${DIAG_BUDGET_S:-420}" \
-    --label gpu 2>&1 | tee "$OUT/diagnose256.log"
+  timeout "${DIAG_LIMIT_S:-560}" python3 benchmarks/bench_diagnose.py --excess 0 --spp "$spp" --base-spp 4096 \
+    --columns 256 --refits "$refits" "${base_from[@]}" --only "${DIAG_CASES:-clean-1,beam_halo-1,beam_halo-2}" \
+    --time-budget "${DIAG_BUDGET_S:-420}" --label gpu 2>&1 | tee "$OUT/diagnose256.log"
   echo "diagnose256: wall $(( $(date +%s) - t )) s"
   (cd benchmarks/results/diagnose_cases && tar cf "$OUT/diagnose256_cases.tar" $cache/*.json)
   ;;
