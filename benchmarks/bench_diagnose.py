@@ -330,7 +330,7 @@ def _rig(*args: str, log: Path) -> str:
 
 
 def run_bench(case: dict[str, Any], work: Path, channel: str, angles: int, spp: int,
-              final_fit: bool = True) -> dict[str, Any]:
+              final_fit: bool = True, refits: str = "fixed-seed") -> dict[str, Any]:
     import yaml
 
     work.mkdir(parents=True, exist_ok=True)
@@ -355,7 +355,7 @@ def run_bench(case: dict[str, Any], work: Path, channel: str, angles: int, spp: 
                   and "+diagnosis" not in d.name)
     t0 = time.perf_counter()
     doc = json.loads(_rig("diagnose", str(session), "--fit", str(runs[-1]), "--channels", channel, "--spp", str(spp),
-                          "--json", "--no-plots", *(() if final_fit else ("--quick",)), log=log))
+                          "--json", "--no-plots", "--refits", refits, *(() if final_fit else ("--quick",)), log=log))
     out = doc["channels"][channel]
     out["diagnose_wall_s"] = time.perf_counter() - t0
     mat = world["materials"][channel]
@@ -699,8 +699,8 @@ def main() -> int:
                     help=f"synthetic: LM iterations of the diagnosis' refits (default {REFIT_ITERATIONS}); "
                          "cached and reported apart when not the default")
     ap.add_argument("--refits", choices=("fixed-seed", "decorrelated"), default="fixed-seed",
-                    help="synthetic: what the diagnosis' refits minimise (rig diagnose --refits); "
-                         "decorrelated is cached and reported apart")
+                    help="what the diagnosis' refits minimise (rig diagnose --refits); decorrelated is cached "
+                         "and reported apart (synthetic: a -dec cache; bench: <id>_dec.json in the bench cache)")
     ap.add_argument("--base-from", default=None, metavar="CACHE",
                     help="synthetic: take each case's base fit from this cache directory (a name under "
                          "benchmarks/results/diagnose_cases/ or a path) of a run with the same recording and "
@@ -737,9 +737,7 @@ def main() -> int:
         ap.error(f"--refit-iterations {args.refit_iterations}: must be at least 1")
     if args.source == "synthetic" and args.refit_iterations != REFIT_ITERATIONS:
         variant_tag += f"-it{args.refit_iterations}"
-    if args.refits != "fixed-seed":
-        if args.source != "synthetic":
-            ap.error("--refits is for --source synthetic (the bench runs rig diagnose with its defaults)")
+    if args.refits != "fixed-seed" and args.source == "synthetic":
         variant_tag += "-dec"
     base_from = None
     if args.base_from is not None:
@@ -769,9 +767,12 @@ def main() -> int:
     t0 = time.perf_counter()
     rows = []
     quick_rig = args.source == "bench" and args.no_final_fit
+    # The captured session (cache / id) is shared; the results of `rig diagnose --quick` and
+    # of `--refits decorrelated` are kept apart.
+    bench_tag = ("_quick" if quick_rig else "") + ("_dec" if args.source == "bench" and args.refits != "fixed-seed"
+                                                   else "")
     for case in plan:
-        # The captured session (cache / id) is shared; the result of `rig diagnose --quick` is kept apart.
-        f = cache / f"{case['id']}{'_quick' if quick_rig else ''}.json"
+        f = cache / f"{case['id']}{bench_tag}.json"
         if f.is_file() and not args.fresh:
             res = json.loads(f.read_text())
             if args.source == "synthetic" and args.detectability and "detectability" not in res:
@@ -793,7 +794,7 @@ def main() -> int:
                                         args.refit_iterations, args.refits, base_from)
                 else:
                     res = run_bench(case, cache / case["id"], args.channel, args.angles, args.spp,
-                                    final_fit=not quick_rig)
+                                    final_fit=not quick_rig, refits=args.refits)
             except Exception as e:  # noqa: BLE001  (one failing case is reported, the suite goes on)
                 print(f"{case['id']}: FAILED: {type(e).__name__}: {e}", flush=True)
                 continue
@@ -818,8 +819,8 @@ def main() -> int:
     print(text)
     RESULTS.mkdir(parents=True, exist_ok=True)
     label = args.source if args.source == "bench" else f"synthetic-excess{args.excess:g}-spp{args.spp}{variant_tag}"
-    if quick_rig:
-        label += "_quick"
+    if args.source == "bench":
+        label += bench_tag
     if args.limits:
         label += "_limits"
     if args.label:

@@ -103,16 +103,19 @@ from estimate.start import coarse_start, start_loss
 __all__ = [
     "BIC_STRONG",
     "CANDIDATES",
+    "CPU_DIAGNOSE_SPP",
     "DEFAULT_REPEATS",
     "DEFAULT_SEED",
     "DIAGNOSIS_STAGES",
     "FREE_PARAMETERS",
+    "GPU_DIAGNOSE_SPP",
     "HOLDOUT_EVERY",
     "BaseFit",
     "ChannelDiagnosis",
     "Evaluation",
     "RefitResult",
     "bound_side",
+    "default_diagnose_spp",
     "diagnose_channel",
     "evaluate",
     "plot_diagnosis",
@@ -175,6 +178,28 @@ SCREEN_LOG10_P = math.log10(ALPHA / len(CANDIDATES))
 #: score test has p below this (`runner_ups`).
 RUNNER_UP_P = 0.01
 RUNNER_UP_LOG10_P = math.log10(RUNNER_UP_P)
+
+#: Samples per pixel of a diagnosis' renders on the CPU (`llvm_ad_*` variants): the bench
+#: sessions' CLI runs named their effects right at this setting (sessions 35-37), and one
+#: channel's screening plus confirmation took 182-337 s on 2 cores.
+CPU_DIAGNOSE_SPP = 256
+#: ... and on a GPU (`cuda_ad_*`): the synthetic suite's reference on `rig estimate`'s 256-px
+#: window, where the fixed-seed refits' lean towards quieter renders wants this many (session
+#: 41; singles 15/16, pairs 3/4, clean 3/3, sessions 42-44), at 13-381 s a case on an H100
+#: (the 2 cores take 3-66 min).
+GPU_DIAGNOSE_SPP = 2048
+
+
+def default_diagnose_spp(variant: str | None = None) -> int:
+    """`rig diagnose`'s samples per pixel for a Mitsuba variant (None: the one
+    `estimate.mitsuba_env.default_variant()` says `init_mitsuba` will pick):
+    `GPU_DIAGNOSE_SPP` on a `cuda_*` variant, `CPU_DIAGNOSE_SPP` otherwise."""
+    if variant is None:
+        from estimate.mitsuba_env import default_variant
+
+        variant = default_variant()
+    return GPU_DIAGNOSE_SPP if variant.startswith("cuda") else CPU_DIAGNOSE_SPP
+
 
 #: Secant columns of scene extensions are rendered with this many times the diagnosis spp.
 COLUMN_SPP_FACTOR = 4
@@ -1726,7 +1751,7 @@ def _check_same_session(session_dir: Any, run_doc: Mapping[str, Any], run_dir: A
 
 
 def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[str] | None = None,
-                  channels: Sequence[str] | None = None, spp: int = 256, repeats: int = DEFAULT_REPEATS,
+                  channels: Sequence[str] | None = None, spp: int | None = None, repeats: int = DEFAULT_REPEATS,
                   iterations: int = 8, seed: int = DEFAULT_SEED, plots: bool = True, log: Callable[[str], None] | None = None,
                   refine: bool = True, refit_objective: str = FIXED_SEED,
                   fit_progress: Callable[[str, str], tuple[Callable[[int, float, int], None], Callable[[str], None]]]
@@ -1737,6 +1762,7 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
     is confirmed, the refit as a new estimate run. With `refine` (default) the final model
     of a channel with confirmed effects is fitted by the estimator with the run's own
     settings (`refine_channel`); without, the Levenberg-Marquardt refit is the final one.
+    `spp` None takes `default_diagnose_spp()` (256 on the CPU, 2048 on a GPU).
     Returns the diagnosis document (`channels.<f>` = `ChannelDiagnosis.as_dict()`, plus
     `refit_run`). `fit_progress(channel, model)`, when given, returns the (progress,
     on_stage) callbacks for a channel's final fit (`rig.fit_progress.FitProgress.channel`).
@@ -1760,6 +1786,8 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
             raise ModelParameterError(f"unknown effect {e!r}; known: {', '.join(sorted(EXTENSIONS))}")
     if refit_objective not in OBJECTIVES:
         raise ModelParameterError(f"refit objective {refit_objective!r}: expected one of {', '.join(OBJECTIVES)}")
+    if spp is None:
+        spp = default_diagnose_spp()
     session = Path(session_dir)
     run_dir = _resolve_fit(session, fit_run)
     doc = read_run(run_dir)

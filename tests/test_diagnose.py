@@ -666,6 +666,25 @@ def test_cli_unknown_effect_and_unknown_run(tmp_path, capsys):
     assert "no estimate run" in capsys.readouterr().err
     assert main(["diagnose", str(s), "--refits", "median"]) == 2
     assert "--refits" in capsys.readouterr().err
+    assert main(["diagnose", str(s), "--spp", "8"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--spp 8" in err and "at least 16" in err and "\n" not in err
+
+
+def test_the_diagnosis_spp_follows_the_renderer(monkeypatch):
+    """`rig diagnose` renders at 2048 spp on a GPU (the suite's reference on the 256-px
+    window, minutes there) and 256 on the CPU; without a variant it asks the one
+    `init_mitsuba` would pick."""
+    import estimate.mitsuba_env as env
+    from estimate.diagnose import CPU_DIAGNOSE_SPP, GPU_DIAGNOSE_SPP, default_diagnose_spp
+
+    assert (CPU_DIAGNOSE_SPP, GPU_DIAGNOSE_SPP) == (256, 2048)
+    assert default_diagnose_spp("cuda_ad_mono") == GPU_DIAGNOSE_SPP
+    assert default_diagnose_spp("llvm_ad_mono") == CPU_DIAGNOSE_SPP
+    monkeypatch.setattr(env, "default_variant", lambda: "cuda_ad_mono")
+    assert default_diagnose_spp() == GPU_DIAGNOSE_SPP
+    monkeypatch.setattr(env, "default_variant", lambda: "llvm_ad_mono")
+    assert default_diagnose_spp() == CPU_DIAGNOSE_SPP
 
 
 def test_cli_end_to_end_writes_diagnosis_and_json(tmp_path, capsys):
