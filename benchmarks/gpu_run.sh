@@ -28,6 +28,9 @@
 # Session 43's calls on an H100: the same with DIAG_BUDGET_S=430 DIAG_LIMIT_S=540 (465 s, three strong singles) and
 # DIAG_BUDGET_S=250 DIAG_LIMIT_S=330 (337 s, two singles; the third, lens_blur-2, was cut by the timeout: the budget
 # stops new cases, not a running one, so leave DIAG_LIMIT_S - DIAG_BUDGET_S above the longest case, ~200 s for a single).
+# Session 46's calls on an H200: DIAG_SPP=512 DIAG_REFITS=decorrelated
+# DIAG_BASE_FROM=synthetic-v11-excess0-spp2048-base4096-cols256 with DIAG_BUDGET_S=300 DIAG_LIMIT_S=520 (370 s, six
+# singles) and DIAG_BUDGET_S=230 DIAG_LIMIT_S=420 (384 s, two cases and three pairs), after GPU_PACK=site gpu_pack.sh.
 set -uo pipefail
 job=${1:-estimate}
 OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT"

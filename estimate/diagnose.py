@@ -180,7 +180,8 @@ RUNNER_UP_P = 0.01
 RUNNER_UP_LOG10_P = math.log10(RUNNER_UP_P)
 
 #: Samples per pixel of a diagnosis' renders on the CPU (`llvm_ad_*` variants): the bench
-#: sessions' CLI runs named their effects right at this setting (sessions 35-37), and one
+#: sessions' CLI runs named their effects right at this setting (sessions 35-37; session 46's
+#: recapture of the boundary session, its base fit 57 % off, named nothing), and one
 #: channel's screening plus confirmation took 182-337 s on 2 cores.
 CPU_DIAGNOSE_SPP = 256
 #: ... and on a GPU (`cuda_ad_*`): the synthetic suite's reference on `rig estimate`'s 256-px
