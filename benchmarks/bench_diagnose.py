@@ -769,8 +769,8 @@ def main() -> int:
     quick_rig = args.source == "bench" and args.no_final_fit
     # The captured session (cache / id) is shared; the results of `rig diagnose --quick` and
     # of `--refits decorrelated` are kept apart.
-    bench_tag = ("_quick" if quick_rig else "") + ("_dec" if args.source == "bench" and args.refits != "fixed-seed"
-                                                   else "")
+    bench_tag = "" if args.source != "bench" else ("_quick" if quick_rig else "") + (
+        "_dec" if args.refits != "fixed-seed" else "")
     for case in plan:
         f = cache / f"{case['id']}{bench_tag}.json"
         if f.is_file() and not args.fresh:
@@ -819,8 +819,7 @@ def main() -> int:
     print(text)
     RESULTS.mkdir(parents=True, exist_ok=True)
     label = args.source if args.source == "bench" else f"synthetic-excess{args.excess:g}-spp{args.spp}{variant_tag}"
-    if args.source == "bench":
-        label += bench_tag
+    label += bench_tag
     if args.limits:
         label += "_limits"
     if args.label:

@@ -74,20 +74,20 @@ paper)
   (cd benchmarks/results/paper_sim && tar cf "$OUT/paper_fits.tar" */fit_*.json)
   ;;
 diagnose256)
-  # bench_diagnose.py's cache folder for these options (its SYNTHETIC_VERSION, not a copy of it)
-  # DIAG_SPP (2048) and DIAG_REFITS (fixed-seed; decorrelated adds the cache's -dec tag);
-  # DIAG_BASE_FROM names a cache whose base fits are reused (bench_diagnose.py --base-from).
+  # DIAG_SPP (2048) and DIAG_REFITS (fixed-seed); DIAG_BASE_FROM names a cache whose base
+  # fits are reused (bench_diagnose.py --base-from). What comes back is every case JSON this
+  # run wrote, whichever cache folder bench_diagnose.py chose for these options.
   spp=${DIAG_SPP:-2048}; refits=${DIAG_REFITS:-fixed-seed}
-  tag=""; [ "$refits" = decorrelated ] && tag=-dec
   base_from=(); [ -n "${DIAG_BASE_FROM:-}" ] && base_from=(--base-from "$DIAG_BASE_FROM")
-  cache=synthetic-$(python3 -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_diagnose as b; print(b.SYNTHETIC_VERSION)")-excess0-spp$spp-base4096-cols256$tag
-  mkdir -p benchmarks/results/diagnose_cases/$cache
+  mkdir -p benchmarks/results/diagnose_cases && touch "$OUT/.start"
   t=$(date +%s)
   timeout "${DIAG_LIMIT_S:-560}" python3 benchmarks/bench_diagnose.py --excess 0 --spp "$spp" --base-spp 4096 \
     --columns 256 --refits "$refits" "${base_from[@]}" --only "${DIAG_CASES:-clean-1,beam_halo-1,beam_halo-2}" \
     --time-budget "${DIAG_BUDGET_S:-420}" --label gpu 2>&1 | tee "$OUT/diagnose256.log"
   echo "diagnose256: wall $(( $(date +%s) - t )) s"
-  (cd benchmarks/results/diagnose_cases && tar cf "$OUT/diagnose256_cases.tar" $cache/*.json)
+  (cd benchmarks/results/diagnose_cases && find . -name '*.json' -newer "$OUT/.start" -print0 \
+     | tar cf "$OUT/diagnose256_cases.tar" --null -T -)
+  rm -f "$OUT/.start"
   ;;
 *) echo "unknown job $job (estimate, paper or diagnose256)"; exit 2 ;;
 esac

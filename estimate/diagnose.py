@@ -195,11 +195,9 @@ def default_diagnose_spp(variant: str | None = None) -> int:
     """`rig diagnose`'s samples per pixel for a Mitsuba variant (None: the one
     `estimate.mitsuba_env.default_variant()` says `init_mitsuba` will pick):
     `GPU_DIAGNOSE_SPP` on a `cuda_*` variant, `CPU_DIAGNOSE_SPP` otherwise."""
-    if variant is None:
-        from estimate.mitsuba_env import default_variant
+    from estimate.mitsuba_env import renders_on_gpu
 
-        variant = default_variant()
-    return GPU_DIAGNOSE_SPP if variant.startswith("cuda") else CPU_DIAGNOSE_SPP
+    return GPU_DIAGNOSE_SPP if renders_on_gpu(variant) else CPU_DIAGNOSE_SPP
 
 
 #: Secant columns of scene extensions are rendered with this many times the diagnosis spp.

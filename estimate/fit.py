@@ -272,11 +272,9 @@ class FitSettings:
         `CPU_FINAL_SPP` otherwise; keyword arguments set fields as in the constructor (an
         explicit `final_spp` wins)."""
         if "final_spp" not in kw:
-            if variant is None:
-                from estimate.mitsuba_env import default_variant
+            from estimate.mitsuba_env import renders_on_gpu
 
-                variant = default_variant()
-            kw["final_spp"] = GPU_FINAL_SPP if variant.startswith("cuda") else CPU_FINAL_SPP
+            kw["final_spp"] = GPU_FINAL_SPP if renders_on_gpu(variant) else CPU_FINAL_SPP
         return cls(**kw)
 
     def to_dict(self) -> dict[str, Any]:

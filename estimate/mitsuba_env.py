@@ -19,7 +19,7 @@ from types import ModuleType
 
 from estimate.errors import EstimateError
 
-__all__ = ["MitsubaSetupError", "default_variant", "find_libllvm", "init_mitsuba"]
+__all__ = ["MitsubaSetupError", "default_variant", "find_libllvm", "init_mitsuba", "renders_on_gpu"]
 
 _LLVM_GLOBS = (
     "/usr/lib/*/libLLVM-19.so*",
@@ -77,6 +77,13 @@ def default_variant() -> str:
     if env:
         return env
     return "cuda_ad_mono" if _gpu_usable() else "llvm_ad_mono"
+
+
+def renders_on_gpu(variant: str | None = None) -> bool:
+    """Whether a Mitsuba variant renders on a GPU (`cuda_*`); None asks `default_variant()`,
+    the one `init_mitsuba` will pick. What the device-dependent defaults (the estimator's
+    final spp, the diagnosis' spp) key on."""
+    return (default_variant() if variant is None else variant).startswith("cuda")
 
 
 def active_variant() -> str | None:
