@@ -228,7 +228,7 @@ def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp:
         # by 15 % and the diagnosis then named sensor_nonlinearity beside the boundary. Kept as
         # in v7, so that v8 differs from v7 only in the final refit's decorrelated step.
         bf = refit(m0, rec, start, _free_names(m0, []), spp=base_spp, seed=11, iterations=20,
-                   model_variance=e0.model_variance * 3, noise_scale=e0.residuals.noise_scale)
+                   model_variance=e0.model_variance * (3 * e0.scale ** 2), noise_scale=e0.residuals.noise_scale)
         base = BaseFit(bf.parameters, bf.scale, "hg", [], bf.uncertainties)
         t_base = time.perf_counter() - t0
     d = diagnose_channel(rec, base, make_model, spp=spp, iterations=refit_iterations, repeats=6,
@@ -287,7 +287,7 @@ def optimum_gain(case: dict[str, Any], left_out: list[str], *, spp: int = OPTIMU
     t0 = time.perf_counter()
     e0 = evaluate(m, start, rec, 0, spp=spp, repeats=2)
     fit = refit(m, rec, start, _free_names(m, kept), spp=spp, seed=11, iterations=12,
-                model_variance=e0.model_variance * 2, noise_scale=e0.residuals.noise_scale, uncertainties=False)
+                model_variance=e0.model_variance * (2 * e0.scale ** 2), noise_scale=e0.residuals.noise_scale, uncertainties=False)
     d = detectability(case, excess, fit.parameters, spp=eval_spp, repeats=repeats, recording=recording, kept=kept)
     return {"case": case["id"], "left_out": sorted(left_out), "kept": kept, "fit_spp": spp,
             "material_at_optimum": {k: fit.parameters[k] for k in TRUE}, "chi2_optimum": d["chi2_base_fit"],

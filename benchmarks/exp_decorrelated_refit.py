@@ -71,11 +71,11 @@ for w in which:
     start = base if w.endswith("control") else _start(m1, base, EXT, brightest)
     if w.startswith("fs"):
         r = refit(model, rec, start, free, angle_idx=train, spp=SPP, seed=DEFAULT_SEED + 202, iterations=8,
-                  model_variance=before.model_variance * 6, noise_scale=floor, uncertainties=False)
+                  model_variance=before.model_variance * (6 * before.scale ** 2), noise_scale=floor, uncertainties=False)
         p, hist = r.parameters, [r.chi2]
     else:
         r = refit(model, rec, start, free, angle_idx=train, spp=SPP, seed=DEFAULT_SEED + 202, iterations=8,
-                  model_variance=before.model_variance * 6, noise_scale=floor, uncertainties=False,
+                  model_variance=before.model_variance * (6 * before.scale ** 2), noise_scale=floor, uncertainties=False,
                   objective=DECORRELATED, noise_variance=yard)
         p, hist = r.parameters, [r.chi2]
     c = indep(model, p)

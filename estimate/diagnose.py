@@ -44,10 +44,11 @@
    `final_fit_follows`): the final fit starts from the candidate's refit and makes the
    backward check itself; `model_stage` says which way the model was made.
 5. Second pass: when the estimator's final fit drops every effect the refits confirmed
-   (none of their magnitudes can be told from absent there), every other candidate the
-   screening flagged is refitted, and the best is fitted by the estimator and must explain
-   the data better than the fit with the stand-in (`second_pass_channel`): a base fit far
-   from the truth can rank a stand-in above the effect the recording holds.
+   (none of their magnitudes can be told from absent there), every other candidate is
+   refitted from the base fit, flagged by the screening or not, and the best is fitted by
+   the estimator and must explain the data better than the fit with the stand-in
+   (`second_pass_channel`): a base fit far from the truth can rank a stand-in above the
+   effect the recording holds, and leave that effect's local score test unflagged.
 
 The evaluations and the Levenberg-Marquardt refits (a free linear scale, the large secant
 steps of `estimate.gauss_newton.secant_steps`) are in `estimate.refit`; the summary and
@@ -351,10 +352,11 @@ class ChannelDiagnosis:
         """Plain (YAML/JSON-ready) summary."""
         b = self.before
         a = self.after
-        eff = {}
+        eff: dict[str, dict[str, dict[str, Any]]] = {}
+        after_params = a.parameters if a is not None else {}
         for name in self.confirmed:
-            eff[name] = {k: {"value": a.parameters[k], "uncertainty": self.uncertainties_after.get(k)}
-                         for k in (a.parameters if a else {}) if k.startswith(name + ".")}
+            eff[name] = {k: {"value": v, "uncertainty": self.uncertainties_after.get(k)}
+                         for k, v in after_params.items() if k.startswith(name + ".")}
             for k, entry in eff[name].items():
                 side = bound_side(entry["value"], self.parameter_ranges.get(k, ()))
                 if side:
@@ -593,7 +595,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                      final_fit_follows: bool = False, max_confirm: int = MAX_CONFIRM,
                      max_effects: int = MAX_EFFECTS, refit_checks_decide: bool = True,
                      reuse: FirstRound | None = None, min_share: float = 0.0,
-                     refit_objective: str = FIXED_SEED) -> ChannelDiagnosis:
+                     refit_objective: str = FIXED_SEED,
+                     refit_below_log10_p: float = SCREEN_LOG10_P) -> ChannelDiagnosis:
     """Diagnose one channel.
 
     Args:
@@ -633,6 +636,9 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             decorrelated step of its own, and the refits divide by the data's noise
             (the yardstick, `_yardstick`) rather than by f^2 (var + s^2 var_model): that
             loss has no render-variance term for the weights to hold.
+        refit_below_log10_p: the screening's bar: a round refits the candidates whose score
+            test has log10 p below it (`SCREEN_LOG10_P`, the family-wise level); `math.inf`
+            refits every candidate whatever its score (`second_pass_channel`).
     """
     if refit_objective not in OBJECTIVES:
         raise ModelParameterError(f"refit objective {refit_objective!r}: expected one of {', '.join(OBJECTIVES)}")
@@ -759,7 +765,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         # does not leave the fit worse than it was by more than that chi^2's spread.
         no_harm = tr.residuals.chi2_adjusted <= cur_train.residuals.chi2_adjusted + math.sqrt(2.0 * n_train)
         entry["no_harm"] = bool(no_harm)
-        if held:
+        if held and ref_held is not None:   # the control evaluates the held-out angles where there are any
             ho = evaluate(m, fit.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats, angle_idx=held,
                           scale=tr.scale, noise_variance=yardstick)
             entry["chi2_heldout_before"] = ref_held
@@ -796,7 +802,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                            repeats=repeats))
         say("  screening: " + ", ".join(f"{c.name} {c.statistic:.0f}/{c.dof}" for c in scores[:4]))
         laps("screening")
-        leading = [c for c in scores if c.log10_p < SCREEN_LOG10_P][:max_confirm]
+        leading = [c for c in scores if c.log10_p < refit_below_log10_p][:max_confirm]
         round_one = not confirmed
         # Where a first round's refits are not confirmed (or no candidate is flagged at all),
         # the next candidates are refitted under the same tests (`runner_ups`).
@@ -827,7 +833,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             f"{ctrl_tr.residuals.chi2_adjusted:.0f}")
         # The candidates' refits: the control's seed, spp, angles and weights.
         cand_how = {"angle_idx": train, "spp": spp, "seed": seed + 202,
-                    "model_variance": current.model_variance * repeats, "noise_scale": floor,
+                    "model_variance": _render_variance(current, repeats), "noise_scale": floor,
                     "objective": refit_objective, **noise_how}
 
         if runners_first:
@@ -897,7 +903,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             break
         # The final model's parameters carry the Monte-Carlo error of the fixed-seed
         # refit: render it with FINAL_SPP_FACTOR x the samples.
-        full_mv = current.model_variance * repeats / FINAL_SPP_FACTOR
+        full_mv = _render_variance(current, repeats, FINAL_SPP_FACTOR)
         full, current = settle(current_exts, chosen_fit.parameters, full_mv)
         last_full = (full, full_mv)
         laps("model")
@@ -1004,6 +1010,15 @@ def partial_explanation(before: Evaluation, after: Evaluation, effects: Sequence
             "material_with": {k: after.parameters[k] for k in material}}
 
 
+def _render_variance(ev: Evaluation, repeats: int, spp_factor: int = 1) -> np.ndarray:
+    """The Monte-Carlo variance of one render of `ev`'s model at `spp_factor` x its spp, in
+    the data's units (`refit`'s `model_variance`): the variance of the mean of `repeats`
+    renders times `repeats`, over `spp_factor`, times the evaluation's scale squared. Held
+    at the current evaluation's scale, so every refit of a round divides by the same weights
+    (`refit`: a model that dims its renders cannot buy its own)."""
+    return ev.model_variance * (ev.scale ** 2 * repeats / spp_factor)
+
+
 def _refit_noise(objective: str, yardstick: np.ndarray) -> dict[str, Any]:
     """`refit`'s noise argument for a diagnosis' refits: decorrelated refits divide by the
     data's noise alone (the yardstick); fixed-seed ones keep their render's variance."""
@@ -1021,7 +1036,7 @@ def _control(problem: Any, model: Any, current: Evaluation, exts: Sequence[str],
     cur_train = evaluate(model, current.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats,
                          angle_idx=train, noise_variance=yardstick)
     ctrl = refit(model, problem, current.parameters, _free_names(model, exts), angle_idx=train,
-                 spp=spp, seed=seed + 202, iterations=iterations, model_variance=current.model_variance * repeats,
+                 spp=spp, seed=seed + 202, iterations=iterations, model_variance=_render_variance(current, repeats),
                  noise_scale=floor, uncertainties=False, objective=objective, **_refit_noise(objective, yardstick))
     ctrl_tr = evaluate(model, ctrl.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats,
                        angle_idx=train, noise_variance=yardstick)
@@ -1440,8 +1455,8 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
                         progress: Callable[[int, float, int], None] | None = None,
                         on_stage: Callable[[str], None] | None = None) -> FitResult | None:
     """A second pass when the estimator's final fit (`final`) dropped every effect the refits
-    had confirmed (`dropped_at_final_fit`): every other candidate the first screening flagged
-    is refitted, and the best is fitted by the estimator and compared with `final`.
+    had confirmed (`dropped_at_final_fit`): every other candidate is refitted from the base
+    fit, and the best is fitted by the estimator and compared with `final`.
 
     On the simulated bench's recaptured refractive-boundary session the base fit came out
     74 % high in sigma_t. The boundary screened fifth, after a glare tail, a halo, stray
@@ -1454,7 +1469,7 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
     independent seeds (the fixed-seed refit fitted its own render noise), so the
     confirmation's held-out and no-harm tests turn it down.
 
-    So this pass refits every flagged candidate but the dropped ones from the base fit
+    So this pass refits every candidate but the dropped ones from the base fit
     (`diagnose_channel` with `max_confirm` all of them, one effect, the held-out and no-harm
     tests recorded but not deciding); the largest BIC gain whose magnitude passes is fitted
     by the estimator (`refine_channel`, with its magnitude check) and must then explain the
@@ -1465,31 +1480,44 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
     it is the fit that refit could not reach. (A first version screened again at the final
     fit's material parameters instead; there the boundary still ranked fifth, and a halo and
     a sensor compression confirmed in its place were dropped by the next final fit, session
-    36.) The first pass's round from the base fit is not done again: its evaluation,
+    36.)
+
+    Every candidate, not only those the screening flagged (up to session 46): the score
+    test is local, and this pass runs where the base fit is far from the data's optimum.
+    A later recapture of the same session landed its base fit 57 % high in sigma_t with
+    the boundary's score test at p 0.05, unflagged, so a pass over the flagged ones never
+    tried it and named nothing (session 46). A refit from the base fit is cheap beside the
+    estimator's final fit, which only the chosen candidate gets; the estimator's fit and the
+    comparison with `final` still decide.
+
+    The first pass's round from the base fit is not done again: its evaluation,
     screening, control refit and the candidates it already refitted come from
     `d.first_round` (`diagnose_channel`'s `reuse`), so only the candidates it never tried
     are refitted. What the pass names replaces `d`'s named model; its refits join
     `d.confirmations` (`pass` 2), its time `d`'s stages, and `d.second_pass` says what it
-    did. It runs once. Returns the second final fit when it names an effect, else None.
+    did (`refitted`; `flagged`, those of them the screening had flagged). It runs once.
+    Returns the second final fit when it names an effect, else None.
     """
     say = log or (lambda s: None)
     dropped = dropped_at_final_fit(d)
     if not dropped or not d.significant:
         return None
+    # In the screening's order (d.candidates is sorted by score).
+    others = [c.name for c in d.candidates if c.name not in dropped]
     flagged = [c.name for c in d.candidates if c.log10_p < SCREEN_LOG10_P and c.name not in dropped]
-    info: dict[str, Any] = {"dropped": dropped, "refitted": flagged, "named": [],
+    info: dict[str, Any] = {"dropped": dropped, "refitted": others, "flagged": flagged, "named": [],
                             "first_final_fit": dict(d.final_fit)}
     d.second_pass = info
-    if not flagged:
-        info["outcome"] = "no other candidate was flagged by the screening"
+    if not others:
+        info["outcome"] = "no other candidate to refit"
         d.verdict += f"; {info['outcome']}"
         return None
-    say(f"  the final fit dropped {', '.join(dropped)}: refitting every other flagged candidate "
-        f"({', '.join(flagged)}) from the base fit")
-    d2 = diagnose_channel(problem, base, make_model, candidates=flagged, spp=spp, seed=seed, repeats=repeats,
-                          iterations=iterations, log=log, final_fit_follows=True, max_confirm=len(flagged),
+    say(f"  the final fit dropped {', '.join(dropped)}: refitting every other candidate "
+        f"({', '.join(others)}) from the base fit")
+    d2 = diagnose_channel(problem, base, make_model, candidates=others, spp=spp, seed=seed, repeats=repeats,
+                          iterations=iterations, log=log, final_fit_follows=True, max_confirm=len(others),
                           max_effects=1, refit_checks_decide=False, reuse=d.first_round,
-                          refit_objective=d.refit_objective)
+                          refit_objective=d.refit_objective, refit_below_log10_p=math.inf)
     chosen = list(d2.confirmed)
     fr2 = None
     if chosen:
@@ -1517,8 +1545,9 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
                            f"in the estimator's final fit {chosen[0]}'s magnitude cannot be told from absent"
                            if not d2.confirmed else
                            f"{chosen[0]}'s final fit does not explain the data better than the one with "
-                           f"{', '.join(dropped)} (gain {better['gain']:.1f}, needs {BIC_STRONG:g})")
-        d.verdict += f"; refitting every other flagged candidate: {info['outcome']}"
+                           f"{', '.join(dropped)} (gain {(better or {}).get('gain', math.nan):.1f}, "
+                           f"needs {BIC_STRONG:g})")
+        d.verdict += f"; refitting every other candidate: {info['outcome']}"
         say(f"  second pass: {info['outcome']}")
         return None
     info["named"] = list(d2.confirmed)
@@ -1527,7 +1556,7 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
     d.adopt_named_model(d2)
     d.verdict = (_verdict(d.before, d.localisation, d.candidates, d.confirmed, d.after)
                  + f" (the first refits confirmed {', '.join(dropped)}, which the estimator's final fit could not "
-                 f"tell from absent; refitting every other flagged candidate, {info['outcome']})")
+                 f"tell from absent; refitting every other candidate, {info['outcome']})")
     say(f"  second pass: {info['outcome']}")
     return fr2
 

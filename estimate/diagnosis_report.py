@@ -129,8 +129,10 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                       f"   {100 * min(1.0, c['explained']):5.1f} %", file=out)
         again = d.get("second_pass") or {}
         if again:
+            # Runs before session 47 refitted only the flagged candidates (no "flagged" key).
+            which = ("candidate" if "flagged" in again else "candidate the screening flagged")
             print(f"  second pass: the estimator's final fit dropped {', '.join(again['dropped'])}; every other "
-                  f"candidate the screening flagged ({', '.join(again.get('refitted') or []) or 'none'}) refitted "
+                  f"{which} ({', '.join(again.get('refitted') or []) or 'none'}) refitted "
                   f"from the base fit, the held-out and no-harm tests not deciding: {again.get('outcome', '')}", file=out)
             vs = again.get("against_first")
             if vs:

@@ -224,7 +224,7 @@ def gn_inverse(jac: Mapping[str, np.ndarray], names: Sequence[str], tr: Sequence
     """
     eig_floor = GN_EIG_FLOOR if eig_floor is None else eig_floor
     n = max(1, int(problem.valid.sum()))
-    dls = [float(dl)] if np.isscalar(dl) else [float(x) for x in dl]  # type: ignore[arg-type]
+    dls = [float(dl)] if np.isscalar(dl) else [float(x) for x in dl]  # type: ignore[arg-type, union-attr]
     H = np.zeros((len(names), len(names)))
     H_mean = np.zeros((len(names), len(names)))
     for d in dls:

@@ -378,8 +378,19 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
           noise_variance: np.ndarray | None = None) -> RefitResult:
     """Levenberg-Marquardt fit of `free` parameters (and the scale) with a fixed render seed.
 
-    `noise_scale` (f per angle of the whole problem, `estimate.residuals.noise_floor`)
-    scales each angle's variance by f^2. Uncertainties: Gauss-Newton covariance at the
+    `model_variance` (per pixel of the whole problem, in the data's units, e-^2/s^2: a
+    render's Monte-Carlo variance times the squared scale of the evaluation that measured
+    it) is added to the data's variance, and `noise_scale` (f per angle of the whole
+    problem, `estimate.residuals.noise_floor`) scales that sum by f^2: the weights
+    1 / (f^2 (var + model_variance)) are the same at every point the refit visits.
+    (Up to session 46 the render variance was in the render's units and followed the
+    refit's own scale, s^2 var_model. A model that dims its renders then buys its own
+    weights: on the bench's recaptured boundary session a refractive boundary refitted
+    from a base fit 57 % off went to n 2.99, its scale to 5500 x the others' and its
+    chi^2 from 7732 to 744, while its training angles rendered at other seeds fitted
+    worse, 15259 -> 16743 (session 47). Fixed weights also make the paired comparisons
+    between a round's refits, and the Jacobian columns, which hold the weights constant,
+    exact.) Uncertainties: Gauss-Newton covariance at the
     optimum, its curvature from two Jacobians with independent render noise
     (`cross_covariance`: this seed's and seed + `UNCERTAINTY_SEED_OFFSET`'s, one render and
     one Jacobian more), inflated by the (adjusted) reduced chi^2 when it exceeds 1.
@@ -422,11 +433,11 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
         return _refit_decorrelated(model, angles, meas, var, mv, floor2, theta, free, bounds, spp=spp, seed=seed,
                                    iterations=iterations, uncertainties=uncertainties, noise_variance=nv)
 
+    sig = np.sqrt((var if mv is None else var + mv) * floor2)
+
     def residual(th: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
         f = model.render_profiles(th, angles, spp=spp, seed=seed)
-        s = best_scale(meas, var * floor2, f, None if mv is None else mv * floor2)
-        v = var if mv is None else var + s * s * mv
-        sig = np.sqrt(v * floor2)
+        s = best_scale(meas, sig * sig, f)
         r = (meas - s * f) / sig
         r = np.where(np.isfinite(sig), r, 0.0)
         return r, f, s, sig
@@ -516,14 +527,6 @@ def _uncertainties(a: np.ndarray, b: np.ndarray, free: Sequence[str], chi2: floa
     return unc, covd
 
 
-def _decorrelated_weights(meas: np.ndarray, var: np.ndarray, mv: np.ndarray | None, floor2: np.ndarray,
-                          f_a: np.ndarray, f_b: np.ndarray) -> np.ndarray:
-    """The noise sigma a decorrelated refit divides by at renders f_a, f_b: sqrt(f^2 (var +
-    s^2 var_model)) at the scale s of their decorrelated chi^2 weighed by var alone."""
-    _, s = decorrelated_chi2(meas, np.sqrt(var * floor2), f_a, f_b)
-    return np.sqrt((var if mv is None else var + s * s * mv) * floor2)
-
-
 def _refit_decorrelated(model: Any, angles: Sequence[float], meas: np.ndarray, var: np.ndarray,
                         mv: np.ndarray | None, floor2: np.ndarray, theta: dict[str, float], free: list[str],
                         bounds: Sequence[tuple[float, float]], *, spp: int, seed: int, iterations: int,
@@ -531,19 +534,19 @@ def _refit_decorrelated(model: Any, angles: Sequence[float], meas: np.ndarray, v
     """`refit` on the decorrelated chi^2 of seeds `seed` and `seed + UNCERTAINTY_SEED_OFFSET`.
 
     Each iteration renders both seeds' Jacobians at theta (the fixed-seed refit's secant
-    steps) and takes `decorrelated_step`, halved up to three times and never to renders more
+    steps, central differences; split one-sided ones, seed A's forward and seed B's
+    backward, were tried in session 47 and weakened a halo's gain 110 -> 19) and takes
+    `decorrelated_step`, halved up to three times and never to renders more
     than `DECORRELATED_MAX_NOISE_GROWTH` times as noisy as the start's, until a step gains less
-    than `DECORRELATED_RTOL` of the loss, none gains, or `iterations` are done. Within the
-    loop the weights 1 / (f^2 (var + s0^2 var_model)) are fixed at the start's scale s0, so
-    the loss only falls. The loss returned is the one at the end point with the weights at
-    its own scale (`_decorrelated_weights`), a function of the point alone, as the fixed-seed
-    chi^2 is: `iterations=0` from a refit's optimum gives the same number, and two refits
-    from the same data with the same `model_variance` and seeds are paired (their losses
-    differ by what their models explain; the two seeds' render noise is common to both by
-    common random numbers). Its expectation has no render variance term: under the right
-    model it is the data's share of the noise, var / (var + s^2 var_model) a pixel, below the
-    fixed-seed chi^2's 1. With `noise_variance` the weights are 1 / noise_variance
-    throughout, and under the right model the loss is about 1 a pixel.
+    than `DECORRELATED_RTOL` of the loss, none gains, or `iterations` are done. The weights
+    are fixed, 1 / (f^2 (var + model_variance)) as in the fixed-seed refit, or 1 /
+    `noise_variance` where given, so the loss only falls and is a function of the point
+    alone: `iterations=0` from a refit's optimum gives the same number, and two refits from
+    the same data with the same weights and seeds are paired (their losses differ by what
+    their models explain; the two seeds' render noise is common to both by common random
+    numbers). Its expectation has no render variance term: under the right model it is
+    the data's share of the noise, var / (var + model_variance) a pixel, below the
+    fixed-seed chi^2's 1; with `noise_variance` the data's noise, about 1 a pixel.
     """
     seed_b = seed + UNCERTAINTY_SEED_OFFSET
     last: dict[tuple[tuple[str, float], ...], tuple[np.ndarray, np.ndarray]] = {}
@@ -558,17 +561,11 @@ def _refit_decorrelated(model: Any, angles: Sequence[float], meas: np.ndarray, v
                          model.render_profiles(th, angles, spp=spp, seed=seed_b))
         return last[key]
 
-    fixed_sig = (None if noise_variance is None else
-                 np.sqrt(np.where(np.isfinite(var) & (noise_variance > 0), noise_variance, np.inf)))
-
-    def weights(fa: np.ndarray, fb: np.ndarray) -> np.ndarray:
-        return fixed_sig if fixed_sig is not None else _decorrelated_weights(meas, var, mv, floor2, fa, fb)
-
+    sig = (np.sqrt((var if mv is None else var + mv) * floor2) if noise_variance is None else
+           np.sqrt(np.where(np.isfinite(var) & (noise_variance > 0), noise_variance, np.inf)))
     f_a, f_b = both(theta)
-    sig = weights(f_a, f_b)
     loss, s = decorrelated_chi2(meas, sig, f_a, f_b)
     max_noise = DECORRELATED_MAX_NOISE_GROWTH * render_noise_ratio(sig, f_a, f_b, s)
-    start = dict(theta)
     jac_at: dict[str, float] | None = None
     a = b = np.zeros((0, 0))
     it = 0
@@ -594,13 +591,6 @@ def _refit_decorrelated(model: Any, angles: Sequence[float], meas: np.ndarray, v
         _log.debug("decorrelated iteration %d: loss %.3f (gain %.3f)", it, loss, gain)
         if gain < DECORRELATED_RTOL * max(abs(loss), 1.0):
             break
-    if theta != start:
-        # The end point's loss at its own weights; the Jacobians too where those moved.
-        end_sig = weights(f_a, f_b)
-        if end_sig is not sig:
-            sig = end_sig
-            loss, s = decorrelated_chi2(meas, sig, f_a, f_b)
-            jac_at = None
     if not uncertainties:
         return RefitResult(theta, s, {}, loss, it, objective=DECORRELATED)
     if jac_at != theta:
