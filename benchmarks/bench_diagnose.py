@@ -196,6 +196,7 @@ def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp:
     from estimate.diagnose import (
         BaseFit,
         _free_names,
+        _render_variance,
         diagnose_channel,
         evaluate,
         refit,
@@ -228,7 +229,7 @@ def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp:
         # by 15 % and the diagnosis then named sensor_nonlinearity beside the boundary. Kept as
         # in v7, so that v8 differs from v7 only in the final refit's decorrelated step.
         bf = refit(m0, rec, start, _free_names(m0, []), spp=base_spp, seed=11, iterations=20,
-                   model_variance=e0.model_variance * (3 * e0.scale ** 2), noise_scale=e0.residuals.noise_scale)
+                   model_variance=_render_variance(e0, 3), noise_scale=e0.residuals.noise_scale)
         base = BaseFit(bf.parameters, bf.scale, "hg", [], bf.uncertainties)
         t_base = time.perf_counter() - t0
     d = diagnose_channel(rec, base, make_model, spp=spp, iterations=refit_iterations, repeats=6,
@@ -277,7 +278,7 @@ def optimum_gain(case: dict[str, Any], left_out: list[str], *, spp: int = OPTIMU
     means no refit-based test at that bar can name it on this recording, however well the
     base fit converges. `detectability` measures the same from the suite's 1024-spp base fit,
     whose own Monte Carlo misfit (about 50-60 chi^2 on a clean session) it includes."""
-    from estimate.diagnose import _free_names, evaluate, refit
+    from estimate.diagnose import _free_names, _render_variance, evaluate, refit
 
     recording = synthetic_recording(case, excess, columns)
     rec, make_model, truth = recording
@@ -287,7 +288,7 @@ def optimum_gain(case: dict[str, Any], left_out: list[str], *, spp: int = OPTIMU
     t0 = time.perf_counter()
     e0 = evaluate(m, start, rec, 0, spp=spp, repeats=2)
     fit = refit(m, rec, start, _free_names(m, kept), spp=spp, seed=11, iterations=12,
-                model_variance=e0.model_variance * (2 * e0.scale ** 2), noise_scale=e0.residuals.noise_scale, uncertainties=False)
+                model_variance=_render_variance(e0, 2), noise_scale=e0.residuals.noise_scale, uncertainties=False)
     d = detectability(case, excess, fit.parameters, spp=eval_spp, repeats=repeats, recording=recording, kept=kept)
     return {"case": case["id"], "left_out": sorted(left_out), "kept": kept, "fit_spp": spp,
             "material_at_optimum": {k: fit.parameters[k] for k in TRUE}, "chi2_optimum": d["chi2_base_fit"],

@@ -31,7 +31,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "benchmarks")]
 from bench_diagnose import cases, synthetic_recording
 
-from estimate.diagnose import _free_names, _holdout, _start, _yardstick
+from estimate.diagnose import (
+    _free_names,
+    _holdout,
+    _render_variance,
+    _start,
+    _yardstick,
+)
 from estimate.refit import DECORRELATED, DEFAULT_SEED, evaluate, refit
 
 CASE = sys.argv[1] if len(sys.argv) > 1 else "beam_halo-1"
@@ -71,11 +77,11 @@ for w in which:
     start = base if w.endswith("control") else _start(m1, base, EXT, brightest)
     if w.startswith("fs"):
         r = refit(model, rec, start, free, angle_idx=train, spp=SPP, seed=DEFAULT_SEED + 202, iterations=8,
-                  model_variance=before.model_variance * (6 * before.scale ** 2), noise_scale=floor, uncertainties=False)
+                  model_variance=_render_variance(before, 6), noise_scale=floor, uncertainties=False)
         p, hist = r.parameters, [r.chi2]
     else:
         r = refit(model, rec, start, free, angle_idx=train, spp=SPP, seed=DEFAULT_SEED + 202, iterations=8,
-                  model_variance=before.model_variance * (6 * before.scale ** 2), noise_scale=floor, uncertainties=False,
+                  model_variance=_render_variance(before, 6), noise_scale=floor, uncertainties=False,
                   objective=DECORRELATED, noise_variance=yard)
         p, hist = r.parameters, [r.chi2]
     c = indep(model, p)

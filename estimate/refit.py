@@ -428,16 +428,20 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
     bounds = [parameter_bounds(model, n) for n in free]
     for n, (lo, hi) in zip(free, bounds):
         theta[n] = float(np.clip(theta[n], lo, hi))
+    # The weights: fixed for the whole refit, whichever the objective.
+    if noise_variance is None:
+        weight_var = (var if mv is None else var + mv) * floor2
+    else:
+        nv = np.asarray(noise_variance, dtype=np.float64)[idx]
+        weight_var = np.where(np.isfinite(var) & (nv > 0), nv, np.inf)
+    sig = np.sqrt(weight_var)
     if objective == DECORRELATED:
-        nv = None if noise_variance is None else np.asarray(noise_variance, dtype=np.float64)[idx]
-        return _refit_decorrelated(model, angles, meas, var, mv, floor2, theta, free, bounds, spp=spp, seed=seed,
-                                   iterations=iterations, uncertainties=uncertainties, noise_variance=nv)
-
-    sig = np.sqrt((var if mv is None else var + mv) * floor2)
+        return _refit_decorrelated(model, angles, meas, sig, theta, free, bounds, spp=spp, seed=seed,
+                                   iterations=iterations, uncertainties=uncertainties)
 
     def residual(th: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
         f = model.render_profiles(th, angles, spp=spp, seed=seed)
-        s = best_scale(meas, sig * sig, f)
+        s = best_scale(meas, weight_var, f)
         r = (meas - s * f) / sig
         r = np.where(np.isfinite(sig), r, 0.0)
         return r, f, s, sig
@@ -527,10 +531,9 @@ def _uncertainties(a: np.ndarray, b: np.ndarray, free: Sequence[str], chi2: floa
     return unc, covd
 
 
-def _refit_decorrelated(model: Any, angles: Sequence[float], meas: np.ndarray, var: np.ndarray,
-                        mv: np.ndarray | None, floor2: np.ndarray, theta: dict[str, float], free: list[str],
-                        bounds: Sequence[tuple[float, float]], *, spp: int, seed: int, iterations: int,
-                        uncertainties: bool, noise_variance: np.ndarray | None = None) -> RefitResult:
+def _refit_decorrelated(model: Any, angles: Sequence[float], meas: np.ndarray, sig: np.ndarray,
+                        theta: dict[str, float], free: list[str], bounds: Sequence[tuple[float, float]], *,
+                        spp: int, seed: int, iterations: int, uncertainties: bool) -> RefitResult:
     """`refit` on the decorrelated chi^2 of seeds `seed` and `seed + UNCERTAINTY_SEED_OFFSET`.
 
     Each iteration renders both seeds' Jacobians at theta (the fixed-seed refit's secant
@@ -539,8 +542,8 @@ def _refit_decorrelated(model: Any, angles: Sequence[float], meas: np.ndarray, v
     `decorrelated_step`, halved up to three times and never to renders more
     than `DECORRELATED_MAX_NOISE_GROWTH` times as noisy as the start's, until a step gains less
     than `DECORRELATED_RTOL` of the loss, none gains, or `iterations` are done. The weights
-    are fixed, 1 / (f^2 (var + model_variance)) as in the fixed-seed refit, or 1 /
-    `noise_variance` where given, so the loss only falls and is a function of the point
+    are `refit`'s fixed `sig` (1 / (f^2 (var + model_variance)), or 1 / `noise_variance`
+    where given), so the loss only falls and is a function of the point
     alone: `iterations=0` from a refit's optimum gives the same number, and two refits from
     the same data with the same weights and seeds are paired (their losses differ by what
     their models explain; the two seeds' render noise is common to both by common random
@@ -561,8 +564,6 @@ def _refit_decorrelated(model: Any, angles: Sequence[float], meas: np.ndarray, v
                          model.render_profiles(th, angles, spp=spp, seed=seed_b))
         return last[key]
 
-    sig = (np.sqrt((var if mv is None else var + mv) * floor2) if noise_variance is None else
-           np.sqrt(np.where(np.isfinite(var) & (noise_variance > 0), noise_variance, np.inf)))
     f_a, f_b = both(theta)
     loss, s = decorrelated_chi2(meas, sig, f_a, f_b)
     max_noise = DECORRELATED_MAX_NOISE_GROWTH * render_noise_ratio(sig, f_a, f_b, s)
