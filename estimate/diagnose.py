@@ -45,10 +45,12 @@
    backward check itself; `model_stage` says which way the model was made.
 5. Second pass: when the estimator's final fit drops every effect the refits confirmed
    (none of their magnitudes can be told from absent there), every other candidate is
-   refitted from the base fit, flagged by the screening or not, and the best is fitted by
-   the estimator and must explain the data better than the fit with the stand-in
-   (`second_pass_channel`): a base fit far from the truth can rank a stand-in above the
-   effect the recording holds, and leave that effect's local score test unflagged.
+   refitted, flagged by the screening or not, from the base fit or from the coarse grid
+   with the effect switched on, whichever its refit's chi^2 prefers; the best (at most
+   two, in turn) are fitted by the estimator and must explain the data better than the fit
+   with the stand-in (`second_pass_channel`): a base fit far from the truth can rank a
+   stand-in above the effect the recording holds, leave that effect's local score test
+   unflagged, and hold the material where the effect is worth least.
 
 The evaluations and the Levenberg-Marquardt refits (a free linear scale, the large secant
 steps of `estimate.gauss_newton.secant_steps`) are in `estimate.refit`; the summary and
@@ -167,6 +169,10 @@ MAGNITUDE_PARAMETERS: dict[str, tuple[str, ...]] = {
 MAGNITUDE_SIGMA = 1.0
 #: BIC improvement (chi^2 drop minus k ln n) that confirms an effect ("very strong" evidence).
 BIC_STRONG = 10.0
+#: At most this many of the second pass's candidates are fitted by the estimator, in the order
+#: of their refits' BIC gain, until one explains the data better than the first final fit
+#: (`second_pass_channel`).
+SECOND_PASS_FINAL_FITS = 2
 #: Every HOLDOUT_EVERY-th light angle (sorted) is held out when confirming.
 HOLDOUT_EVERY = 4
 #: At most this many candidates are refitted per round.
@@ -240,6 +246,17 @@ class Control(NamedTuple):
     heldout_chi2: float | None
 
 
+@dataclass(frozen=True)
+class GridStart:
+    """How a candidate's refit may start from the coarse grid (`estimate.start.coarse_start`)
+    instead of the fit being diagnosed: the grid's samples per pixel, its reference relative
+    delta (`estimate.loss.reference_delta`) and its seed, as the estimator's own start."""
+
+    spp: int
+    delta_rel: float
+    seed: int
+
+
 @dataclass
 class FirstRound:
     """What `diagnose_channel` computed from the base fit before its first confirmation
@@ -258,7 +275,8 @@ class FirstRound:
     localisation: dict[str, Any]
     scores: list[CandidateScore]
     control: Control | None = None
-    #: candidate -> (its confirmation entry without the decision, its refit)
+    #: candidate (with "@grid" where its refit started from the coarse grid) -> (its
+    #: confirmation entry without the decision, its refit)
     refits: dict[str, tuple[dict[str, Any], RefitResult]] = field(default_factory=dict)
 
 
@@ -316,8 +334,9 @@ class ChannelDiagnosis:
     #: see `diagnose_channel`'s `final_fit_follows`); "" when nothing was confirmed
     model_stage: str = ""
     #: what `second_pass_channel` did when the estimator's final fit dropped every confirmed effect:
-    #: the effects dropped, the candidates refitted and the one chosen, its final fit against
-    #: the first (`against_first`), the outcome and what it named
+    #: the effects dropped, the candidates refitted, those fitted by the estimator (`chosen`,
+    #: each in `tries` with its final fit, its comparison with the first and its outcome), the
+    #: last comparison (`against_first`), the outcome and what it named
     second_pass: dict[str, Any] = field(default_factory=dict)
     #: the first round's renders and refits, for a second pass from the same base fit (not reported)
     first_round: FirstRound | None = field(default=None, repr=False, compare=False)
@@ -464,6 +483,35 @@ def _start(model: Any, params: Mapping[str, float], ext: str, brightest: float) 
     return p
 
 
+def _candidate_start(model: Any, problem: Any, start: Mapping[str, float], how: GridStart,
+                     chi2_at: Callable[[Mapping[str, float]], float]) -> tuple[dict[str, float], dict[str, Any]]:
+    """A candidate refit's start: `start` (the fit's material, the effect at its start value)
+    or the coarse grid's best material with the effect held there (`estimate.start.
+    coarse_start`, scale profiled as the refits profile it), whichever the refit's own
+    chi^2 (`chi2_at`: the refit evaluated at a start, its spp, seed and weights) puts lower.
+
+    An effect the base model left out pulls its material parameters away to make up for
+    it; the refit then starts where the effect itself is worth least. On the simulated
+    bench's recaptured refractive-boundary session the base fit sat at sigma_t 3.14,
+    phase b1 7.4 (truth 2.0, 1.8) and the boundary's Levenberg-Marquardt refit from there
+    went to n 2.96 (truth 1.33); with the boundary at its start n 1.2, the grid's best was
+    sigma_t 2.0, b1 2.0 at half the base fit's start loss (0.0086 against 0.0181), found
+    in 5 s on 2 cores (session 48). The grid proposes and the refit's chi^2 decides: the
+    grid's log loss at its few samples per pixel leans with the render noise (on the
+    tests' small recording it preferred a grid point at albedo 0.7 to the truth's 0.9 at
+    32 spp and at 128, and only at 512 spp the truth).
+    """
+    material = {k for k in start if k in ("sigma_t", "albedo") or k.startswith("phase.")}
+    effect = {k: float(v) for k, v in start.items() if k not in material}
+    grid, tried = coarse_start(model, problem, start, spp=how.spp, seed=how.seed, delta_rel=how.delta_rel,
+                               fixed=effect)
+    c_fit, c_grid = float(chi2_at(start)), float(chi2_at(grid))
+    use_grid = bool(c_grid < c_fit)
+    info = {"from": "coarse grid" if use_grid else "fit", "chi2_fit": c_fit, "chi2_grid": c_grid,
+            "loss_grid": float(next(loss for p, loss in tried if p == grid))}
+    return (dict(grid) if use_grid else dict(start)), info
+
+
 def _magnitude_z(fit: RefitResult, ext: str) -> float:
     """How far the effect's magnitude parameters lie from absent, in normal-equivalent sigma.
 
@@ -596,7 +644,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                      max_effects: int = MAX_EFFECTS, refit_checks_decide: bool = True,
                      reuse: FirstRound | None = None, min_share: float = 0.0,
                      refit_objective: str = FIXED_SEED,
-                     refit_below_log10_p: float = SCREEN_LOG10_P) -> ChannelDiagnosis:
+                     refit_below_log10_p: float = SCREEN_LOG10_P,
+                     grid_start: GridStart | None = None) -> ChannelDiagnosis:
     """Diagnose one channel.
 
     Args:
@@ -639,6 +688,12 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         refit_below_log10_p: the screening's bar: a round refits the candidates whose score
             test has log10 p below it (`SCREEN_LOG10_P`, the family-wise level); `math.inf`
             refits every candidate whatever its score (`second_pass_channel`).
+        grid_start: where given, each candidate's refit starts from the better, by the
+            start loss at the grid's samples per pixel, of the current fit's material and
+            the coarse grid's best with the effect at its start value (`_candidate_start`);
+            None (default) starts every refit at the current fit (`second_pass_channel`
+            asks for the grid). A first-round refit cached in `reuse` is taken only where
+            the fit's material won, so that it started where a new one would.
     """
     if refit_objective not in OBJECTIVES:
         raise ModelParameterError(f"refit objective {refit_objective!r}: expected one of {', '.join(OBJECTIVES)}")
@@ -707,9 +762,31 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         return joint_refit(exts, fit.parameters, mv, iterations=0, decorrelate=True)
     brightest = float(np.max(before.model))
 
+    def candidate_start(name: str, current: Evaluation, current_exts: list[str], cand_how: Mapping[str, Any]
+                        ) -> tuple[dict[str, float], dict[str, Any] | None]:
+        """Where `name`'s refit starts: `current` with the effect at its start value, or
+        the coarse grid's best where `grid_start` asks for it and wins (`_candidate_start`,
+        judged by the refit's chi^2 with the round's settings `cand_how`)."""
+        exts = current_exts + [name]
+        m = make_model(exts)
+        start = _start(m, current.parameters, name, brightest)
+        if grid_start is None:
+            return start, None
+        if all(start[k] == m.specs[k].neutral for k in MAGNITUDE_PARAMETERS[name] if k in start):
+            # An effect that starts at absent (an offset, a tilt, a thickness error at 0)
+            # starts as the current model, whose optimum the current fit already is: the
+            # estimator's fit descended from this very grid.
+            return start, {"from": "fit", "why": "the effect starts at absent"}
+        free = _free_names(m, exts)
+
+        def chi2_at(p: Mapping[str, float]) -> float:
+            return refit(m, problem, p, free, iterations=0, uncertainties=False, **cand_how).chi2
+        return _candidate_start(m, problem, start, grid_start, chi2_at)
+
     def try_candidate(name: str, current: Evaluation, current_exts: list[str], control: Control,
-                      cand_how: Mapping[str, Any], round_no: int) -> tuple[dict[str, Any], RefitResult]:
-        """One candidate's refit from `current` against the round's `control` (`_control`),
+                      cand_how: Mapping[str, Any], round_no: int, start: Mapping[str, float]
+                      ) -> tuple[dict[str, Any], RefitResult]:
+        """One candidate's refit from `start` against the round's `control` (`_control`),
         with the round's optimiser settings `cand_how`: its statistics (the BIC gain, the
         magnitude's distance from absent, the no-harm and held-out tests; `entry`, without
         the decision) and the refit."""
@@ -718,8 +795,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         m = make_model(exts)
         free = _free_names(m, exts)
         # Without uncertainties: the Wald test below asks for them only where it decides.
-        fit = refit(m, problem, _start(m, current.parameters, name, brightest), free,
-                    iterations=iterations, uncertainties=False, **cand_how)
+        fit = refit(m, problem, start, free, iterations=iterations, uncertainties=False, **cand_how)
         tr = evaluate(m, fit.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats, angle_idx=train,
                       noise_variance=yardstick)
         n_train = int(np.sum(np.isfinite(tr.residuals.r)))
@@ -842,14 +918,20 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         tried, runner_up = list(leading), runners_first
         while True:
             for cand in tried:
-                if round_one and cand.name in first_round.refits:
-                    cached, fit = first_round.refits[cand.name]
+                start, start_info = candidate_start(cand.name, current, current_exts, cand_how)
+                # A refit is cached by its candidate and where it started (the fit, or the
+                # grid: `second_pass_channel` takes its next candidate's refit from here).
+                cache_key = cand.name if start_info is None or start_info["from"] == "fit" else f"{cand.name}@grid"
+                if round_one and cache_key in first_round.refits:
+                    cached, fit = first_round.refits[cache_key]
                     entry = copy.deepcopy(cached)
                 else:
                     entry, fit = try_candidate(cand.name, current, current_exts, control, cand_how,
-                                               len(confirmed) + 1)
+                                               len(confirmed) + 1, start)
                     if round_one:
-                        first_round.refits[cand.name] = (copy.deepcopy(entry), fit)
+                        first_round.refits[cache_key] = (copy.deepcopy(entry), fit)
+                if start_info is not None:
+                    entry["start"] = start_info
                 if runner_up:
                     entry["runner_up"] = True
                 # The decision: every test counts unless `refit_checks_decide` is off, when the
@@ -1490,10 +1572,20 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
     estimator's final fit, which only the chosen candidate gets; the estimator's fit and the
     comparison with `final` still decide.
 
+    Each candidate's refit starts from the coarse grid's best material with the effect
+    switched on at its start value where that fits the data better than the base fit's
+    material (`_candidate_start`). On the recaptured session (base fit 57 % high in
+    sigma_t, phase b1 7.4 against 1.8) the boundary refitted from the base fit went to a
+    degenerate n 2.96, and stray light, ranked first by its refit's gain, was not kept by
+    its final fit (session 47). From the grid the boundary's refit ended at n 1.53, but
+    stray light still gained more (dBIC 1051 against 594) and was again not kept (session
+    48). So the candidates that pass are fitted by the estimator in the order of their
+    refits' gain, at most `SECOND_PASS_FINAL_FITS` of them, until one's final fit explains
+    the data better than `final`; each try is in `d.second_pass["tries"]`.
+
     The first pass's round from the base fit is not done again: its evaluation,
-    screening, control refit and the candidates it already refitted come from
-    `d.first_round` (`diagnose_channel`'s `reuse`), so only the candidates it never tried
-    are refitted. What the pass names replaces `d`'s named model; its refits join
+    screening and control refit come from `d.first_round` (`diagnose_channel`'s `reuse`),
+    and so do its candidates' refits where their start is again the base fit. What the pass names replaces `d`'s named model; its refits join
     `d.confirmations` (`pass` 2), its time `d`'s stages, and `d.second_pass` says what it
     did (`refitted`; `flagged`, those of them the screening had flagged). It runs once.
     Returns the second final fit when it names an effect, else None.
@@ -1513,52 +1605,74 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
         d.verdict += f"; {info['outcome']}"
         return None
     say(f"  the final fit dropped {', '.join(dropped)}: refitting every other candidate "
-        f"({', '.join(others)}) from the base fit")
-    d2 = diagnose_channel(problem, base, make_model, candidates=others, spp=spp, seed=seed, repeats=repeats,
-                          iterations=iterations, log=log, final_fit_follows=True, max_confirm=len(others),
-                          max_effects=1, refit_checks_decide=False, reuse=d.first_round,
-                          refit_objective=d.refit_objective, refit_below_log10_p=math.inf)
-    chosen = list(d2.confirmed)
-    fr2 = None
-    if chosen:
-        fr2 = refine_channel(problem, d2, make_model, settings, spp=spp, seed=seed, repeats=repeats, log=log,
-                             progress=progress, on_stage=on_stage)
-    for k, v in d2.stage_times_s.items():
-        d.stage_times_s[k] = d.stage_times_s.get(k, 0.0) + v
-    d.time_s += d2.time_s
-    for e in (*d2.confirmations, *d2.pruned):
+        f"({', '.join(others)}) from the base fit or the coarse grid")
+    how: dict[str, Any] = {
+        "spp": spp, "seed": seed, "repeats": repeats, "iterations": iterations, "log": log,
+        "final_fit_follows": True, "max_effects": 1, "refit_checks_decide": False, "reuse": d.first_round,
+        "refit_objective": d.refit_objective, "refit_below_log10_p": math.inf,
+        "grid_start": GridStart(settings.start_spp, reference_delta(settings.delta_range), settings.seed + 99_991)}
+    d2 = diagnose_channel(problem, base, make_model, candidates=others, max_confirm=len(others), **how)
+    for e in d2.confirmations:
         e["pass"] = 2
     d.confirmations = list(d.confirmations) + list(d2.confirmations)
-    d.pruned = list(d.pruned) + list(d2.pruned)
-    info.update({"chosen": chosen, "time_s": d2.time_s, "time_by_stage_s": dict(d2.stage_times_s)})
-    better = None
-    if fr2 is not None and d2.confirmed:
-        t0 = time.perf_counter()
-        better = _against_first(problem, d, final, fr2, make_model, spp=spp, seed=seed, repeats=repeats)
-        info["against_first"] = better
-        spent = time.perf_counter() - t0
-        d.stage_times_s["final_fit"] = d.stage_times_s.get("final_fit", 0.0) + spent
-        d.time_s += spent
-    if better is None or better["gain"] <= BIC_STRONG:
-        info["outcome"] = ("no candidate's refit gained enough" if not chosen else
-                           f"{chosen[0]}'s final fit was not kept" if fr2 is None else
-                           f"in the estimator's final fit {chosen[0]}'s magnitude cannot be told from absent"
-                           if not d2.confirmed else
-                           f"{chosen[0]}'s final fit does not explain the data better than the one with "
-                           f"{', '.join(dropped)} (gain {(better or {}).get('gain', math.nan):.1f}, "
-                           f"needs {BIC_STRONG:g})")
+    # Every candidate whose refit passed (BIC gain and magnitude), by that gain: the first is
+    # d2's choice (`_choose` without the independent tests).
+    ranked = [e["effect"] for e in sorted(d2.confirmations, key=lambda e: -float(e["delta_bic"]))
+              if e["delta_bic"] > BIC_STRONG and e["magnitude_sigma"] > MAGNITUDE_SIGMA]
+    tries: list[dict[str, Any]] = []
+    info.update({"chosen": [], "tries": tries, "time_s": 0.0, "time_by_stage_s": {}})
+    won: tuple[ChannelDiagnosis, FitResult, dict[str, float]] | None = None
+    for k, name in enumerate(ranked[:SECOND_PASS_FINAL_FITS]):
+        # The next candidate's diagnosis takes its refit from the round's cache.
+        dk = d2 if k == 0 else diagnose_channel(problem, base, make_model, candidates=[name], max_confirm=1, **how)
+        frk = None
+        if dk.confirmed:
+            frk = refine_channel(problem, dk, make_model, settings, spp=spp, seed=seed, repeats=repeats, log=log,
+                                 progress=progress, on_stage=on_stage)
+        better = None
+        if frk is not None and dk.confirmed:
+            t0 = time.perf_counter()
+            better = _against_first(problem, d, final, frk, make_model, spp=spp, seed=seed, repeats=repeats)
+            spent = time.perf_counter() - t0
+            dk.stage_times_s["final_fit"] = dk.stage_times_s.get("final_fit", 0.0) + spent
+            dk.time_s += spent
+        for st, v in dk.stage_times_s.items():
+            info["time_by_stage_s"][st] = info["time_by_stage_s"].get(st, 0.0) + v
+            d.stage_times_s[st] = d.stage_times_s.get(st, 0.0) + v
+        info["time_s"] += dk.time_s
+        d.time_s += dk.time_s
+        for e in dk.pruned:
+            e["pass"] = 2
+        d.pruned = list(d.pruned) + list(dk.pruned)
+        info["chosen"].append(name)
+        outcome = (f"{name}'s final fit was not kept" if frk is None else
+                   f"in the estimator's final fit {name}'s magnitude cannot be told from absent"
+                   if not dk.confirmed else
+                   f"{name}'s final fit does not explain the data better than the one with {', '.join(dropped)} "
+                   f"(gain {better['gain']:.1f}, needs {BIC_STRONG:g})"
+                   if better is not None and better["gain"] <= BIC_STRONG else
+                   f"named {name}: its final fit explains the data better than the one with {', '.join(dropped)} "
+                   f"(gain {better['gain']:.0f})" if better is not None else f"{name}: no final fit")
+        tries.append({"effect": name, "final_fit": dict(dk.final_fit), "against_first": better, "outcome": outcome})
+        say(f"  second pass: {outcome}")
+        if frk is not None and better is not None and dk.confirmed and better["gain"] > BIC_STRONG:
+            won = (dk, frk, better)
+            break
+    if won is None:
+        info["outcome"] = ("no candidate's refit gained enough" if not tries else "; ".join(t["outcome"] for t in tries))
+        if tries and tries[-1]["against_first"] is not None:
+            info["against_first"] = tries[-1]["against_first"]
         d.verdict += f"; refitting every other candidate: {info['outcome']}"
-        say(f"  second pass: {info['outcome']}")
         return None
-    info["named"] = list(d2.confirmed)
-    info["outcome"] = (f"named {', '.join(d2.confirmed)}: its final fit explains the data better than the one with "
-                       f"{', '.join(dropped)} (gain {better['gain']:.0f})")
-    d.adopt_named_model(d2)
+    dk, frk, better = won
+    info["against_first"] = better
+    info["named"] = list(dk.confirmed)
+    info["outcome"] = "; ".join(t["outcome"] for t in tries)
+    d.adopt_named_model(dk)
     d.verdict = (_verdict(d.before, d.localisation, d.candidates, d.confirmed, d.after)
                  + f" (the first refits confirmed {', '.join(dropped)}, which the estimator's final fit could not "
                  f"tell from absent; refitting every other candidate, {info['outcome']})")
-    say(f"  second pass: {info['outcome']}")
-    return fr2
+    return frk
 
 
 def _against_first(problem: Any, d: ChannelDiagnosis, first: FitResult, second: FitResult,

@@ -131,9 +131,12 @@ def summary_text(doc: Mapping[str, Any]) -> str:
         if again:
             # Runs before session 47 refitted only the flagged candidates (no "flagged" key).
             which = ("candidate" if "flagged" in again else "candidate the screening flagged")
+            # Since session 48 a second-pass refit may start from the coarse grid (entry "start").
+            where = ("from the better of the base fit and the coarse grid with the effect switched on"
+                     if any("start" in e for e in d["confirmations"]) else "from the base fit")
             print(f"  second pass: the estimator's final fit dropped {', '.join(again['dropped'])}; every other "
                   f"{which} ({', '.join(again.get('refitted') or []) or 'none'}) refitted "
-                  f"from the base fit, the held-out and no-harm tests not deciding: {again.get('outcome', '')}", file=out)
+                  f"{where}, the held-out and no-harm tests not deciding: {again.get('outcome', '')}", file=out)
             vs = again.get("against_first")
             if vs:
                 print(f"    its final fit against the first, in the base fit's noise metric: chi2 {vs['chi2_first']:.0f} "
@@ -152,7 +155,9 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                    "runner-up (no leading candidate confirmed): " if e.get("runner_up") else "")
             ind = (f" ({e['delta_bic_independent']:.1f} rendered independently)"
                    if e.get("delta_bic_independent") is not None else "")
-            print(f"  {tag}refit with {e['effect']}: BIC improves by {e['delta_bic']:.1f}{ind}{held}{mag}"
+            grid = (" (started from the coarse grid)" if (e.get("start") or {}).get("from") == "coarse grid"
+                    else "")
+            print(f"  {tag}refit with {e['effect']}{grid}: BIC improves by {e['delta_bic']:.1f}{ind}{held}{mag}"
                   f" -> {'confirmed' if e['confirmed'] else 'not confirmed'}", file=out)
         part = d.get("partial") or {}
         if part:
