@@ -1658,6 +1658,14 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
         if frk is not None and better is not None and dk.confirmed and better["gain"] > BIC_STRONG:
             won = (dk, frk, better)
             break
+    # The pass-2 entries say what became of each: the named one confirmed, every other not,
+    # and those the estimator fitted carry their try's outcome.
+    named = list(won[0].confirmed) if won is not None else []
+    for e in d2.confirmations:
+        e["confirmed"] = e["effect"] in named
+        t = next((t for t in tries if t["effect"] == e["effect"]), None)
+        if t is not None:
+            e["final_fit_outcome"] = t["outcome"]
     if won is None:
         info["outcome"] = ("no candidate's refit gained enough" if not tries else "; ".join(t["outcome"] for t in tries))
         if tries and tries[-1]["against_first"] is not None:

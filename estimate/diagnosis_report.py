@@ -157,8 +157,10 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                    if e.get("delta_bic_independent") is not None else "")
             grid = (" (started from the coarse grid)" if (e.get("start") or {}).get("from") == "coarse grid"
                     else "")
+            # A second-pass candidate the estimator fitted: what its final fit decided.
+            tried = f" (fitted by the estimator: {e['final_fit_outcome']})" if e.get("final_fit_outcome") else ""
             print(f"  {tag}refit with {e['effect']}{grid}: BIC improves by {e['delta_bic']:.1f}{ind}{held}{mag}"
-                  f" -> {'confirmed' if e['confirmed'] else 'not confirmed'}", file=out)
+                  f" -> {'confirmed' if e['confirmed'] else 'not confirmed'}{tried}", file=out)
         part = d.get("partial") or {}
         if part:
             print(f"  not named: {', '.join(part['effects'])} removed {100 * part['share_explained']:.0f}% of the "

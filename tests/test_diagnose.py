@@ -1121,7 +1121,7 @@ def test_when_the_first_choice_fails_its_final_fit_the_second_pass_tries_the_nex
 
     monkeypatch.setattr(dg, "refine_channel", first_not_kept)
     fr = dg.second_pass_channel(pb, d, final, BaseFit(dict(TRUE), 1e4, "hg"), make_model, st, spp=64, repeats=3,
-                                iterations=8)
+                                iterations=4)
     again = d.second_pass
     first, second = again["chosen"]
     assert fitted == [[first], [second]] and {first, second} == {"stray_light", "angle_offset"}
@@ -1134,6 +1134,13 @@ def test_when_the_first_choice_fails_its_final_fit_the_second_pass_tries_the_nex
     assert sorted(e["effect"] for e in d.confirmations if e.get("pass") == 2) == ["angle_offset", "stray_light"]
     assert (fr is not None) == (vs["gain"] > dg.BIC_STRONG) == (again["named"] == [second])
     assert again["outcome"].startswith(f"{first}'s final fit was not kept; ")
+    # the report says what became of each candidate the estimator fitted
+    entries = {e["effect"]: e for e in d.confirmations if e.get("pass") == 2}
+    assert entries[first]["confirmed"] is False
+    assert entries[first]["final_fit_outcome"] == tries[0]["outcome"]
+    assert entries[second]["confirmed"] == (fr is not None)
+    text = dg.summary_text({"channels": {"g": d.as_dict()}, "run_id": "x", "refit_run": None})
+    assert f"-> not confirmed (fitted by the estimator: {first}'s final fit was not kept)" in text
     assert sum(d.stage_times_s.values()) == pytest.approx(d.time_s, rel=1e-3, abs=0.05)
 
 
