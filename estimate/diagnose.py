@@ -688,12 +688,13 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         refit_below_log10_p: the screening's bar: a round refits the candidates whose score
             test has log10 p below it (`SCREEN_LOG10_P`, the family-wise level); `math.inf`
             refits every candidate whatever its score (`second_pass_channel`).
-        grid_start: where given, each candidate's refit starts from the better, by the
-            start loss at the grid's samples per pixel, of the current fit's material and
-            the coarse grid's best with the effect at its start value (`_candidate_start`);
-            None (default) starts every refit at the current fit (`second_pass_channel`
-            asks for the grid). A first-round refit cached in `reuse` is taken only where
-            the fit's material won, so that it started where a new one would.
+        grid_start: where given, a candidate whose effect does not start at absent
+            starts its refit from the better, by that refit's own chi^2, of the current
+            fit's material and the coarse grid's best with the effect at its start value
+            (`_candidate_start`); None (default) starts every refit at the current fit
+            (`second_pass_channel` asks for the grid). Refits are cached in the first
+            round by candidate and start (`FirstRound.refits`), so a refit in `reuse` is
+            taken only where it started where a new one would.
     """
     if refit_objective not in OBJECTIVES:
         raise ModelParameterError(f"refit objective {refit_objective!r}: expected one of {', '.join(OBJECTIVES)}")
@@ -1538,7 +1539,8 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
                         on_stage: Callable[[str], None] | None = None) -> FitResult | None:
     """A second pass when the estimator's final fit (`final`) dropped every effect the refits
     had confirmed (`dropped_at_final_fit`): every other candidate is refitted from the base
-    fit, and the best is fitted by the estimator and compared with `final`.
+    fit (or the coarse grid, below), and the best, then the next, are fitted by the
+    estimator and compared with `final`.
 
     On the simulated bench's recaptured refractive-boundary session the base fit came out
     74 % high in sigma_t. The boundary screened fifth, after a glare tail, a halo, stray
@@ -1553,8 +1555,8 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
 
     So this pass refits every candidate but the dropped ones from the base fit
     (`diagnose_channel` with `max_confirm` all of them, one effect, the held-out and no-harm
-    tests recorded but not deciding); the largest BIC gain whose magnitude passes is fitted
-    by the estimator (`refine_channel`, with its magnitude check) and must then explain the
+    tests recorded but not deciding); the largest BIC gain whose magnitude passes (then the
+    next, below) is fitted by the estimator (`refine_channel`, with its magnitude check) and must then explain the
     data better than `final`, the estimator's fit with the stand-in: the chi^2 drop between
     the two, in the base fit's noise metric and divided by the better one's dispersion, less
     the difference in their parameters' BIC price, must exceed `BIC_STRONG`. The estimator's
@@ -1585,9 +1587,11 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
 
     The first pass's round from the base fit is not done again: its evaluation,
     screening and control refit come from `d.first_round` (`diagnose_channel`'s `reuse`),
-    and so do its candidates' refits where their start is again the base fit. What the pass names replaces `d`'s named model; its refits join
-    `d.confirmations` (`pass` 2), its time `d`'s stages, and `d.second_pass` says what it
-    did (`refitted`; `flagged`, those of them the screening had flagged). It runs once.
+    and so do its candidates' refits where their start is again the base fit. What the
+    pass names replaces `d`'s named model; its refits join `d.confirmations` (`pass` 2,
+    `confirmed` only for the one named, `final_fit_outcome` for each the estimator fitted),
+    its time `d`'s stages, and `d.second_pass` says what it did (`refitted`; `flagged`,
+    those of them the screening had flagged; `tries`). It runs once.
     Returns the second final fit when it names an effect, else None.
     """
     say = log or (lambda s: None)
