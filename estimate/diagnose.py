@@ -278,6 +278,9 @@ class FirstRound:
     #: candidate (with "@grid" where its refit started from the coarse grid) -> (its
     #: confirmation entry without the decision, its refit)
     refits: dict[str, tuple[dict[str, Any], RefitResult]] = field(default_factory=dict)
+    #: candidate -> where its refit started from the grid's pass (`diagnose_channel`'s
+    #: `grid_start`): the start and its record, so a second try does not search the grid again
+    grid_starts: dict[str, tuple[dict[str, float], dict[str, Any] | None]] = field(default_factory=dict)
 
 
 def _first_round_key(problem: Any, base: BaseFit, spp: int, seed: int, repeats: int,
@@ -467,8 +470,13 @@ def _plain(x: Any) -> Any:
 HELD_PARAMETERS: frozenset[str] = frozenset({"sensor_nonlinearity.full_well_radiance"})
 
 
+def _is_material(name: str) -> bool:
+    """A material parameter (sigma_t, the albedo, the phase's), not an effect's."""
+    return name in ("sigma_t", "albedo") or name.startswith("phase.")
+
+
 def _free_names(model: Any, extensions: Sequence[str]) -> list[str]:
-    base = [n for n in model.parameter_names if n in ("sigma_t", "albedo") or n.startswith("phase.")]
+    base = [n for n in model.parameter_names if _is_material(n)]
     out = list(base)
     for e in extensions:
         out += [k for k in FREE_PARAMETERS[e] if k not in HELD_PARAMETERS]
@@ -501,8 +509,7 @@ def _candidate_start(model: Any, problem: Any, start: Mapping[str, float], how: 
     tests' small recording it preferred a grid point at albedo 0.7 to the truth's 0.9 at
     32 spp and at 128, and only at 512 spp the truth).
     """
-    material = {k for k in start if k in ("sigma_t", "albedo") or k.startswith("phase.")}
-    effect = {k: float(v) for k, v in start.items() if k not in material}
+    effect = {k: float(v) for k, v in start.items() if not _is_material(k)}
     grid, tried = coarse_start(model, problem, start, spp=how.spp, seed=how.seed, delta_rel=how.delta_rel,
                                fixed=effect)
     c_fit, c_grid = float(chi2_at(start)), float(chi2_at(grid))
@@ -919,7 +926,12 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         tried, runner_up = list(leading), runners_first
         while True:
             for cand in tried:
-                start, start_info = candidate_start(cand.name, current, current_exts, cand_how)
+                if round_one and grid_start is not None and cand.name in first_round.grid_starts:
+                    start, start_info = first_round.grid_starts[cand.name]
+                else:
+                    start, start_info = candidate_start(cand.name, current, current_exts, cand_how)
+                    if round_one and grid_start is not None:
+                        first_round.grid_starts[cand.name] = (start, start_info)
                 # A refit is cached by its candidate and where it started (the fit, or the
                 # grid: `second_pass_channel` takes its next candidate's refit from here).
                 cache_key = cand.name if start_info is None or start_info["from"] == "fit" else f"{cand.name}@grid"
@@ -1039,7 +1051,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                 + f"; reduced chi2 {current.residuals.reduced_chi2:.3f} (HDR)")
     laps("model" if last_full is not None or deferred is not None
          else "confirmation" if confirmations else "screening")
-    material = [k for k in before.parameters if k in ("sigma_t", "albedo") or k.startswith("phase.")]
+    material = [k for k in before.parameters if _is_material(k)]
     partial = partial_explanation(before, current, confirmed, material, min_share) if confirmed else {}
     if partial:
         say(f"  with {', '.join(confirmed)} the reduced chi2 at the floor falls "
@@ -1392,7 +1404,7 @@ def _final_fit_start(problem: Any, model: Any, lm: Evaluation, settings: FitSett
     if cal is None:
         return start, {"from": "refit"}
     k = float(lm.scale) / float(cal.scale)
-    effect = {n: v for n, v in start.items() if "." in n and not n.startswith("phase.")}
+    effect = {n: v for n, v in start.items() if not _is_material(n)}
     for n in effect:
         if model.specs[n].unit.startswith("radiance"):
             effect[n] = start[n] = float(start[n]) * k

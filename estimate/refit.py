@@ -439,14 +439,14 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
         return _refit_decorrelated(model, angles, meas, sig, theta, free, bounds, spp=spp, seed=seed,
                                    iterations=iterations, uncertainties=uncertainties)
 
-    def residual(th: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    def residual(th: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray, float]:
         f = model.render_profiles(th, angles, spp=spp, seed=seed)
         s = best_scale(meas, weight_var, f)
         r = (meas - s * f) / sig
         r = np.where(np.isfinite(sig), r, 0.0)
-        return r, f, s, sig
+        return r, f, s
 
-    r, f, s, sig = residual(theta)
+    r, f, s = residual(theta)
     chi2 = float(np.sum(r * r))
     lam = 1e-3
     it = 0
@@ -477,14 +477,14 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
             for j, (n, (lo, hi)) in enumerate(zip(free, bounds)):
                 trial[n] = float(np.clip(theta[n] + step[j], lo, hi))
             try:
-                r2, f2, s2, sig2 = residual(trial)
+                r2, f2, s2 = residual(trial)
             except ModelParameterError:
                 lam *= 10.0
                 continue
             c2 = float(np.sum(r2 * r2))
             if c2 < chi2:
                 rel = (chi2 - c2) / max(chi2, 1e-300)
-                theta, r, f, s, sig, chi2 = trial, r2, f2, s2, sig2, c2
+                theta, r, f, s, chi2 = trial, r2, f2, s2, c2
                 lam = max(lam / 3.0, 1e-7)
                 improved = True
                 break
