@@ -15,8 +15,12 @@ demo: $(STAMP)
 	VENV=$(VENV) DEMO_OUT=$(DEMO_OUT) ./scripts/demo.sh
 
 # --durations: the slowest tests in every CI log, to see where its time grows.
+# -n: pytest-xdist workers. Two on the 2-core CI machine took the suite from 18 to 10 minutes
+# (session 49): much of a test's time is single-threaded (Dr.Jit tracing and LLVM compiling,
+# numpy, the CLI's start-up), which a second process overlaps with another's renders.
+TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(VENV)/bin/python -m pytest -q -p no:cacheprovider --durations=15
+	$(VENV)/bin/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --durations=15
 
 bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/run_all.py
