@@ -926,21 +926,28 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         tried, runner_up = list(leading), runners_first
         while True:
             for cand in tried:
+                # Each entry's time_s: its start's search (the grid's, where asked) and its
+                # refit with the tests; 0 where taken from the round's cache (`reused`).
+                t_cand = time.perf_counter()
                 if round_one and grid_start is not None and cand.name in first_round.grid_starts:
                     start, start_info = first_round.grid_starts[cand.name]
                 else:
                     start, start_info = candidate_start(cand.name, current, current_exts, cand_how)
                     if round_one and grid_start is not None:
                         first_round.grid_starts[cand.name] = (start, start_info)
+                t_start = time.perf_counter() - t_cand
                 # A refit is cached by its candidate and where it started (the fit, or the
                 # grid: `second_pass_channel` takes its next candidate's refit from here).
                 cache_key = cand.name if start_info is None or start_info["from"] == "fit" else f"{cand.name}@grid"
                 if round_one and cache_key in first_round.refits:
                     cached, fit = first_round.refits[cache_key]
                     entry = copy.deepcopy(cached)
+                    entry["time_s"] = {"start": t_start, "refit": 0.0, "reused": True}
                 else:
+                    t_refit = time.perf_counter()
                     entry, fit = try_candidate(cand.name, current, current_exts, control, cand_how,
                                                len(confirmed) + 1, start)
+                    entry["time_s"] = {"start": t_start, "refit": time.perf_counter() - t_refit, "reused": False}
                     if round_one:
                         first_round.refits[cache_key] = (copy.deepcopy(entry), fit)
                 if start_info is not None:

@@ -525,8 +525,11 @@ def test_a_second_diagnosis_from_the_same_base_fit_reuses_the_first_round(monkey
                           reuse=d1.first_round)
     assert d2.before is d1.before and calls["screen"] == 0
     for e in d2.confirmations:
-        same = {k: v for k, v in e.items() if k != "confirmed"}
-        assert same == {k: v for k, v in first[e["effect"]].items() if k != "confirmed"}
+        same = {k: v for k, v in e.items() if k not in ("confirmed", "time_s")}
+        assert same == {k: v for k, v in first[e["effect"]].items() if k not in ("confirmed", "time_s")}
+        # each entry's time says where it was spent: its refit taken, not done again
+        assert e["time_s"]["reused"] and e["time_s"]["refit"] == 0.0
+        assert not first[e["effect"]]["time_s"]["reused"] and first[e["effect"]]["time_s"]["refit"] > 0.0
     # the only renders left: the chosen effect's uncertainties and its evaluation on all angles
     assert calls["refit"] <= 1 and calls["evaluate"] == 1
     assert d2.stage_times_s["screening"] < 0.5 * d1.stage_times_s["screening"]
