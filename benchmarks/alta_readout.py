@@ -26,8 +26,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from drivers.apogee_alta import AltaCamera  # noqa: E402
-from sim_devices.alta_usb import PIXEL_TIME_S, ROW_SHIFT_TIME_S, AltaBackend  # noqa: E402
+from drivers.apogee_alta import AltaCamera
+from sim_devices.alta_usb import PIXEL_TIME_S, ROW_SHIFT_TIME_S, AltaBackend
 
 N = 15
 

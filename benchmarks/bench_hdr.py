@@ -31,9 +31,16 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from capture.hdr import MatchedDarks, NoiseModel, merge_hdr, optimal_reference, saturation_mask  # noqa: E402
-from drivers.interfaces import ROI, Frame  # noqa: E402
-from fakes import TEST_SENSOR, simulate_frame  # noqa: E402
+from fakes import TEST_SENSOR, simulate_frame
+
+from capture.hdr import (
+    MatchedDarks,
+    NoiseModel,
+    merge_hdr,
+    optimal_reference,
+    saturation_mask,
+)
+from drivers.interfaces import ROI, Frame
 
 SEED = 20261121
 N_BANDS = 16

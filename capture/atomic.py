@@ -16,8 +16,8 @@ import contextlib
 import hashlib
 import os
 import secrets
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 #: Temporary files are named ``.<target name>.tmp-<pid>-<random>`` next to the target.
 TEMP_PREFIX = "."
@@ -89,10 +89,9 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
 
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> str:
     """Write ``data`` to ``path`` atomically; return its hex SHA-256."""
-    with atomic_path(path) as tmp:
-        with open(tmp, "xb") as f:
-            f.write(data)
-            f.flush()
+    with atomic_path(path) as tmp, open(tmp, "xb") as f:
+        f.write(data)
+        f.flush()
     return sha256_bytes(data)
 
 

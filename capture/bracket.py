@@ -40,15 +40,15 @@ by the calibration; the merge takes either.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
 from capture.errors import PlanError
 from capture.hdr import NoiseModel, NominalDark, merge_hdr
 from drivers.interfaces import Camera, Frame
-
 
 DEFAULT_FIRST_EXPOSURE_S = 0.001
 DEFAULT_MAX_EXPOSURE_S = 60.0
@@ -80,7 +80,7 @@ class BracketPolicy:
     profile_halfwidth_rows: int = 1
     n_darks: int = 2
 
-    def resolved(self, exposure_range_s: tuple[float, float] | None = None) -> "BracketPolicy":
+    def resolved(self, exposure_range_s: tuple[float, float] | None = None) -> BracketPolicy:
         """The policy with its exposure limits filled in from the camera's range, checked.
 
         Without a range, the defaults are 1 ms and 60 s.
@@ -131,7 +131,7 @@ class BracketPolicy:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "BracketPolicy":
+    def from_dict(cls, d: Mapping[str, Any]) -> BracketPolicy:
         known = {k: d[k] for k in cls.__dataclass_fields__ if k in d}
         return cls(**known)
 

@@ -16,15 +16,27 @@ stops the stage and forces the shutter closed.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable
+from typing import Any
 
 import numpy as np
 
 from capture.bracket import BracketStatus, acquire_bracket, acquire_darks
 from capture.errors import SessionError
 from capture.hdr import MatchedDarks, MergeOptions, NoiseModel, merge_hdr
-from capture.plan import Bracket, CapturePlan, Dark, Home, Move, SaveStack, SelectFilter, StackKey, Step, plan_steps
+from capture.plan import (
+    Bracket,
+    CapturePlan,
+    Dark,
+    Home,
+    Move,
+    SaveStack,
+    SelectFilter,
+    StackKey,
+    Step,
+    plan_steps,
+)
 from capture.session import Session, StackRecord
 from drivers.interfaces import Camera, FilterChanger, Frame, RotationStage, ShutterMode
 
@@ -63,7 +75,14 @@ class _RichProgress:
     """A rich progress bar over stacks with elapsed time and ETA."""
 
     def __init__(self, total: int, console: Any = None) -> None:
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TextColumn,
+            TimeElapsedColumn,
+            TimeRemainingColumn,
+        )
 
         self._p = Progress(
             TextColumn("[bold]{task.description}"),

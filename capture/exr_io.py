@@ -22,9 +22,10 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import OpenEXR
@@ -94,9 +95,8 @@ def write_exr(
         header[key] = value
     if meta:
         header[META_ATTRIBUTE] = json.dumps(meta, sort_keys=True)
-    with atomic_path(path) as tmp:
-        with OpenEXR.File(header, data) as f:
-            f.write(str(tmp))
+    with atomic_path(path) as tmp, OpenEXR.File(header, data) as f:
+        f.write(str(tmp))
     return sha256_file(path)
 
 
@@ -143,10 +143,9 @@ def write_frames(path: str | os.PathLike[str], frames: Sequence[Frame]) -> str:
             raise ValueError(f"raw frames of one stack must share a shape: {fr.data.shape} != {shape}")
     stack = np.stack([fr.data for fr in frames])
     meta = json.dumps([_frame_meta(fr) for fr in frames], default=str)
-    with atomic_path(path) as tmp:
-        with open(tmp, "xb") as f:
-            np.savez_compressed(f, frames=stack, meta=np.array(meta))
-            f.flush()
+    with atomic_path(path) as tmp, open(tmp, "xb") as f:
+        np.savez_compressed(f, frames=stack, meta=np.array(meta))
+        f.flush()
     return sha256_file(path)
 
 

@@ -39,8 +39,9 @@ keeps the shortest exposure's value as a lower bound, ``variance = inf`` and
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
-from typing import Mapping, Protocol, Sequence
+from typing import Protocol
 
 import numpy as np
 
@@ -66,7 +67,7 @@ class NoiseModel:
     saturation_adu: float
 
     @classmethod
-    def from_sensor(cls, sensor: SensorInfo, *, headroom: float = 0.95) -> "NoiseModel":
+    def from_sensor(cls, sensor: SensorInfo, *, headroom: float = 0.95) -> NoiseModel:
         """Noise model from a sensor's facts.
 
         The usable top is the lower of the ADC ceiling and ``bias + full_well/gain``;
@@ -89,7 +90,7 @@ class NoiseModel:
         return {k: float(v) for k, v in asdict(self).items()}
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, float]) -> "NoiseModel":
+    def from_dict(cls, d: Mapping[str, float]) -> NoiseModel:
         return cls(**{k: float(d[k]) for k in cls.__dataclass_fields__})
 
     def frame_variance_e2(self, signal_e: np.ndarray | float, exposure_s: float) -> np.ndarray | float:
@@ -133,7 +134,7 @@ class MatchedDarks:
     noise: NoiseModel
 
     @classmethod
-    def from_frames(cls, frames: Sequence[Frame], noise: NoiseModel) -> "MatchedDarks":
+    def from_frames(cls, frames: Sequence[Frame], noise: NoiseModel) -> MatchedDarks:
         """Average the dark frames of each exposure time (light frames are ignored)."""
         sums: dict[float, np.ndarray] = {}
         counts: dict[float, int] = {}
@@ -184,7 +185,7 @@ class FittedDark:
     noise: NoiseModel
 
     @classmethod
-    def fit(cls, frames: Sequence[Frame], noise: NoiseModel) -> "FittedDark":
+    def fit(cls, frames: Sequence[Frame], noise: NoiseModel) -> FittedDark:
         """Fit bias and dark rate per pixel to the dark frames among ``frames``.
 
         Raises:

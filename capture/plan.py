@@ -24,8 +24,9 @@ the beam.
 from __future__ import annotations
 
 import math
+from collections.abc import Container, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Container, Iterator, Mapping, Sequence
+from typing import Any
 
 from capture.bracket import BracketPolicy
 from capture.errors import PlanError
@@ -111,7 +112,7 @@ class CapturePlan:
         }
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "CapturePlan":
+    def from_dict(cls, d: Mapping[str, Any]) -> CapturePlan:
         return cls(
             angles_deg=tuple(float(a) for a in d["angles_deg"]),
             filters=tuple(str(f) for f in d["filters"]),

@@ -24,15 +24,23 @@ import importlib.metadata
 import math
 import os
 import shutil
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, is_dataclass
 from enum import Enum
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import yaml
 
-from capture.atomic import atomic_write_bytes, atomic_write_text, fsync_dir, is_temp_name, remove_stale_temps, sha256_file
+from capture.atomic import (
+    atomic_write_bytes,
+    atomic_write_text,
+    fsync_dir,
+    is_temp_name,
+    remove_stale_temps,
+    sha256_file,
+)
 from capture.errors import SessionError
 from capture.exr_io import ExrImage, read_exr, read_frames, write_exr, write_frames
 from capture.hdr import HdrResult, NoiseModel
@@ -61,7 +69,7 @@ def software_version() -> str:
 
 
 def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds")
 
 
 def _plain(obj: Any) -> Any:
@@ -131,7 +139,7 @@ class StackRecord:
         }
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "StackRecord":
+    def from_dict(cls, d: Mapping[str, Any]) -> StackRecord:
         key = StackKey(int(d["angle_index"]), str(d["filter"]))
         if d.get("id", key.id) != key.id:
             raise ValueError(f"stack id {d.get('id')!r} does not match angle index and filter ({key.id})")
@@ -188,7 +196,7 @@ class Session:
         geometry: Mapping[str, Any] | None = None,
         calibration: str | os.PathLike[str] | None = None,
         extra: Mapping[str, Any] | None = None,
-    ) -> "Session":
+    ) -> Session:
         """Create a new session directory with every stack pending.
 
         Args:
@@ -293,7 +301,7 @@ class Session:
             )
 
     @classmethod
-    def open(cls, path: str | os.PathLike[str]) -> "Session":
+    def open(cls, path: str | os.PathLike[str]) -> Session:
         """Open a session for reading (estimation, ``rig info``); takes no lock.
 
         Raises:
@@ -338,7 +346,7 @@ class Session:
         return cls(p, m, stacks, writable=False)
 
     @classmethod
-    def resume(cls, path: str | os.PathLike[str], *, plan: CapturePlan | None = None, devices: Mapping[str, str] | None = None) -> "Session":
+    def resume(cls, path: str | os.PathLike[str], *, plan: CapturePlan | None = None, devices: Mapping[str, str] | None = None) -> Session:
         """Open a session to continue capturing.
 
         Removes temporary files of interrupted writes, checks the files of every
@@ -391,7 +399,7 @@ class Session:
             self._lock_fd = None
         self._writable = False
 
-    def __enter__(self) -> "Session":
+    def __enter__(self) -> Session:
         return self
 
     def __exit__(self, *exc: object) -> None:

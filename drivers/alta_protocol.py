@@ -423,7 +423,7 @@ def geometry_from_registers(regs: dict[int, int], sensor: SensorInfo = KAF0261E)
         ProtocolError: the skip counts and regions do not add up to the sensor,
             no region (or more than one) is marked digitised, or binning is zero.
     """
-    r = lambda reg: int(regs.get(int(reg), 0))  # noqa: E731
+    r = lambda reg: int(regs.get(int(reg), 0))
     pre, count, post = r(Reg.PREROI_SKIP_COUNT), r(Reg.ROI_COUNT), r(Reg.POSTROI_SKIP_COUNT)
     cols = count - PIXEL_SHIFT
     if cols < 1:

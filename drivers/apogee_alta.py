@@ -26,13 +26,19 @@ from __future__ import annotations
 
 import errno
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import usb.core
 import usb.util
 
 from drivers import alta_protocol as ap
-from drivers.errors import DeviceConnectionError, DeviceError, DeviceTimeout, ProtocolError
+from drivers.errors import (
+    DeviceConnectionError,
+    DeviceError,
+    DeviceTimeout,
+    ProtocolError,
+)
 from drivers.interfaces import ROI, Camera, CoolerStatus, Frame, SensorInfo, ShutterMode
 from drivers.iolog import Transcript
 

@@ -24,7 +24,8 @@ from __future__ import annotations
 
 import math
 import threading
-from typing import Callable, Mapping, TypeVar
+from collections.abc import Callable, Mapping
+from typing import TypeVar
 
 from drivers import fw102c_protocol as proto
 from drivers.errors import (

@@ -13,9 +13,9 @@ from __future__ import annotations
 import math
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Mapping
 
 import numpy as np
 
@@ -49,7 +49,7 @@ class AngleRange:
     def __contains__(self, angle: float) -> bool:
         return self.lo - 1e-9 <= angle <= self.hi + 1e-9
 
-    def intersect(self, other: "AngleRange") -> "AngleRange":
+    def intersect(self, other: AngleRange) -> AngleRange:
         return AngleRange(max(self.lo, other.lo), min(self.hi, other.hi))
 
 
@@ -194,7 +194,7 @@ class RotationStage(ABC):
     def close(self) -> None:
         """Release the transport."""
 
-    def __enter__(self) -> "RotationStage":
+    def __enter__(self) -> RotationStage:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -359,7 +359,7 @@ class Camera(ABC):
     def close(self) -> None:
         """Close the shutter if possible and release the device."""
 
-    def __enter__(self) -> "Camera":
+    def __enter__(self) -> Camera:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -416,7 +416,7 @@ class FilterChanger(ABC):
     def close(self) -> None:
         """Release the transport."""
 
-    def __enter__(self) -> "FilterChanger":
+    def __enter__(self) -> FilterChanger:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -8,7 +8,7 @@ aborted change (the operator may have taken the old filter out).
 
 from __future__ import annotations
 
-from typing import Callable, Mapping
+from collections.abc import Callable, Mapping
 
 from drivers.errors import StateError
 from drivers.interfaces import FilterChanger

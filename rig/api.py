@@ -24,9 +24,10 @@ from __future__ import annotations
 
 import io
 import json
+from collections.abc import Sequence
 from contextlib import redirect_stdout
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 __all__ = [
     "calibrate_beam", "capture", "devices", "diagnose", "estimate", "info", "load_results",

@@ -85,7 +85,7 @@ class _Reader:
     def fail(self, key: str, msg: str) -> UsageError:
         return UsageError(f"{self.path}: {self.prefix}{key}: {msg}")
 
-    def section(self, key: str, required: bool = True) -> "_Reader":
+    def section(self, key: str, required: bool = True) -> _Reader:
         v = self.data.get(key) if isinstance(self.data, dict) else None
         if v is None:
             if required:

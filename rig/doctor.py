@@ -21,9 +21,10 @@ import stat
 import subprocess
 import sys
 import textwrap
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Literal, Mapping, Sequence
+from typing import Any, Literal
 
 from rig.discovery import APOGEE_VID, UDEV_RULES, UsbDeviceInfo, usb_node
 
@@ -419,7 +420,7 @@ class Identity:
     user: str
 
     @classmethod
-    def current(cls) -> "Identity":
+    def current(cls) -> Identity:
         uid = os.geteuid()
         try:
             user = pwd.getpwuid(uid).pw_name

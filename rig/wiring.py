@@ -8,8 +8,8 @@ same driver code then talks to the twin through the real byte protocol.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 from urllib.parse import parse_qs, urlencode, urlsplit
 
 from drivers.interfaces import AngleRange, Camera, FilterChanger, RotationStage
@@ -41,7 +41,7 @@ class Rig:
         if self.transcript is not None:
             self.transcript.close()
 
-    def __enter__(self) -> "Rig":
+    def __enter__(self) -> Rig:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -150,7 +150,7 @@ class _EndpointDescriptor:
 class _Handle:
     """An open device handle (one per pyusb Device context)."""
 
-    def __init__(self, dev: "_SimCamera") -> None:
+    def __init__(self, dev: _SimCamera) -> None:
         self.dev = dev
         self.open = True
 
@@ -181,7 +181,7 @@ class _Exposure:
 class _SimCamera:
     """The camera behind the USB connector: registers, exposure, cooler, image buffer."""
 
-    def __init__(self, backend: "AltaBackend", serial_number: str, firmware: int) -> None:
+    def __init__(self, backend: AltaBackend, serial_number: str, firmware: int) -> None:
         self.backend = backend
         self.serial_number = serial_number
         self.firmware = firmware

@@ -21,8 +21,8 @@ sensor's ``dark_current_e_per_s`` at the -20 C default set-point (unconfirmed).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 

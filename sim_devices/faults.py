@@ -34,7 +34,7 @@ class FaultPlan:
         self._rng = random.Random(self.seed)
 
     @classmethod
-    def parse(cls, spec: str | None, seed: int = 0) -> "FaultPlan":
+    def parse(cls, spec: str | None, seed: int = 0) -> FaultPlan:
         """``"drop:0.05,garble:0.02"`` -> FaultPlan."""
         rates: dict[str, float] = {}
         for part in (spec or "").split(","):
@@ -46,7 +46,7 @@ class FaultPlan:
         return cls(rates, seed)
 
     @classmethod
-    def from_query(cls, query: str) -> "FaultPlan":
+    def from_query(cls, query: str) -> FaultPlan:
         q = parse_qs(query)
         seed = int(q.get("seed", ["0"])[0])
         return cls.parse(q.get("faults", [""])[0], seed)

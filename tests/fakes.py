@@ -11,8 +11,8 @@ radiance in e-/s of the full sensor.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 

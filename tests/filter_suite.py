@@ -9,7 +9,7 @@ A test module subclasses :class:`FilterChangerSuite` and provides two fixtures:
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import pytest
 

@@ -11,11 +11,17 @@ import time
 import numpy as np
 import pytest
 import usb.core
-
 from camera_suite import CameraInterfaceSuite
+
 from drivers import alta_protocol as ap
 from drivers.apogee_alta import AltaCamera
-from drivers.errors import DeviceConnectionError, DeviceTimeout, LimitError, ParameterError, ProtocolError
+from drivers.errors import (
+    DeviceConnectionError,
+    DeviceTimeout,
+    LimitError,
+    ParameterError,
+    ProtocolError,
+)
 from drivers.interfaces import ROI, ShutterMode
 from drivers.iolog import Transcript
 from sim_devices.alta_usb import AMBIENT_C, AltaBackend

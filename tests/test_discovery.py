@@ -151,7 +151,7 @@ def test_usb_listing_opens_only_the_camera():
 def test_usb_access_denied_is_reported_with_the_udev_fix():
     cam = AltaBackend()
     cam.access_denied = True
-    result = discovery.scan(lambda: [], usb_backend=_Bus([cam], []), by_id_dir="/nonexistent")
+    result = discovery.scan(list, usb_backend=_Bus([cam], []), by_id_dir="/nonexistent")
     (d,) = result.cameras
     assert d.access == "denied" and "Access denied" in d.error
     text = "\n".join(discovery.format_scan(result))

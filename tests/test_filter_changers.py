@@ -11,10 +11,11 @@ import textwrap
 import threading
 import time
 import uuid
-from typing import Callable, Iterator
+from collections.abc import Callable, Iterator
 
 import pytest
 import serial
+from filter_suite import POSITIONS, FilterChangerSuite
 
 import sim_devices  # noqa: F401 - registers sim-fw102c://
 from drivers import fw102c_protocol as proto
@@ -30,7 +31,6 @@ from drivers.errors import (
 from drivers.fw102c import FW102C
 from drivers.iolog import Transcript
 from drivers.manual_filter import MAX_UNCLEAR_ANSWERS, ManualFilterChanger
-from filter_suite import POSITIONS, FilterChangerSuite
 from sim_devices.bench import Bench, drop_bench, set_bench
 from sim_devices.faults import FaultPlan
 from sim_devices.fw102c import FW102CTwin

@@ -4,13 +4,20 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fakes import TEST_SENSOR, simulate_frame
 
 from capture.bracket import BracketController, BracketPolicy
 from capture.errors import PlanError
 from capture.exr_io import read_exr, read_frames, write_exr, write_frames
-from capture.hdr import FittedDark, MatchedDarks, NoiseModel, merge_hdr, optimal_reference, saturation_mask
+from capture.hdr import (
+    FittedDark,
+    MatchedDarks,
+    NoiseModel,
+    merge_hdr,
+    optimal_reference,
+    saturation_mask,
+)
 from drivers.interfaces import ROI, Frame
-from fakes import TEST_SENSOR, simulate_frame
 
 NOISE = NoiseModel.from_sensor(TEST_SENSOR)
 EXPOSURES = [0.001 * 4**k for k in range(6)]

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fakes import make_rig
 
+from capture.atomic import sha256_file
 from capture.errors import PlanError, SessionError
 from capture.executor import Executor, run_capture
 from capture.plan import (
@@ -21,11 +23,9 @@ from capture.plan import (
     parse_filters,
     plan_steps,
 )
-from capture.atomic import sha256_file
 from capture.session import Session
 from drivers.errors import DeviceTimeout
 from drivers.interfaces import AngleRange, ShutterMode
-from fakes import make_rig
 
 STAGE = AngleRange(-10.0, 190.0)
 FILTERS = ["r", "g", "b"]
@@ -300,7 +300,7 @@ class _Killed(BaseException):
 def test_crash_at_every_file_write_then_resume_completes_without_losing_a_stack(tmp_path, monkeypatch):
     import os
 
-    import capture.atomic as atomic
+    from capture import atomic
     from capture.session import MANIFEST_NAME
 
     plan = _plan(2, ("r", "g"))

@@ -9,9 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from fakes import TEST_SENSOR
 
-import capture.atomic as atomic
 import capture.session as session_mod
+from capture import atomic
 from capture.atomic import atomic_write_bytes, remove_stale_temps, sha256_file
 from capture.errors import SessionError
 from capture.exr_io import write_exr
@@ -19,7 +20,6 @@ from capture.hdr import HdrResult, NoiseModel
 from capture.plan import AngleSpec, StackKey, make_plan
 from capture.session import FORMAT_VERSION, MANIFEST_NAME, Session
 from drivers.interfaces import ROI, AngleRange, Frame
-from fakes import TEST_SENSOR
 
 SHAPE = (8, 12)
 
