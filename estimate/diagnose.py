@@ -1668,17 +1668,11 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
             e["pass"] = 2
         d.pruned = list(d.pruned) + list(dk.pruned)
         info["chosen"].append(name)
-        outcome = (f"{name}'s final fit was not kept" if frk is None else
-                   f"in the estimator's final fit {name}'s magnitude cannot be told from absent"
-                   if not dk.confirmed else
-                   f"{name}'s final fit does not explain the data better than the one with {', '.join(dropped)} "
-                   f"(gain {better['gain']:.1f}, needs {BIC_STRONG:g})"
-                   if better is not None and better["gain"] <= BIC_STRONG else
-                   f"named {name}: its final fit explains the data better than the one with {', '.join(dropped)} "
-                   f"(gain {better['gain']:.0f})" if better is not None else f"{name}: no final fit")
+        outcome = _try_outcome(name, frk, dk, better, dropped)
         tries.append({"effect": name, "final_fit": dict(dk.final_fit), "against_first": better, "outcome": outcome})
         say(f"  second pass: {outcome}")
-        if frk is not None and better is not None and dk.confirmed and better["gain"] > BIC_STRONG:
+        # `better` exists only where the final fit was kept and still holds the effect.
+        if frk is not None and better is not None and better["gain"] > BIC_STRONG:
             won = (dk, frk, better)
             break
     # The pass-2 entries say what became of each: the named one confirmed, every other not,
@@ -1704,6 +1698,24 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
                  + f" (the first refits confirmed {', '.join(dropped)}, which the estimator's final fit could not "
                  f"tell from absent; refitting every other candidate, {info['outcome']})")
     return frk
+
+
+def _try_outcome(name: str, final: FitResult | None, dk: ChannelDiagnosis, better: Mapping[str, float] | None,
+                 dropped: Sequence[str]) -> str:
+    """What became of a second-pass candidate the estimator fitted (`second_pass_channel`):
+    its final fit not kept, its magnitude lost there, not better than the first final fit
+    (`_against_first`'s `better`), or named."""
+    if final is None:
+        return f"{name}'s final fit was not kept"
+    if not dk.confirmed:
+        return f"in the estimator's final fit {name}'s magnitude cannot be told from absent"
+    if better is None:
+        return f"{name}: no final fit"
+    first = ", ".join(dropped)
+    if better["gain"] <= BIC_STRONG:
+        return (f"{name}'s final fit does not explain the data better than the one with {first} "
+                f"(gain {better['gain']:.1f}, needs {BIC_STRONG:g})")
+    return f"named {name}: its final fit explains the data better than the one with {first} (gain {better['gain']:.0f})"
 
 
 def _against_first(problem: Any, d: ChannelDiagnosis, first: FitResult, second: FitResult,
