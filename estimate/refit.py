@@ -35,8 +35,8 @@ from estimate.residuals import (
 )
 from estimate.uncertainties import UNCERTAINTY_CROSS_FLOOR
 
-__all__ = ["BROYDEN", "DECORRELATED", "DEFAULT_REPEATS", "DEFAULT_SEED", "FIXED_SEED", "FULL", "JACOBIAN_UPDATES",
-           "MAX_GLARE_FRACTION", "OBJECTIVES", "Evaluation", "RefitResult", "best_scale", "broyden_update",
+__all__ = ["DECORRELATED", "DEFAULT_REPEATS", "DEFAULT_SEED", "FIXED_SEED", "MAX_GLARE_FRACTION", "OBJECTIVES",
+           "Evaluation", "RefitResult", "best_scale",
            "cross_covariance", "decorrelated_step", "evaluate", "independent_residuals", "parameter_bounds",
            "recording_variance", "refit", "render_stack", "smoothed_variance"]
 
@@ -57,27 +57,6 @@ UNCERTAINTY_SEED_OFFSET = 7919
 FIXED_SEED = "fixed-seed"
 DECORRELATED = "decorrelated"
 OBJECTIVES = (FIXED_SEED, DECORRELATED)
-
-
-#: How the fixed-seed Levenberg-Marquardt refit gets its Jacobian each iteration
-#: (`refit(jacobian_updates=...)`). FULL: central differences at every iteration (two
-#: renders a scene parameter). BROYDEN: central differences at the first iteration, then
-#: Broyden's rank-one secant update from each accepted step's render (no render beyond
-#: the step's own), and central differences again wherever the updated Jacobian's step
-#: fails or gains under 1e-4: only a full Jacobian's verdict ends the refit.
-FULL = "full"
-BROYDEN = "broyden"
-JACOBIAN_UPDATES = (FULL, BROYDEN)
-
-
-#: With BROYDEN, an updated Jacobian gets this many damped tries (a render each) before it
-#: is replaced by a full one; a full Jacobian gets 8, as before.
-BROYDEN_TRIES = 3
-
-
-#: With BROYDEN, `iterations` counts the full Jacobians, and the LM iterations in all
-#: (updated ones included) are capped at this many times it.
-BROYDEN_ITERATION_FACTOR = 3
 
 
 #: A decorrelated refit stops when a step lowers its loss by less than this fraction of it.
@@ -306,24 +285,6 @@ def refit_columns(jac: Mapping[str, np.ndarray], f: np.ndarray, s: float, sig: n
     return np.nan_to_num(np.stack(cols, axis=1), nan=0.0, posinf=0.0, neginf=0.0)
 
 
-def broyden_update(jac: np.ndarray, dx: np.ndarray, df: np.ndarray, h: np.ndarray) -> np.ndarray:
-    """Broyden's rank-one update of a model Jacobian `jac` (n_params, *image) after a step
-    `dx` (n_params, the parameters' own units) that changed the render by `df` (*image).
-
-    The update is the least change that makes the Jacobian reproduce the step (J dx = df),
-    the change measured with every parameter in units of its finite-difference step `h`
-    (the parameters span many decades: an albedo against a stray-light offset in e-/s), so
-    a parameter gets its share of the correction by how far the step moved it in those
-    units, not in its own. Returns the updated copy.
-    """
-    u = np.asarray(dx, dtype=np.float64) / np.asarray(h, dtype=np.float64)
-    uu = float(u @ u)
-    if not np.isfinite(uu) or uu <= 0.0:
-        return jac.copy()
-    miss = np.asarray(df, dtype=np.float64) - np.tensordot(np.asarray(dx, dtype=np.float64), jac, axes=1)
-    return jac + np.multiply.outer(u / (h * uu), miss)
-
-
 def cross_inverse(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Inverse Gauss-Newton curvature from two Jacobians with independent render noise,
     every column (the scale's last) included; NaN rows and columns where both are zero.
@@ -414,7 +375,7 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
           angle_idx: Sequence[int] | None = None, spp: int = 256, seed: int = 2000, iterations: int = 12,
           model_variance: np.ndarray | None = None, noise_scale: np.ndarray | None = None,
           decorrelate: bool = False, uncertainties: bool = True, objective: str = FIXED_SEED,
-          noise_variance: np.ndarray | None = None, jacobian_updates: str = FULL) -> RefitResult:
+          noise_variance: np.ndarray | None = None) -> RefitResult:
     """Levenberg-Marquardt fit of `free` parameters (and the scale) with a fixed render seed.
 
     `model_variance` (per pixel of the whole problem, in the data's units, e-^2/s^2: a
@@ -450,18 +411,9 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
     has no render-variance term, and dividing it by one only shrinks it and every gain
     measured in it (on the synthetic suite's 256-px window at 512 spp, to 0.63 of the
     data's own metric).
-
-    `jacobian_updates` (`JACOBIAN_UPDATES`, fixed-seed objective): FULL renders the central
-    differences at every iteration; BROYDEN updates them from each accepted step's render
-    (`broyden_update`) and renders them anew where an updated Jacobian's step fails or gains
-    under 1e-4 (`iterations` then counts the full Jacobians, the LM iterations in all being
-    capped at `BROYDEN_ITERATION_FACTOR` times it). Either way a refit ends on a full
-    Jacobian's verdict, and its uncertainties come from full Jacobians at its optimum.
     """
     if objective not in OBJECTIVES:
         raise ValueError(f"refit objective {objective!r}: expected one of {', '.join(OBJECTIVES)}")
-    if jacobian_updates not in JACOBIAN_UPDATES:
-        raise ValueError(f"refit jacobian_updates {jacobian_updates!r}: expected one of {', '.join(JACOBIAN_UPDATES)}")
     if noise_variance is not None and objective != DECORRELATED:
         raise ValueError("refit: noise_variance is for the decorrelated objective (the fixed-seed chi^2 holds "
                          "its render's variance)")
@@ -494,7 +446,13 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
         r = np.where(np.isfinite(sig), r, 0.0)
         return r, f, s
 
-    def full_jacobian(th: Mapping[str, float]) -> tuple[np.ndarray, dict[str, float]]:
+    r, f, s = residual(theta)
+    chi2 = float(np.sum(r * r))
+    lam = 1e-3
+    it = 0
+    A = None
+    a_at: dict[str, float] = {}  # the point of the loop's last Jacobian
+    for it in range(1, iterations + 1):
         # Secant steps (estimate.fit.secant_steps), not the parameters' small default steps:
         # with common random numbers a render is not a smooth function of sigma_t or the
         # phase (a free flight crossing the slab boundary flips), and small-step columns
@@ -502,43 +460,14 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
         # Central: forward differences against the render at theta (half the renders) were
         # tried in session 32 and stalled after one step on the simulated bench's pair session
         # (docs/diagnosis-log.md).
-        steps = secant_steps(model, th, free)
-        cols = model.jacobian(th, angles, free, spp=spp, seed=seed, steps=steps)
-        return np.stack([np.asarray(cols[n], dtype=np.float64) for n in free]), steps
-
-    broyden = jacobian_updates == BROYDEN
-    r, f, s = residual(theta)
-    chi2 = float(np.sum(r * r))
-    lam = 1e-3
-    it = 0
-    A = None          # the residuals' Jacobian of the last full model Jacobian
-    a_at: dict[str, float] = {}  # the point of the loop's last full Jacobian
-    J = np.zeros((0,))
-    h = np.ones(len(free))
-    fresh = False     # J is a full Jacobian at theta (not a Broyden update of one)
-    need_full = True
-    n_full = 0
-    rel = 0.0
-    while it < (BROYDEN_ITERATION_FACTOR * iterations if broyden else iterations):
-        if need_full:
-            if n_full >= iterations:
-                break
-            J, steps_at = full_jacobian(theta)
-            h = np.array([steps_at[n] for n in free], dtype=np.float64)
-            n_full += 1
-            fresh, need_full = True, False
-            A = refit_columns(dict(zip(free, J)), f, s, sig)
-            a_at = dict(theta)
-        it += 1
-        cols = A if fresh else refit_columns(dict(zip(free, J)), f, s, sig)
-        g = cols.T @ r.ravel()
-        H = cols.T @ cols
+        A = refit_columns(model.jacobian(theta, angles, free, spp=spp, seed=seed,
+                                          steps=secant_steps(model, theta, free)), f, s, sig)
+        a_at = dict(theta)
+        g = A.T @ r.ravel()
+        H = A.T @ A
         d = np.maximum(np.diag(H), 1e-300)
         improved = False
-        lam_before = lam
-        # A Broyden-updated Jacobian that cannot find a descent in a few tries is refreshed
-        # rather than damped further: each try is a render.
-        for _ in range(8 if fresh else BROYDEN_TRIES):
+        for _ in range(8):
             try:
                 step = -np.linalg.solve(H + lam * np.diag(d), g)
             except np.linalg.LinAlgError:
@@ -555,27 +484,14 @@ def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[s
             c2 = float(np.sum(r2 * r2))
             if c2 < chi2:
                 rel = (chi2 - c2) / max(chi2, 1e-300)
-                if broyden:
-                    dx = np.array([trial[n] - theta[n] for n in free])
-                    J = broyden_update(J, dx, f2 - f, h)
                 theta, r, f, s, chi2 = trial, r2, f2, s2, c2
                 lam = max(lam / 3.0, 1e-7)
                 improved = True
                 break
             lam *= 4.0
-        _log.debug("LM iteration %d: chi2 %.3f (%s, %s Jacobian), lambda %.1e", it, chi2,
-                   "step" if improved else "no step", "full" if fresh else "updated", lam)
-        was_fresh = fresh
-        fresh = False
+        _log.debug("LM iteration %d: chi2 %.3f (%s), lambda %.1e", it, chi2, "step" if improved else "no step", lam)
         if not improved or rel < 1e-4:
-            # Converged, or stuck: only a full Jacobian's verdict ends the loop.
-            if not broyden or was_fresh:
-                break
-            need_full = True
-            if not improved:
-                lam = lam_before   # the updated Jacobian's failure says nothing of the full one's
-        elif not broyden:
-            need_full = True
+            break
     if not (uncertainties or decorrelate):
         return RefitResult(theta, s, {}, chi2, it)
     # The curvature from two Jacobians with independent render noise (this seed's and

@@ -21,8 +21,6 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 import yaml
 
 from estimate.beam import BeamProfile
@@ -46,13 +44,10 @@ from estimate.fit import STAGES, FitSettings
 from estimate.forward import ForwardModel
 from estimate.geometry import RigGeometry
 from estimate.refit import (
-    BROYDEN,
     DECORRELATED,
     FIXED_SEED,
-    FULL,
     RefitResult,
     best_scale,
-    broyden_update,
     cross_covariance,
     evaluate,
     independent_residuals,
@@ -1377,51 +1372,6 @@ def test_a_refit_cannot_buy_its_own_weights_by_dimming_its_renders():
         # dimmed 100 x by hand: the same chi^2, the scale 100 x
         dim = refit(toy, rec, {**start, "toy.b": 0.01}, ["toy.b"], iterations=0, **kw)
         assert dim.chi2 == pytest.approx(at_start.chi2, rel=1e-6) and dim.scale == pytest.approx(100 * at_start.scale)
-
-
-@settings(max_examples=60, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 5), log_h=st.lists(st.floats(-6.0, 6.0), min_size=5,
-                                                                           max_size=5))
-def test_broyden_update_reproduces_the_step_and_leaves_other_directions_alone(seed, n, log_h):
-    """The updated Jacobian maps the step onto the render's change (the secant equation),
-    and a step orthogonal to it, in units of the finite-difference steps, maps as before:
-    parameters of many decades (an albedo beside an offset in e-/s) share the correction by
-    how far the step moved each in its own step's units."""
-    rng = np.random.default_rng(seed)
-    h = 10.0 ** np.asarray(log_h[:n])
-    jac = rng.standard_normal((n, 3, 7)) / h[:, None, None]
-    dx = rng.standard_normal(n) * h
-    df = rng.standard_normal((3, 7))
-    new = broyden_update(jac, dx, df, h)
-    assert np.tensordot(dx, new, axes=1) == pytest.approx(df, rel=1e-9, abs=1e-9)
-    if n > 1:
-        v = rng.standard_normal(n)
-        u = dx / h
-        v -= (v @ u) / (u @ u) * u          # orthogonal to the step in step units
-        w = v * h
-        assert np.tensordot(w, new, axes=1) == pytest.approx(np.tensordot(w, jac, axes=1), rel=1e-9, abs=1e-9)
-    assert np.array_equal(broyden_update(jac, np.zeros(n), df, h), jac)
-
-
-def test_a_broyden_refit_reaches_the_full_refits_optimum_with_fewer_jacobian_renders():
-    """`jacobian_updates=BROYDEN` minimises the same fixed-seed chi^2 with rank-one updates
-    between full Jacobians, so it ends where the full refit ends, having rendered fewer
-    finite differences, and still on a full Jacobian's verdict. An unknown mode is refused."""
-    toy, _, mean, (rec,) = _width_recordings(1, seed=5)
-    kw = {"spp": 64, "seed": 100, "model_variance": (0.3 * mean) ** 2, "iterations": 12, "uncertainties": False}
-    counts, fits = [], []
-    for mode in (FULL, BROYDEN):
-        toy.jacobian_renders = 0
-        fits.append(refit(toy, rec, {"toy.w": 2.5, "toy.c": -0.5}, ["toy.w", "toy.c"], jacobian_updates=mode, **kw))
-        counts.append(toy.jacobian_renders)
-    full, upd = fits
-    start = refit(toy, rec, {"toy.w": 2.5, "toy.c": -0.5}, ["toy.w", "toy.c"], **{**kw, "iterations": 0})
-    assert full.chi2 < 0.2 * start.chi2
-    assert upd.chi2 == pytest.approx(full.chi2, rel=2e-3)
-    assert upd.parameters == pytest.approx(full.parameters, rel=2e-2, abs=2e-3)
-    assert counts[1] < counts[0]
-    with pytest.raises(ValueError, match="jacobian_updates"):
-        refit(toy, rec, full.parameters, ["toy.w"], jacobian_updates="secant", **kw)
 
 
 def test_decorrelated_step_removes_the_fixed_seed_refits_render_noise_bias():
