@@ -27,6 +27,8 @@ from __future__ import annotations
 import math
 import re
 import threading
+import weakref
+from collections import OrderedDict
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import replace
 from typing import Any
@@ -51,6 +53,44 @@ __all__ = ["BASE_SPECS", "ForwardModel", "Linearization", "phase_specs", "render
 _INF = float("inf")
 #: Largest number of paths (pixels x spp) traced in one launch; bounds memory (~0.2 kB each).
 _MAX_LANES = 2 ** 22
+
+
+#: Scenes (`_SceneBundle`s: a slab per angle, its medium, phase function, beam and sensors)
+#: kept alive across every ForwardModel of the process; the least recently used beyond
+#: this are dropped and rebuilt when next asked for (identical renders: same scene, same
+#: seeds, the compiled kernels reused). Dr.Jit traces a virtual call (a shape's
+#: intersection, a medium's or phase function's sampling) once for every live instance of
+#: its class, not only this scene's, so each live scene adds to every launch's tracing: on
+#: the simulated bench's 8 angles a 256-spp render took 416 ms alone, 483 ms beside 10
+#: other models' scenes and 1046 ms beside 40, an 8-spp render 22, 92 and 671 ms (session
+#: 50). A diagnosis builds a model for every candidate and combination, and had kept all
+#: their scenes.
+MAX_LIVE_BUNDLES = 6
+
+_live_bundles: OrderedDict[tuple[int, int], weakref.ReferenceType[ForwardModel]] = OrderedDict()
+_live_lock = threading.Lock()
+
+
+def _keep_live(model: ForwardModel, copies: int) -> None:
+    """Mark `model`'s bundle of `copies` as just used; drop the least recently used
+    bundles (of any model) beyond `MAX_LIVE_BUNDLES`. A renderer still holding a dropped
+    bundle (a `Linearization` between its primal and adjoint passes) keeps it alive and
+    usable; only the cache lets go of it."""
+    key = (id(model), copies)
+    with _live_lock:
+        _live_bundles[key] = weakref.ref(model)
+        _live_bundles.move_to_end(key)
+        while len(_live_bundles) > MAX_LIVE_BUNDLES:
+            (_, c), ref = _live_bundles.popitem(last=False)
+            owner = ref()
+            if owner is not None:
+                owner._bundles.pop(c, None)
+
+
+def live_bundles() -> int:
+    """How many scene bundles the cache keeps alive now (at most `MAX_LIVE_BUNDLES`)."""
+    with _live_lock:
+        return sum(1 for ref in _live_bundles.values() if ref() is not None)
 
 #: Base parameters of every model.
 BASE_SPECS: dict[str, ParameterSpec] = {
@@ -236,6 +276,7 @@ class ForwardModel:
         if bundle is None:
             bundle = _SceneBundle(self, copies)
             self._bundles[copies] = bundle
+        _keep_live(self, copies)
         return bundle
 
     def _bands(self) -> list[tuple[float, float]]:

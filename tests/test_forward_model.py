@@ -337,3 +337,28 @@ def test_mitsuba_variant_choice(monkeypatch) -> None:
     monkeypatch.delenv("RIG_MITSUBA_VARIANT")
     assert mitsuba_env.default_variant() in ("llvm_ad_mono", "cuda_ad_mono")
     assert mitsuba_env.find_libllvm() is None or "19" in mitsuba_env.find_libllvm()
+
+
+def test_models_share_a_few_live_scenes_and_a_dropped_scene_renders_the_same() -> None:
+    """Dr.Jit traces a virtual call once for every live instance of its class, so every
+    scene alive in the process slows every launch (session 50: a 256-spp bench render
+    416 ms alone, 1046 ms beside 40 other models' scenes). The models share a cache of
+    `MAX_LIVE_BUNDLES` scenes; one dropped from it is rebuilt and renders the same, and a
+    linearization that still holds a dropped scene finishes its adjoint pass on it."""
+    import estimate.forward as fw
+
+    model = _model("exp3")
+    p = {"sigma_t": 2.0, "albedo": 0.8, "phase.b1": 1.0}
+    angles = [40.0, 120.0]
+    before = model.render_profiles(p, angles, spp=32, seed=3)
+    cot = np.linspace(-1.0, 1.0, before.size).reshape(before.shape)
+    ref = model.linearize(p, angles, spp=32, seed=3).vjp(cot, fd_parameters=False)
+    lin = model.linearize(p, angles, spp=32, seed=3)
+    others = [_model("exp0", max_depth=2) for _ in range(fw.MAX_LIVE_BUNDLES + 2)]
+    for o in others:
+        o.render_profiles({"sigma_t": 1.0, "albedo": 0.5}, angles, spp=1, seed=0)
+    assert fw.live_bundles() <= fw.MAX_LIVE_BUNDLES
+    assert len(angles) not in model._bundles           # dropped from the cache ...
+    assert lin.vjp(cot, fd_parameters=False) == pytest.approx(ref, rel=1e-4)  # ... but not from `lin`
+    assert np.array_equal(model.render_profiles(p, angles, spp=32, seed=3), before)
+    assert len(angles) in model._bundles
