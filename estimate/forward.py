@@ -78,6 +78,9 @@ def _keep_live(model: ForwardModel, copies: int) -> None:
     usable; only the cache lets go of it."""
     key = (id(model), copies)
     with _live_lock:
+        # Entries of models already collected hold no scene; they must not take a place.
+        for dead in [k for k, ref in _live_bundles.items() if ref() is None]:
+            del _live_bundles[dead]
         _live_bundles[key] = weakref.ref(model)
         _live_bundles.move_to_end(key)
         while len(_live_bundles) > MAX_LIVE_BUNDLES:

@@ -3,6 +3,7 @@ references of tests/reference_mc.py (same frame and angle conventions)."""
 
 from __future__ import annotations
 
+import gc
 import math
 
 import numpy as np
@@ -362,3 +363,8 @@ def test_models_share_a_few_live_scenes_and_a_dropped_scene_renders_the_same() -
     assert lin.vjp(cot, fd_parameters=False) == pytest.approx(ref, rel=1e-4)  # ... but not from `lin`
     assert np.array_equal(model.render_profiles(p, angles, spp=32, seed=3), before)
     assert len(angles) in model._bundles
+    # models gone hold no place in the cache
+    del others
+    gc.collect()
+    model.render_profiles(p, angles, spp=1, seed=0)
+    assert len(fw._live_bundles) == fw.live_bundles() <= fw.MAX_LIVE_BUNDLES
