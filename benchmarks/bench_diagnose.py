@@ -37,6 +37,7 @@ import argparse
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 import time
@@ -181,6 +182,26 @@ OPTIMUM_FIT_SPP = 4096
 REFIT_ITERATIONS = 8
 
 
+def _check_recording(cached: Path, prior: dict[str, Any], excess: float, columns: int) -> None:
+    """Refuse a cached base fit made on another recording (`--base-from`): its excess noise
+    and window, from the case result where recorded (since session 50), else from its cache
+    directory's name (`...-excess<E>-...-cols<C>`; no `cols`: the default window). Session 50
+    took the excess-0 suite's base fits for excess-30 recordings by leaving out `--excess 0`,
+    and every case came out wrong."""
+    rec = prior.get("recording") or {}
+    name = cached.parent.name
+    m_ex = re.search(r"excess(\d+(?:\.\d+)?)", name)
+    m_cols = re.search(r"cols(\d+)", name)
+    have_ex = rec.get("excess", float(m_ex.group(1)) if m_ex else None)
+    have_cols = rec.get("columns", int(m_cols.group(1)) if m_cols else (SYNTHETIC_COLUMNS if m_ex else None))
+    if have_ex is not None and float(have_ex) != float(excess):
+        raise ValueError(f"{cached}: its base fit is for recordings with excess {have_ex:g}, not {excess:g} "
+                         f"(give --excess {have_ex:g}, or another --base-from)")
+    if have_cols is not None and int(have_cols) != int(columns):
+        raise ValueError(f"{cached}: its base fit is for a {have_cols}-px window, not {columns} "
+                         f"(give --columns {have_cols}, or another --base-from)")
+
+
 def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp: int = BASE_SPP,
                   columns: int = SYNTHETIC_COLUMNS, refit_iterations: int = REFIT_ITERATIONS,
                   refits: str = "fixed-seed", base_from: Path | None = None) -> dict[str, Any]:
@@ -203,6 +224,12 @@ def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp:
     )
     from estimate.mitsuba_env import init_mitsuba
 
+    cached = base_from / f"{case['id']}.json" if base_from is not None else None
+    prior = json.loads(cached.read_text()) if cached is not None and cached.is_file() else None
+    if prior is not None:   # checked before the recording is rendered
+        if prior.get("base_fit_spp", base_spp) != base_spp:
+            raise ValueError(f"{cached}: its base fit is at {prior.get('base_fit_spp')} spp, not {base_spp}")
+        _check_recording(cached, prior, excess, columns)
     recording = synthetic_recording(case, excess, columns)
     rec, make_model, _ = recording
     m0 = make_model([])
@@ -211,11 +238,7 @@ def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp:
     # The base fit stands in for a converged `rig estimate` run (final spp 1024): a fixed-seed
     # fit at low spp leaves a Monte-Carlo misfit along the material parameters that hides
     # weak effects.
-    cached = base_from / f"{case['id']}.json" if base_from is not None else None
-    if cached is not None and cached.is_file():
-        prior = json.loads(cached.read_text())
-        if prior.get("base_fit_spp", base_spp) != base_spp:
-            raise ValueError(f"{cached}: its base fit is at {prior.get('base_fit_spp')} spp, not {base_spp}")
+    if prior is not None:
         base = BaseFit({k: float(v) for k, v in prior["material_before"].items()}, float(prior["scale_before"]),
                        "hg", [], {})
         t_base = float(prior.get("base_fit_time_s") or 0.0)
@@ -237,6 +260,7 @@ def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp:
     out = d.as_dict()
     out["base_fit_time_s"] = t_base
     out["base_fit_spp"] = base_spp
+    out["recording"] = {"excess": float(excess), "columns": int(columns)}
     if cached is not None:
         out["base_fit_from"] = str(cached.relative_to(ROOT)) if cached.is_relative_to(ROOT) else str(cached)
     # Which renderer ran (the times are the device's): like bench_estimate and bench_paper_sim.

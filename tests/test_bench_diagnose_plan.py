@@ -65,3 +65,27 @@ def test_material_fallback_bars_named_cases_by_the_clean_sessions_largest_errors
     assert mf["named_albedo_abs_max"] == 0.014
     assert bd.material_fallback(rows[2:]) is None  # no clean session to compare with
     assert bd.material_fallback(rows[:2]) is None  # nothing named
+
+
+def test_a_base_fit_from_another_recording_is_refused_in_one_line(tmp_path):
+    """`--base-from` takes each case's base fit from another run's cache: one made on other
+    recordings (another excess noise or window) is refused, naming the setting to give.
+    The settings come from the case result where recorded, else the cache's name."""
+    import json
+
+    old = tmp_path / "synthetic-v11-excess0-spp512"
+    old.mkdir()
+    (old / "clean-1.json").write_text(json.dumps({"base_fit_spp": 1024}))
+    prior = json.loads((old / "clean-1.json").read_text())
+    bd._check_recording(old / "clean-1.json", prior, 0.0, bd.SYNTHETIC_COLUMNS)
+    with pytest.raises(ValueError, match=r"excess 0, not 30 \(give --excess 0"):
+        bd._check_recording(old / "clean-1.json", prior, 30.0, bd.SYNTHETIC_COLUMNS)
+    with pytest.raises(ValueError, match=r"40-px window, not 256 \(give --columns 40"):
+        bd._check_recording(old / "clean-1.json", prior, 0.0, 256)
+    new = tmp_path / "copied"
+    new.mkdir()
+    rec = {"base_fit_spp": 1024, "recording": {"excess": 0.0, "columns": 256}}
+    bd._check_recording(new / "clean-1.json", rec, 0.0, 256)
+    with pytest.raises(ValueError, match="excess 0, not 30"):
+        bd._check_recording(new / "clean-1.json", rec, 30.0, 256)
+    bd._check_recording(new / "clean-1.json", {"base_fit_spp": 1024}, 30.0, 256)   # nothing to tell by
