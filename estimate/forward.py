@@ -95,6 +95,7 @@ def live_bundles() -> int:
     with _live_lock:
         return sum(1 for ref in _live_bundles.values() if ref() is not None)
 
+
 #: Base parameters of every model.
 BASE_SPECS: dict[str, ParameterSpec] = {
     # sigma_t: reverse mode, finite differences with refractive_boundary (ForwardModel.__init__).
