@@ -151,15 +151,22 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                 by = (" (likelihood ratio)" if (e.get("magnitude_lr_sigma") or 0.0) > (e.get("magnitude_wald_sigma")
                                                                                      or 0.0) else "")
                 mag = f", magnitude {e['magnitude_sigma']:.1f} sigma from absent{by}"
+                if e.get("magnitude_sigma_by_effect"):
+                    mag = ", magnitudes " + ", ".join(f"{k} {z:.1f}" for k, z in e["magnitude_sigma_by_effect"].items()) \
+                        + " sigma from absent"
+            pair = e.get("pair")
             tag = ("second pass: " if e.get("pass") == 2 else
-                   "runner-up (no leading candidate confirmed): " if e.get("runner_up") else "")
+                   "runner-up (no leading candidate confirmed): " if e.get("runner_up") else
+                   f"pair (no candidate confirmed alone; {pair['lead']} came closest, and at its refit the "
+                   f"screening flagged {e['effects'][-1]}, log10 p {pair['log10_p']:.1f}): " if pair else "")
+            what = " and ".join(e["effects"]) + " together" if pair else e["effect"]
             ind = (f" ({e['delta_bic_independent']:.1f} rendered independently)"
                    if e.get("delta_bic_independent") is not None else "")
             grid = (" (started from the coarse grid)" if (e.get("start") or {}).get("from") == "coarse grid"
                     else "")
             # A second-pass candidate the estimator fitted: what its final fit decided.
             tried = f" (fitted by the estimator: {e['final_fit_outcome']})" if e.get("final_fit_outcome") else ""
-            print(f"  {tag}refit with {e['effect']}{grid}: BIC improves by {e['delta_bic']:.1f}{ind}{held}{mag}"
+            print(f"  {tag}refit with {what}{grid}: BIC improves by {e['delta_bic']:.1f}{ind}{held}{mag}"
                   f" -> {'confirmed' if e['confirmed'] else 'not confirmed'}{tried}", file=out)
         part = d.get("partial") or {}
         if part:

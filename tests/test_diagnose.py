@@ -1630,3 +1630,37 @@ def test_a_first_round_that_confirms_nothing_refits_the_runner_up(monkeypatch):
 
     text = summary_text({"channels": {"g": d.as_dict()}, "run_id": "x", "refit_run": None})
     assert "runner-up (no leading candidate confirmed): refit with stray_light" in text
+
+
+def test_a_first_round_that_confirms_nothing_tries_the_closest_candidate_in_a_pair(monkeypatch):
+    """An angle offset (10 deg) and a thickness error (30 %) together. With the entry bar
+    raised between the offset's gain alone (dBIC 143) and the pair's (194), no single refit
+    is confirmed; the offset passed every other test, so the thickness error, flagged by the
+    screening at its refit, is refitted with it, and the pair is named together. With one
+    effect left to add (`max_effects` 1) no pair is tried and nothing is named."""
+    import estimate.diagnose as dg
+
+    monkeypatch.setattr(dg, "BIC_STRONG", 160.0)
+    rec = record({"angle_offset.delta_deg": 10.0, "thickness_error.e": 0.3})
+    pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
+    how = {"candidates": ["angle_offset", "thickness_error"], "spp": 128, "repeats": 3, "iterations": 8,
+           "final_fit_follows": True, "max_confirm": 1}
+    one = diagnose_channel(pb, BaseFit(dict(TRUE), 1e4, "hg"), make_model, max_effects=1, **how)
+    assert not any("effects" in e for e in one.confirmations) and one.confirmed == []
+    # the same first round, taken from the first diagnosis
+    d = diagnose_channel(pb, BaseFit(dict(TRUE), 1e4, "hg"), make_model, reuse=one.first_round, **how)
+    by = {e["effect"]: e for e in d.confirmations}
+    alone = by["angle_offset"]
+    assert not alone["confirmed"] and 0 < alone["delta_bic"] < 160.0
+    pair = by["angle_offset+thickness_error"]
+    assert pair["confirmed"] and pair["effects"] == ["angle_offset", "thickness_error"]
+    assert pair["delta_bic"] > 160.0 and min(pair["magnitude_sigma_by_effect"].values()) > dg.MAGNITUDE_SIGMA
+    assert pair["pair"]["lead"] == "angle_offset"
+    assert d.confirmed == ["angle_offset", "thickness_error"]
+    # both magnitudes in the joint model, on the side of the truth
+    assert pair["parameters"]["angle_offset.delta_deg"] > 5.0 and pair["parameters"]["thickness_error.e"] > 0.1
+    from estimate.diagnose import summary_text
+
+    text = summary_text({"channels": {"g": d.as_dict()}, "run_id": "x", "refit_run": None})
+    assert "pair (no candidate confirmed alone; angle_offset came closest" in text
+    assert "refit with angle_offset and thickness_error together" in text
