@@ -100,6 +100,24 @@ def select_cases(plan: list[dict[str, Any]], only: str) -> list[dict[str, Any]]:
     return [by_id[i] for i in wanted]
 
 
+#: Mismatches outside the catalogue (`--outside`): the recording's phase function has two
+#: Henyey-Greenstein lobes (forward g, backward g, forward weight) where the estimator fits
+#: one. No catalogue effect is that physics, so a right diagnosis names nothing; an effect
+#: named here is a wrong cause. Each case is `TRUE`'s material with the two-lobe phase.
+OUTSIDE_PHASES: list[dict[str, float]] = [
+    {"g_forward": 0.6, "g_backward": -0.3, "w_forward": 0.9},
+    {"g_forward": 0.6, "g_backward": -0.4, "w_forward": 0.8},
+    {"g_forward": 0.7, "g_backward": -0.2, "w_forward": 0.7},
+]
+
+
+def outside_cases() -> list[dict[str, Any]]:
+    """The out-of-catalogue series (`OUTSIDE_PHASES`), ids phase_two_lobe-1, -2, ...: no
+    concealed effect, the truth's phase in "truth_phase"."""
+    return [{"id": f"phase_two_lobe-{k + 1}", "effects": {}, "truth_phase": {"model": "tthg", "parameters": p}}
+            for k, p in enumerate(OUTSIDE_PHASES)]
+
+
 def limit_cases() -> list[dict[str, Any]]:
     """The detection-limit series (`LIMIT_MAGNITUDES`), ids <effect>-L1, -L2."""
     return [{"id": f"{name}-L{k + 1}", "effects": {name: m}}
@@ -151,6 +169,12 @@ def synthetic_recording(case: dict[str, Any], excess: float = 0.0,
         params.update({f"{name}.{k}": v for k, v in vals.items()})
     exts = sorted(case["effects"])
     truth_model = make_model(exts)
+    if case.get("truth_phase"):
+        # Physics outside the catalogue: the world's phase function is not the estimator's.
+        tp = case["truth_phase"]
+        truth_model = ForwardModel(geometry, beam, phase=tp["model"], extensions=tuple(exts))
+        params = {k: v for k, v in params.items() if not k.startswith("phase.")}
+        params.update({f"phase.{k}": float(v) for k, v in tp["parameters"].items()})
     if "sensor_nonlinearity" in case["effects"]:
         pre = make_model([]).render_profiles(TRUE, angles, spp=2048, seed=7)
         params["sensor_nonlinearity.full_well_radiance"] = float(pre.max())
@@ -215,6 +239,7 @@ def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp:
     then left out.
     """
     from estimate.diagnose import (
+        MIN_SHARE,
         BaseFit,
         _free_names,
         _render_variance,
@@ -255,8 +280,10 @@ def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp:
                    model_variance=_render_variance(e0, 3), noise_scale=e0.residuals.noise_scale)
         base = BaseFit(bf.parameters, bf.scale, "hg", [], bf.uncertainties)
         t_base = time.perf_counter() - t0
+    # The suite's final model is the Levenberg-Marquardt refit, as in `rig diagnose --quick`,
+    # which names only a model that explains enough of the mismatch (`MIN_SHARE`).
     d = diagnose_channel(rec, base, make_model, spp=spp, iterations=refit_iterations, repeats=6,
-                         refit_objective=refits)
+                         refit_objective=refits, min_share=MIN_SHARE)
     out = d.as_dict()
     out["base_fit_time_s"] = t_base
     out["base_fit_spp"] = base_spp
@@ -266,6 +293,8 @@ def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp:
     # Which renderer ran (the times are the device's): like bench_estimate and bench_paper_sim.
     out["variant"] = init_mitsuba().variant()
     out["truth"] = {k: TRUE[k] for k in TRUE}
+    if case.get("truth_phase"):   # the world's phase function, not the estimator's
+        out["truth"] = {k: v for k, v in recording[2].items() if k in ("sigma_t", "albedo") or k.startswith("phase.")}
     out["detectability"] = detectability(case, excess, out["material_before"], recording=recording)
     return out
 
@@ -280,12 +309,16 @@ def detectability(case: dict[str, Any], excess: float, base_params: dict[str, fl
     counting the effects not kept), so a concealed effect whose gain here is below that
     threshold cannot be named by any refit-based test."""
     from estimate.diagnose import evaluate
+    from estimate.forward import ForwardModel
 
     rec, make_model, params = recording or synthetic_recording(case, excess)
     noise = rec.variance * (1.0 + excess)
     base = evaluate(make_model(sorted(kept)), base_params, rec, 0, spp=spp, repeats=repeats, noise_variance=noise)
     exts = sorted(case["effects"])
-    true = evaluate(make_model(exts), params, rec, 0, spp=spp, repeats=repeats, noise_variance=noise)
+    tp = case.get("truth_phase")
+    true_model = (ForwardModel(rec.geometry, rec.beam, phase=tp["model"], extensions=tuple(exts)) if tp
+                  else make_model(exts))
+    true = evaluate(true_model, params, rec, 0, spp=spp, repeats=repeats, noise_variance=noise)
     n = int(np.sum(np.isfinite(base.residuals.r)))
     return {"chi2_base_fit": base.residuals.chi2_adjusted, "chi2_truth": true.residuals.chi2_adjusted,
             "gain": base.residuals.chi2_adjusted - true.residuals.chi2_adjusted,
@@ -488,6 +521,8 @@ def score(case: dict[str, Any], res: dict[str, Any], source: str = "synthetic") 
     adj_a = res.get("reduced_chi2_adjusted_after", res["reduced_chi2_after"])
     floor = (res.get("before") or {}).get("noise_scale_median", 1.0)
     return {"id": case["id"], "concealed": concealed, "named": named, "screen_first": cands[0] if cands else None,
+            # a mismatch no catalogue effect models (`outside_cases`): right when nothing is named
+            "outside": bool(case.get("truth_phase")),
             "significant": res["significant"], "significant_by": res.get("significant_by"), "ok": ok,
             "reduced_chi2_before": res["reduced_chi2_before"], "reduced_chi2_after": res["reduced_chi2_after"],
             "reduced_chi2_adjusted_before": adj_b, "reduced_chi2_adjusted_after": adj_a, "noise_floor": floor,
@@ -536,7 +571,7 @@ def material_fallback(rows: list[dict[str, Any]]) -> dict[str, Any] | None:
     cases that name an effect, the share whose sigma_t (relative) and albedo (absolute) errors
     after the refit are no larger than the largest of the clean sessions' (whose base fit is
     the whole diagnosis there). None without both clean and named cases."""
-    clean = [r["material_error"]["before"] for r in rows if not r["concealed"]]
+    clean = [r["material_error"]["before"] for r in rows if not r["concealed"] and not r.get("outside")]
     named = [r for r in rows if r["concealed"] and r["named"]]
     if not clean or not named:
         return None
@@ -552,12 +587,14 @@ def material_fallback(rows: list[dict[str, Any]]) -> dict[str, Any] | None:
 def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tuple[str, dict[str, Any]]:
     singles = [r for r in rows if len(r["concealed"]) == 1]
     pairs = [r for r in rows if len(r["concealed"]) == 2]
-    clean = [r for r in rows if not r["concealed"]]
+    clean = [r for r in rows if not r["concealed"] and not r.get("outside")]
+    outside = [r for r in rows if r.get("outside")]
     frac = lambda rs: (sum(r["ok"] for r in rs) / len(rs)) if rs else float("nan")
     named_cases = [r for r in singles + pairs if r["named"]]
     summary = {
         "source": source, "cases_run": ran, "cases_planned": total,
         "single_named_first": frac(singles), "pairs_both_named": frac(pairs), "clean_nothing_named": frac(clean),
+        "outside_nothing_named": frac(outside),
         "single_screen_first": (sum(r["screen_first"] == r["concealed"][0] for r in singles) / len(singles)
                                 if singles else float("nan")),
         "after_reduced_chi2_le_1.2": (sum(r["reduced_chi2_adjusted_after"] <= 1.2 for r in named_cases)
@@ -618,6 +655,8 @@ def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tup
               f"| concealed effect named first >= 90 % | {100 * summary['single_named_first']:.0f} % |",
               f"| both named in pairs >= 70 % | {100 * summary['pairs_both_named']:.0f} % |",
               f"| nothing named on clean sessions | {100 * summary['clean_nothing_named']:.0f} % |",
+              *([(f"| nothing named outside the catalogue (no wrong cause) | "
+                 f"{100 * summary['outside_nothing_named']:.0f} % of {len(outside)} |")] if outside else []),
               (f"| reduced chi2 after <= 1.2 (at the noise floor) | {100 * summary['after_reduced_chi2_le_1.2']:.0f} % "
                "of named cases |"),
               (f"| ... or <= the truth's own value there, where that is above 1.2 | "
@@ -706,6 +745,10 @@ def main() -> int:
     ap.add_argument("--limits", action="store_true",
                     help="run the detection-limit series (stronger magnitudes of the effects the suite missed) "
                          "instead of the suite; reported apart, in bench_diagnose_<source>_limits.md")
+    ap.add_argument("--outside", action="store_true",
+                    help="synthetic: run the out-of-catalogue series (a two-lobe phase function fitted with one "
+                         "lobe: no catalogue effect is the cause, so nothing may be named) instead of the suite; "
+                         "reported apart, in bench_diagnose_<source>_outside.md")
     ap.add_argument("--detectability", action="store_true",
                     help="synthetic: add the detectability check to cached cases that lack it")
     ap.add_argument("--optimum-gain", action="store_true",
@@ -777,7 +820,9 @@ def main() -> int:
     # The bench cache keeps the captured sessions (expensive): one spp per cache, --fresh to redo.
     cache = RESULTS / "diagnose_cases" / (args.source if args.source == "bench"
                                           else f"synthetic-{SYNTHETIC_VERSION}-excess{args.excess:g}-spp{args.spp}{variant_tag}")
-    plan = limit_cases() if args.limits else cases(args.quick)
+    if args.outside and (args.source != "synthetic" or args.limits):
+        ap.error("--outside is a synthetic series of its own (not with --source bench or --limits)")
+    plan = outside_cases() if args.outside else limit_cases() if args.limits else cases(args.quick)
     if args.only:
         try:
             plan = select_cases(plan, args.only)
@@ -847,6 +892,8 @@ def main() -> int:
     label += bench_tag
     if args.limits:
         label += "_limits"
+    if args.outside:
+        label += "_outside"
     if args.label:
         label += f"_{args.label}"
     (RESULTS / f"bench_diagnose_{label}.md").write_text(text + "\n")

@@ -169,7 +169,12 @@ def summary_text(doc: Mapping[str, Any]) -> str:
             print(f"  {tag}refit with {what}{grid}: BIC improves by {e['delta_bic']:.1f}{ind}{held}{mag}"
                   f" -> {'confirmed' if e['confirmed'] else 'not confirmed'}{tried}", file=out)
         part = d.get("partial") or {}
-        if part:
+        if part and part["share_explained"] <= 0.0:
+            print(f"  not named: {', '.join(part['effects'])}: the model with "
+                  f"{'it' if len(part['effects']) == 1 else 'them'} fits the whole recording no better than the model "
+                  f"without (reduced chi2 at the floor {part['reduced_chi2_adjusted_before']:.2f} -> "
+                  f"{part['reduced_chi2_adjusted_with']:.2f})", file=out)
+        elif part:
             print(f"  not named: {', '.join(part['effects'])} removed {100 * part['share_explained']:.0f}% of the "
                   f"excess (reduced chi2 at the floor {part['reduced_chi2_adjusted_before']:.2f} -> "
                   f"{part['reduced_chi2_adjusted_with']:.2f}; needs {100 * part['min_share']:.0f}%), with "

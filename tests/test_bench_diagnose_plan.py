@@ -89,3 +89,35 @@ def test_a_base_fit_from_another_recording_is_refused_in_one_line(tmp_path):
     with pytest.raises(ValueError, match="excess 0, not 30"):
         bd._check_recording(new / "clean-1.json", rec, 30.0, 256)
     bd._check_recording(new / "clean-1.json", {"base_fit_spp": 1024}, 30.0, 256)   # nothing to tell by
+
+
+def _result(named: list[str]) -> dict:
+    mat = {"sigma_t": 2.1, "albedo": 0.88}
+    return {"confirmed_effects": {n: {} for n in named}, "candidates": [{"name": "stray_light"}],
+            "truth": {"sigma_t": 2.0, "albedo": 0.9}, "material_before": mat, "material_after": mat,
+            "significant": True, "reduced_chi2_before": 2.0, "reduced_chi2_after": 2.0}
+
+
+def test_outside_the_catalogue_a_case_is_right_only_when_nothing_is_named():
+    """The out-of-catalogue series (a two-lobe phase function fitted with one lobe): no
+    effect is concealed, so any name is a wrong cause; its cases are scored and reported
+    apart from the clean sessions, and do not set the clean sessions' error bar."""
+    plan = bd.outside_cases()
+    assert [c["id"] for c in plan] == [f"phase_two_lobe-{k + 1}" for k in range(len(bd.OUTSIDE_PHASES))]
+    assert all(c["effects"] == {} and c["truth_phase"]["model"] == "tthg" for c in plan)
+    right = bd.score(plan[0], _result([]))
+    wrong = bd.score(plan[1], _result(["stray_light"]))
+    assert right["outside"] and right["ok"] and wrong["outside"] and not wrong["ok"]
+    clean = bd.score({"id": "clean-1", "effects": {}}, _result([]))
+    assert not clean["outside"] and clean["ok"]
+    text, summary = bd.report([right, wrong, clean], "synthetic", 3, 3)
+    assert summary["outside_nothing_named"] == 0.5 and summary["clean_nothing_named"] == 1.0
+    assert "| nothing named outside the catalogue (no wrong cause) | 50 % of 2 |" in text
+    # an out-of-catalogue case's errors (its base fit misfits the phase) are not a clean
+    # session's: the bar stays the clean session's own
+    far = {**right, "material_error": {"before": {"sigma_t_rel": 0.2, "albedo_abs": 0.05},
+                                       "after": {"sigma_t_rel": 0.2, "albedo_abs": 0.05}}}
+    rows = [far, _row("clean-1", [], [], (0.01, 0.004), (0.01, 0.004)),
+            _row("a-1", ["a"], ["a"], (0.10, 0.02), (0.05, 0.002))]
+    mf = bd.material_fallback(rows)
+    assert mf["clean_sigma_t_rel_max"] == 0.01 and mf["beyond"] == ["a-1"]
