@@ -915,7 +915,12 @@ def test_a_final_fit_whose_effect_explains_too_little_names_nothing_and_asks_for
     mismatch remains (the two-lobe phase session: 14 %): not named, and the second pass is
     asked to refit the other candidates (`dropped_at_final_fit`)."""
     import estimate.diagnose as dg
-    from estimate.diagnose import MIN_SHARE, ChannelDiagnosis, dropped_at_final_fit, refine_channel
+    from estimate.diagnose import (
+        MIN_SHARE,
+        ChannelDiagnosis,
+        dropped_at_final_fit,
+        refine_channel,
+    )
 
     _fake_final_fit(monkeypatch, 2000.0, {"angle_offset": ("angle_offset.delta_deg", 0.0, 4000.0)})
     fake_evaluate = dg.evaluate
