@@ -2017,8 +2017,10 @@ def _verdict(before: Evaluation, loc: dict[str, Any], scores: list[CandidateScor
                        f" -> {partial['reduced_chi2_adjusted_with']:.2f}): it explains none of the mismatch, which "
                        "lies outside what the catalogue models or is out of the refits' reach: no cause is named")
     if not confirmed and partial and partial.get("stage"):
-        return head + (f"; the refits confirmed {', '.join(partial['effects'])}, but in the estimator's "
-                       f"{partial['stage']} the reduced chi2 at the noise floor falls only "
+        where = ("the estimator's final fit" if partial["stage"] == "final fit"
+                 else "the refit kept in place of the estimator's final fit")
+        return head + (f"; the refits confirmed {', '.join(partial['effects'])}, but in {where} "
+                       "the reduced chi2 at the noise floor falls only "
                        f"{partial['reduced_chi2_adjusted_before']:.2f} -> {partial['reduced_chi2_adjusted_with']:.2f} "
                        f"({100 * partial['share_explained']:.0f}% of the excess; a named cause must remove "
                        f"{100 * partial['min_share']:.0f}%): it explains a part of the mismatch at most and may stand "
