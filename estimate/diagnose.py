@@ -224,8 +224,8 @@ FINAL_SPP_FACTOR = 2
 #: 99.8 % (session 38). Since session 51 the full run asks it too: on a 40-px synthetic
 #: session whose phase function has two lobes (the fit has one; no catalogue effect is the
 #: cause) the estimator's final fit with an angle offset took 14 % (9.90 -> 8.68), and the
-#: named effects of the synthetic suite and the bench sessions took 67-100 % (the bench
-#: boundary's, 10.29 -> 4.03, where the truth itself takes 64 %).
+#: named effects of the synthetic suite and the bench sessions took 65-100 % (the bench
+#: boundary's, 10.29 -> 4.03-4.27, where the truth itself takes 64 %).
 MIN_SHARE = 0.5
 
 ModelFactory = Callable[[Sequence[str]], Any]
