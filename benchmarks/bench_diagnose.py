@@ -111,6 +111,13 @@ OUTSIDE_PHASES: list[dict[str, float]] = [
 ]
 
 
+def _truth_phase(case: dict[str, Any]) -> dict[str, str]:
+    """`make_model`'s phase argument for the world's model of `case`: the estimator's unless
+    the case's truth lies outside the catalogue."""
+    tp = case.get("truth_phase")
+    return {"phase": tp["model"]} if tp else {}
+
+
 def outside_cases() -> list[dict[str, Any]]:
     """The out-of-catalogue series (`OUTSIDE_PHASES`), ids phase_two_lobe-1, -2, ...: no
     concealed effect, the truth's phase in "truth_phase"."""
@@ -156,23 +163,24 @@ def synthetic_recording(case: dict[str, Any], excess: float = 0.0,
     geometry = RigGeometry(thickness_mm=1.0, magnification=0.5, profile_columns=(c0, c0 + columns))
     beam = BeamProfile.disk(0.3)
     angles = np.array([15.0, 30.0, 45.0, 60.0, 75.0, 105.0, 120.0, 135.0, 150.0, 165.0])
-    models: dict[tuple[str, ...], Any] = {}
+    models: dict[tuple[Any, ...], Any] = {}
 
-    def make_model(exts):
-        key = tuple(exts)
+    def make_model(exts, phase="hg"):
+        """The estimator's model (`phase` "hg"), or with `phase` the world's where a case's
+        truth lies outside the catalogue ("truth_phase")."""
+        key = (*exts, phase)
         if key not in models:
-            models[key] = ForwardModel(geometry, beam, phase="hg", extensions=key)
+            models[key] = ForwardModel(geometry, beam, phase=phase, extensions=tuple(exts))
         return models[key]
 
     params = dict(TRUE)
     for name, vals in case["effects"].items():
         params.update({f"{name}.{k}": v for k, v in vals.items()})
     exts = sorted(case["effects"])
-    truth_model = make_model(exts)
+    truth_model = make_model(exts, **_truth_phase(case))
     if case.get("truth_phase"):
         # Physics outside the catalogue: the world's phase function is not the estimator's.
         tp = case["truth_phase"]
-        truth_model = ForwardModel(geometry, beam, phase=tp["model"], extensions=tuple(exts))
         params = {k: v for k, v in params.items() if not k.startswith("phase.")}
         params.update({f"phase.{k}": float(v) for k, v in tp["parameters"].items()})
     if "sensor_nonlinearity" in case["effects"]:
@@ -292,9 +300,8 @@ def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp:
         out["base_fit_from"] = str(cached.relative_to(ROOT)) if cached.is_relative_to(ROOT) else str(cached)
     # Which renderer ran (the times are the device's): like bench_estimate and bench_paper_sim.
     out["variant"] = init_mitsuba().variant()
-    out["truth"] = {k: TRUE[k] for k in TRUE}
-    if case.get("truth_phase"):   # the world's phase function, not the estimator's
-        out["truth"] = {k: v for k, v in recording[2].items() if k in ("sigma_t", "albedo") or k.startswith("phase.")}
+    # the world's material and phase function (outside the catalogue, not the estimator's)
+    out["truth"] = {k: v for k, v in recording[2].items() if k in ("sigma_t", "albedo") or k.startswith("phase.")}
     out["detectability"] = detectability(case, excess, out["material_before"], recording=recording)
     return out
 
@@ -309,16 +316,12 @@ def detectability(case: dict[str, Any], excess: float, base_params: dict[str, fl
     counting the effects not kept), so a concealed effect whose gain here is below that
     threshold cannot be named by any refit-based test."""
     from estimate.diagnose import evaluate
-    from estimate.forward import ForwardModel
 
     rec, make_model, params = recording or synthetic_recording(case, excess)
     noise = rec.variance * (1.0 + excess)
     base = evaluate(make_model(sorted(kept)), base_params, rec, 0, spp=spp, repeats=repeats, noise_variance=noise)
     exts = sorted(case["effects"])
-    tp = case.get("truth_phase")
-    true_model = (ForwardModel(rec.geometry, rec.beam, phase=tp["model"], extensions=tuple(exts)) if tp
-                  else make_model(exts))
-    true = evaluate(true_model, params, rec, 0, spp=spp, repeats=repeats, noise_variance=noise)
+    true = evaluate(make_model(exts, **_truth_phase(case)), params, rec, 0, spp=spp, repeats=repeats, noise_variance=noise)
     n = int(np.sum(np.isfinite(base.residuals.r)))
     return {"chi2_base_fit": base.residuals.chi2_adjusted, "chi2_truth": true.residuals.chi2_adjusted,
             "gain": base.residuals.chi2_adjusted - true.residuals.chi2_adjusted,

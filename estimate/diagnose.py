@@ -924,6 +924,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         say(f"  {lead} came closest alone; screening at its refit: "
             + ", ".join(f"{c.name} {c.statistic:.0f}/{c.dof}" for c in scores[:4]))
         flagged = [c for c in scores if c.log10_p < refit_below_log10_p][:max_confirm]
+        pairs: list[dict[str, Any]] = []
         for c in flagged:
             t0 = time.perf_counter()
             start = _start(make_model(exts + [c.name]), lead_fit.parameters, c.name, brightest)
@@ -943,7 +944,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                 + " sigma from absent" + (" (confirmed)" if ok else ""))
             if ok:
                 passed[entry["effect"]] = (entry, fit)
-        pairs = [e for e in confirmations if e.get("confirmed") and "effects" in e and e["round"] == len(confirmed) + 1]
+                pairs.append(entry)
         if not pairs:
             return None
         return list(max(pairs, key=_rank_key)["effects"])
@@ -1676,7 +1677,7 @@ def dropped_at_final_fit(d: ChannelDiagnosis) -> list[str]:
     explain too little of the mismatch to be named (`_explains_enough`); else []."""
     if d.confirmed or not d.final_fit.get("kept"):
         return []
-    if (d.partial or {}).get("stage") == "final fit":
+    if d.partial.get("stage") == "final fit":
         return list(d.partial["effects"])
     return [e["effect"] for e in d.pruned if e.get("stage") == "final fit" and e.get("dropped")]
 

@@ -152,8 +152,8 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                                                                                      or 0.0) else "")
                 mag = f", magnitude {e['magnitude_sigma']:.1f} sigma from absent{by}"
                 if e.get("magnitude_sigma_by_effect"):
-                    mag = ", magnitudes " + ", ".join(f"{k} {z:.1f}" for k, z in e["magnitude_sigma_by_effect"].items()) \
-                        + " sigma from absent"
+                    mag = (", magnitudes " + ", ".join(f"{k} {z:.1f}" for k, z in e["magnitude_sigma_by_effect"].items())
+                           + " sigma from absent")
             pair = e.get("pair")
             tag = ("second pass: " if e.get("pass") == 2 else
                    "runner-up (no leading candidate confirmed): " if e.get("runner_up") else
