@@ -164,6 +164,13 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                    if e.get("delta_bic_independent") is not None else "")
             grid = (" (started from the coarse grid)" if (e.get("start") or {}).get("from") == "coarse grid"
                     else "")
+            cc = e.get("close_call")
+            if cc:
+                # Since session 52: a gain at the bar's edge decided again at more samples.
+                grid += (f" (a close call at {cc['spp_first']} spp, BIC gain {cc['delta_bic_first']:.1f}: refitted "
+                         f"with its control at {cc['spp']} spp"
+                         + (", which decides" if cc["passed"] else f", BIC gain {cc['delta_bic']:.1f}, still short")
+                         + ")")
             # A second-pass candidate the estimator fitted: what its final fit decided.
             tried = f" (fitted by the estimator: {e['final_fit_outcome']})" if e.get("final_fit_outcome") else ""
             print(f"  {tag}refit with {what}{grid}: BIC improves by {e['delta_bic']:.1f}{ind}{held}{mag}"

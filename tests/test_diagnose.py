@@ -1730,6 +1730,42 @@ def test_a_first_round_that_confirms_nothing_tries_the_closest_candidate_in_a_pa
     assert "refit with angle_offset and thickness_error together" in text
 
 
+def test_a_close_call_is_decided_again_at_more_samples_per_pixel(monkeypatch):
+    """An angle offset (3 deg) diagnosed at 64 spp: its refit gains dBIC 23 on weights that
+    hold the 64-spp renders' noise, its independently rendered training chi^2 gains 330.
+    With the entry bar between those, the refit is a close call: the control and the
+    candidate are refitted at 4 x the spp (dBIC 115), which decides. With the bar above
+    the closer look's gain too, the first refit's entry stays and nothing is named."""
+    import estimate.diagnose as dg
+
+    rec = record({"angle_offset.delta_deg": 3.0})
+    pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
+    how = {"candidates": ["angle_offset"], "spp": 64, "repeats": 3, "iterations": 8, "final_fit_follows": True,
+           "max_confirm": 1, "max_effects": 1}
+    monkeypatch.setattr(dg, "BIC_STRONG", 50.0)
+    d = diagnose_channel(pb, BaseFit(dict(TRUE), 1e4, "hg"), make_model, **how)
+    (e,) = d.confirmations
+    cc = e["close_call"]
+    assert 0 < cc["delta_bic_first"] <= 50.0 and cc["spp_first"] == 64 and cc["spp"] == 64 * dg.CLOSE_CALL_SPP_FACTOR
+    assert cc["passed"] and e["confirmed"] and e["delta_bic"] == cc["delta_bic"] > 50.0
+    assert d.confirmed == ["angle_offset"]
+    assert 1.5 < e["parameters"]["angle_offset.delta_deg"] < 4.5
+    from estimate.diagnose import summary_text
+
+    text = summary_text({"channels": {"g": d.as_dict()}, "run_id": "x", "refit_run": None})
+    assert "a close call at 64 spp" in text and "which decides" in text
+    # The bar above the closer look's gain as well: still short, the first refit's entry kept.
+    monkeypatch.setattr(dg, "BIC_STRONG", cc["delta_bic"] + 1.0)
+    d2 = diagnose_channel(pb, BaseFit(dict(TRUE), 1e4, "hg"), make_model, **how)
+    (e2,) = d2.confirmations
+    assert e2["delta_bic"] == pytest.approx(cc["delta_bic_first"])
+    assert not e2["close_call"]["passed"] and not e2["confirmed"] and d2.confirmed == []
+    assert "still short" in summary_text({"channels": {"g": d2.as_dict()}, "run_id": "x", "refit_run": None})
+    # Far from the bar (or failing another test) there is no closer look.
+    assert not dg._close_call({**e2, "delta_bic": -3.0}) and not dg._close_call({**e2, "no_harm": False})
+    assert not dg._close_call({**e2, "delta_bic_independent": 0.5 * dg.BIC_STRONG})
+
+
 def test_a_mismatch_outside_the_catalogue_names_no_cause():
     """The recording's phase function has two lobes (forward g 0.6, backward g -0.4, forward
     weight 0.8) and the fit one: a significant mismatch that no catalogue effect is. The
