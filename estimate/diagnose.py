@@ -1852,7 +1852,7 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
     # Every candidate whose refit passed (BIC gain and magnitude), by that gain: the first is
     # d2's choice (`_choose` without the independent tests).
     ranked = [e["effect"] for e in sorted(d2.confirmations, key=lambda e: -float(e["delta_bic"]))
-              if e["delta_bic"] > BIC_STRONG and e["magnitude_sigma"] > MAGNITUDE_SIGMA]
+              if _passes(e, checks_decide=False)]
     tries: list[dict[str, Any]] = []
     info.update({"chosen": [], "tries": tries, "time_s": 0.0, "time_by_stage_s": {}})
     won: tuple[ChannelDiagnosis, FitResult, dict[str, float]] | None = None
