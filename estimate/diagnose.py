@@ -292,8 +292,9 @@ class FirstRound:
     localisation: dict[str, Any]
     scores: list[CandidateScore]
     control: Control | None = None
-    #: the control refitted at `CLOSE_CALL_SPP_FACTOR` x the spp, for a close call (`_close_call`)
-    close_control: Control | None = None
+    #: the control refitted at `CLOSE_CALL_SPP_FACTOR` x the spp, for a close call (`_close_call`):
+    #: {"control": Control} once one was needed
+    close_control: dict[str, Control] = field(default_factory=dict)
     #: candidate (with "@grid" where its refit started from the coarse grid) -> (its
     #: confirmation entry without the decision, its refit)
     refits: dict[str, tuple[dict[str, Any], RefitResult]] = field(default_factory=dict)
@@ -902,27 +903,24 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         return entry, fit
 
     def closer_look(name: str, entry: dict[str, Any], fit: RefitResult, current: Evaluation,
-                    current_exts: list[str], cand_how: Mapping[str, Any], round_no: int,
-                    start: Mapping[str, float], round_cache: FirstRound | dict[str, Any]
+                    current_exts: list[str], control: Control, cand_how: Mapping[str, Any], round_no: int,
+                    start: Mapping[str, float], close_control: dict[str, Control]
                     ) -> tuple[dict[str, Any], RefitResult]:
-        """A close call (`_close_call`) decided again: the round's control and the candidate
+        """A close call (`_close_call`) decided again: the round's `control` and the candidate
         refitted from the same start at `CLOSE_CALL_SPP_FACTOR` x the spp, with the render
         variance in their weights divided by as much; every test as before. The entry and
         refit that decide are the closer look's where it passes, else the first (so a pair
-        round compares refits at one spp); both carry `close_call`."""
+        round compares refits at one spp); both carry `close_call`. `close_control` caches the
+        closer control for the round (the first round's in `FirstRound.close_control`)."""
         f = CLOSE_CALL_SPP_FACTOR
         how = {**cand_how, "spp": f * int(cand_how["spp"]),
                "model_variance": np.asarray(cand_how["model_variance"]) / f}
-        ctrl = (round_cache.close_control if isinstance(round_cache, FirstRound)
-                else round_cache.get("control"))
-        if ctrl is None:
-            ctrl = _control(problem, make_model(current_exts), current, current_exts, train, held, spp=spp,
-                            seed=seed, repeats=repeats, iterations=iterations, floor=floor, yardstick=yardstick,
-                            objective=refit_objective, refit_spp_factor=f)
-            if isinstance(round_cache, FirstRound):
-                round_cache.close_control = ctrl
-            else:
-                round_cache["control"] = ctrl
+        if "control" not in close_control:
+            close_control["control"] = _control(
+                problem, make_model(current_exts), current, current_exts, train, held, spp=spp, seed=seed,
+                repeats=repeats, iterations=iterations, floor=floor, yardstick=yardstick, objective=refit_objective,
+                refit_spp_factor=f, train_before=control.train_before)
+        ctrl = close_control["control"]
         again, fit_again = try_candidate(name, current, current_exts, ctrl, how, round_no, start)
         ok = _passes(again)
         record = {"spp_first": int(cand_how["spp"]), "spp": how["spp"],
@@ -964,9 +962,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         offset's refit alone gained dBIC 8.0 (bar 10) and the thickness error was not
         flagged at the base fit (p 0.02).
         """
-        near = [e for e in confirmations if e["round"] == len(confirmed) + 1 and "effects" not in e
-                and e["effect"] in round_fits and 0.0 < e["delta_bic"] <= BIC_STRONG
-                and e["magnitude_sigma"] > MAGNITUDE_SIGMA and e["no_harm"] and e.get("heldout_ok", True)]
+        near = [e for e in confirmations if e["round"] == len(confirmed) + 1 and e["effect"] in round_fits
+                and _short_of_the_bar(e)]
         if not near:
             return None
         lead = str(max(near, key=_rank_key)["effect"])
@@ -1069,7 +1066,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         # Every refit of the round by its candidate, confirmed or not (`try_pair`'s leads).
         round_fits: dict[str, RefitResult] = {}
         # The round's control at the closer look's spp, refitted at the first close call.
-        close_cache: FirstRound | dict[str, Any] = first_round if round_one else {}
+        close_control: dict[str, Control] = first_round.close_control if round_one else {}
         while True:
             for cand in tried:
                 # Each entry's time_s: its start's search (the grid's, where asked) and its
@@ -1094,8 +1091,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                     entry, fit = try_candidate(cand.name, current, current_exts, control, cand_how,
                                                len(confirmed) + 1, start)
                     if refit_checks_decide and _close_call(entry):
-                        entry, fit = closer_look(cand.name, entry, fit, current, current_exts, cand_how,
-                                                 len(confirmed) + 1, start, close_cache)
+                        entry, fit = closer_look(cand.name, entry, fit, current, current_exts, control, cand_how,
+                                                 len(confirmed) + 1, start, close_control)
                     entry["time_s"] = {"start": t_start, "refit": time.perf_counter() - t_refit, "reused": False}
                     if round_one:
                         first_round.refits[cache_key] = (copy.deepcopy(entry), fit)
@@ -1295,17 +1292,20 @@ def _refit_noise(objective: str, yardstick: np.ndarray) -> dict[str, Any]:
 
 def _control(problem: Any, model: Any, current: Evaluation, exts: Sequence[str], train: Sequence[int],
              held: Sequence[int], *, spp: int, seed: int, repeats: int, iterations: int, floor: np.ndarray,
-             yardstick: np.ndarray, objective: str = FIXED_SEED, refit_spp_factor: int = 1) -> Control:
+             yardstick: np.ndarray, objective: str = FIXED_SEED, refit_spp_factor: int = 1,
+             train_before: Evaluation | None = None) -> Control:
     """The control of a confirmation round: the current model refitted alone, with the
     candidates' optimiser, seeds and training angles. A candidate must beat this, not the fit
     as given: when the fit to diagnose stopped far from its optimum, any extension's refit
     also re-optimises the material parameters and would otherwise take the credit for it.
     `refit_spp_factor`: the refit renders this many times `spp` (a close call's closer look,
     `_close_call`), with the render variance in its weights divided by as much; the
-    evaluations stay at `spp`.
+    evaluations stay at `spp`, so the round's control's `train_before` (the current fit on the
+    training angles) may be passed instead of rendered again.
     """
-    cur_train = evaluate(model, current.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats,
-                         angle_idx=train, noise_variance=yardstick)
+    cur_train = train_before if train_before is not None else evaluate(
+        model, current.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats, angle_idx=train,
+        noise_variance=yardstick)
     ctrl = refit(model, problem, current.parameters, _free_names(model, exts), angle_idx=train,
                  spp=refit_spp_factor * spp, seed=seed + 202, iterations=iterations,
                  model_variance=_render_variance(current, repeats, refit_spp_factor),
@@ -1427,14 +1427,19 @@ def _passes(entry: Mapping[str, Any], checks_decide: bool = True) -> bool:
             and (entry["no_harm"] or not checks_decide) and (entry.get("heldout_ok", True) or not checks_decide))
 
 
+def _short_of_the_bar(entry: Mapping[str, Any]) -> bool:
+    """A single candidate's refit that passed every test but the BIC bar: 0 < dBIC <=
+    `BIC_STRONG`, the magnitude beyond `MAGNITUDE_SIGMA`, no harm, the held-out test."""
+    return (0.0 < entry["delta_bic"] <= BIC_STRONG and entry["magnitude_sigma"] > MAGNITUDE_SIGMA
+            and entry["no_harm"] and entry.get("heldout_ok", True) and "effects" not in entry)
+
+
 def _close_call(entry: Mapping[str, Any]) -> bool:
-    """A refit that passed every test but the BIC bar, by a gain the independently rendered
-    training chi^2 puts beyond the bar: the decision rests on the refit's Monte-Carlo
-    weights, and a refit at `CLOSE_CALL_SPP_FACTOR` x the samples takes it instead."""
+    """A refit short of the bar (`_short_of_the_bar`) by a gain the independently rendered
+    training chi^2 puts beyond it: the decision rests on the refit's Monte-Carlo weights, and
+    a refit at `CLOSE_CALL_SPP_FACTOR` x the samples takes it instead."""
     ind = entry.get("delta_bic_independent")
-    return (0.0 < entry["delta_bic"] <= BIC_STRONG and ind is not None and ind > BIC_STRONG
-            and entry["magnitude_sigma"] > MAGNITUDE_SIGMA and entry["no_harm"] and entry.get("heldout_ok", True)
-            and "effects" not in entry)
+    return _short_of_the_bar(entry) and ind is not None and ind > BIC_STRONG
 
 
 def _dispersion(chi2: float, n_obs: int, k: int) -> float:
