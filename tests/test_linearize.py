@@ -97,7 +97,9 @@ def test_bands_and_image_effects_keep_their_gradients() -> None:
     p = dict(P, **{"filter_bandwidth.spread": 0.3, "lens_blur.core_sigma_px": 1.2})
     cot = np.random.default_rng(2).random((len(ANGLES), N_PIX)) + 0.5
     lin = m.linearize(p, ANGLES, spp=2048, seed=9)
-    assert np.array_equal(lin.profiles, m.render_profiles(p, ANGLES, spp=2048, seed=9))
+    # The same paths; the band's nodes take 569, 910 and 569 samples, where the kept
+    # integrator and mi.render may round a pixel's float32 mean one ulp apart.
+    np.testing.assert_allclose(lin.profiles, m.render_profiles(p, ANGLES, spp=2048, seed=9), rtol=1e-6, atol=0)
     got = lin.vjp(cot)
 
     def fd(name: str, h: float) -> float:
