@@ -16,7 +16,7 @@ Parameters are a flat mapping name -> float:
 
 All angles of a call are rendered with the same compiled kernels: angles and parameters
 are opaque Dr.Jit values. Seeds are explicit: angle k of a call with seed s uses the
-Mitsuba seed `render_seed(s, k, j)` (j: band node of `filter_bandwidth`), so a call is
+Mitsuba seed `render_seed(s, k)` (every band node of `filter_bandwidth` alike), so a call is
 reproducible and finite differences can use common random numbers.
 
 See docs/forward-model.md for the API and its conventions.
@@ -127,30 +127,9 @@ def _angle_key(angle_deg: float) -> float:
     return round(float(angle_deg), 6)
 
 
-def split_samples(spp: int, weights: npt.ArrayLike) -> list[int]:
-    """Share `spp` samples per pixel among nodes in proportion to `weights`.
-
-    Largest remainders, so the counts sum to `spp` where `spp` >= the number of nodes;
-    every node gets at least one sample (below that the sum exceeds `spp`).
-    """
-    w = np.asarray(weights, dtype=np.float64)
-    if int(spp) < 1 or w.ndim != 1 or w.size == 0 or np.any(w <= 0) or not np.all(np.isfinite(w)):
-        raise ModelParameterError(f"cannot share {spp!r} samples among weights {w.tolist()!r}")
-    share = int(spp) * w / w.sum()
-    n = np.floor(share).astype(int)
-    for k in np.argsort(-(share - n), kind="stable")[: int(spp) - int(n.sum())]:
-        n[k] += 1
-    return [max(1, int(v)) for v in n]
-
-
-def _pass_spp(spp: int, passes: int) -> int:
-    """Samples per pixel of each of `passes` launches that together take `spp`."""
-    return max(1, math.ceil(int(spp) / passes))
-
-
-def render_seed(seed: int, angle_index: int, band_index: int = 0) -> int:
+def render_seed(seed: int, angle_index: int) -> int:
     """Mitsuba seed of one render of a call (uint32)."""
-    return (int(seed) * 1_000_003 + angle_index * 7919 + band_index * 104_729) % (2 ** 32)
+    return (int(seed) * 1_000_003 + angle_index * 7919) % (2 ** 32)
 
 
 class ForwardModel:
@@ -304,19 +283,23 @@ class ForwardModel:
         _keep_live(self, copies)
         return bundle
 
-    def _bands(self, spp: int) -> list[tuple[float, float, int]]:
-        """(node x, quadrature weight, samples per pixel) of each band node.
+    def _bands(self) -> list[tuple[float, float]]:
+        """(node x, quadrature weight) of each band node.
 
-        The band's `spp` samples are shared among its nodes in proportion to their weights
-        (largest remainders, at least one a node), so a band render costs what one wavelength
-        costs and carries about its Monte Carlo variance: sum_k w_k^2 var / (w_k spp) =
-        var / spp. Every node at the full `spp` would cost NODES renders for a variance 0.35
-        of one, leaving a band model less noisy than the models it is compared with.
+        Every node is rendered with the same random numbers (seed) and the full spp. At
+        spread 0 the mixture is then the single-wavelength render sample for sample, and
+        near it the nodes' noise is nearly the same: a band model keeps common random
+        numbers with the model without it, as every other candidate of a diagnosis does,
+        and about its Monte Carlo variance. Independent seeds a node (until session 53)
+        left a band render with 0.35 of that variance, which a fixed-seed refit counted as
+        an improvement (the 40-px filter_bandwidth-2 case: the neutral band model's chi^2
+        150 against its control's 260); fewer samples a node with their own seeds, as
+        much too high the other way (322 against 256).
         """
         if "filter_bandwidth" in self.extensions:
             x, w = band_nodes()
-            return list(zip(x.tolist(), w.tolist(), split_samples(int(spp), w)))
-        return [(0.0, 1.0, int(spp))]
+            return list(zip(x.tolist(), w.tolist()))
+        return [(0.0, 1.0)]
 
     # ------------------------------------------------------------------ rendering
     def _groups(self, n_angles: int, window: PixelWindow, spp: int) -> tuple[list[range], int]:
@@ -328,26 +311,26 @@ class ForwardModel:
         return groups, passes
 
     def _launch(self, bundle: _SceneBundle, window: PixelWindow, spp: int, seed: int, first: int,
-                band: int, pass_index: int, ad: bool) -> Any:
+                pass_index: int, ad: bool) -> Any:
         """One mi.render of a group; returns the (H, copies * W) image (Dr.Jit, unevaluated)."""
         kwargs = {"params": bundle.params} if ad else {}
         bundle.scene.integrator().copy_width = window.width
         return self.mi.render(bundle.scene, sensor=bundle.sensor(window), spp=int(spp),
-                              seed=render_seed(seed, first + 1000 * pass_index, band), **kwargs)
+                              seed=render_seed(seed, first + 1000 * pass_index), **kwargs)
 
     def _render_radiance(self, values: Mapping[str, float], angles: Sequence[float],
                          window: PixelWindow, spp: int, seed: int, first_index: int = 0) -> np.ndarray:
         """Scene radiance (before image-space extensions), shape (N, H, W)."""
         groups, passes = self._groups(len(angles), window, spp)
+        spp_pass = max(1, math.ceil(int(spp) / passes))
         pending = []
         with self.dr.suspend_grad():
             for grp in groups:
                 bundle = self._bundle(len(grp))
-                for j, (x, w, spp_band) in enumerate(self._bands(spp)):
+                for x, w in self._bands():
                     bundle.assign(values, {}, [angles[i] for i in grp], x)
                     for q in range(passes):
-                        img = self._launch(bundle, window, _pass_spp(spp_band, passes), seed,
-                                           first_index + grp.start, j, q, False)
+                        img = self._launch(bundle, window, spp_pass, seed, first_index + grp.start, q, False)
                         # No sync here: Dr.Jit runs this launch while Python traces the next.
                         pending.append((grp, w / passes, img))
         return _gather_radiance(pending, len(angles), window)
@@ -441,6 +424,7 @@ class ForwardModel:
         mi = self.mi
         ad_names = [n for n, s in self.specs.items() if s.derivative == "ad"]
         groups, passes = self._groups(len(angles), window, spp)
+        spp_pass = max(1, math.ceil(int(spp) / passes))
         kept: list[_KeptGroup] = []
         pending = []
         with self._lock:
@@ -454,14 +438,13 @@ class ForwardModel:
                 integrator.copy_width = window.width
                 sensor = bundle.sensor(window)
                 group = _KeptGroup(grp, bundle, leaves)
-                for j, (x, w, spp_band) in enumerate(self._bands(spp)):
+                for x, w in self._bands():
                     # The leaves go into the scene now (the primal pass ignores their
                     # gradients) and again before the replay, which other renders may precede.
                     bundle.assign(values, leaves, ang, x)
                     for q in range(passes):
                         img, state = integrator.render_kept(bundle.scene, sensor,
-                                                            render_seed(seed, grp.start + 1000 * q, j),
-                                                            _pass_spp(spp_band, passes))
+                                                            render_seed(seed, grp.start + 1000 * q), spp_pass)
                         pending.append((grp, w / passes, img))
                         group.passes.append((x, w / passes, state))
                 kept.append(group)

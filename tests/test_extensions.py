@@ -5,15 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given
-from hypothesis import strategies as st
 
 from estimate.beam import BeamProfile
 from estimate.errors import ModelParameterError
 from estimate.extensions import EXTENSIONS, ImageExtension, get_extension
 from estimate.extensions.refractive_boundary import omitted_fraction
 from estimate.extensions.sensor_nonlinearity import apply_raw
-from estimate.forward import ForwardModel, split_samples
+from estimate.forward import ForwardModel
 from estimate.geometry import RigGeometry
 
 N_PIX = 24
@@ -369,36 +367,22 @@ def test_screening_renders_the_lens_blur_where_the_map_was_imaged_through_the_le
     assert all(np.allclose(c, w) for c, w in zip(got, image_columns("lens_blur", b2, GEOM.pixel_mm, None)))
 
 
-@given(spp=st.integers(1, 100_000), weights=st.lists(st.floats(0.01, 10.0), min_size=1, max_size=8))
-def test_split_samples_shares_the_samples_by_weight(spp: int, weights: list[float]) -> None:
-    n = split_samples(spp, weights)
-    assert len(n) == len(weights) and min(n) >= 1
-    if spp >= len(weights):
-        assert sum(n) == spp
-        share = spp * np.asarray(weights) / sum(weights)
-        assert np.all(np.abs(np.asarray(n) - share) < 1.0 + 1e-9 * spp) or min(share) < 1.0
-    else:
-        assert n == [1] * len(weights)
-
-
-def test_split_samples_refuses_bad_weights() -> None:
-    for spp, w in ((0, [1.0]), (8, []), (8, [1.0, 0.0]), (8, [1.0, float("nan")])):
-        with pytest.raises(ModelParameterError):
-            split_samples(spp, w)
-
-
-def test_a_band_render_carries_the_noise_of_one_wavelength(base_model: ForwardModel) -> None:
-    """The band's samples are shared among its nodes: its Monte Carlo variance matches a
-    single-wavelength render at the same spp (every node at the full spp gave 0.35 of it,
-    for three renders' cost)."""
+def test_a_band_keeps_the_random_numbers_of_one_wavelength(base_model: ForwardModel) -> None:
+    """Every band node is rendered with the render's own random numbers: at spread 0 the
+    band model renders the single-wavelength image sample for sample (common random numbers
+    with the model without it, as a diagnosis's fixed-seed refits compare them), and at a
+    spread its Monte Carlo variance stays about that of one wavelength (independent seeds a
+    node gave 0.35 of it, which a fixed-seed refit took for an improvement)."""
     band = ForwardModel(GEOM, BEAM, phase="exp1", extensions=["filter_bandwidth"])
     p = {**BASE, "phase.b1": 1.0}
     angles = [30.0, 150.0]
-    a = np.array([band.render_profiles(p, angles, spp=64, seed=s) for s in range(24)])
+    np.testing.assert_allclose(band.render_profiles(p, angles, spp=64, seed=5),
+                               base_model.render_profiles(p, angles, spp=64, seed=5), rtol=1e-5, atol=0)
+    q = {**p, "filter_bandwidth.spread": 0.3}
+    a = np.array([band.render_profiles(q, angles, spp=64, seed=s) for s in range(24)])
     b = np.array([base_model.render_profiles(p, angles, spp=64, seed=100 + s) for s in range(24)])
     ratio = float(np.mean(a.var(axis=0, ddof=1)) / np.mean(b.var(axis=0, ddof=1)))
     assert 0.7 < ratio < 1.4
-    assert a.mean(axis=0).sum() == pytest.approx(b.mean(axis=0).sum(), rel=0.02)
 
 
 def test_filter_bandwidth_zero_spread_matches_single_wavelength(base_model: ForwardModel) -> None:

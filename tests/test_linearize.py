@@ -44,7 +44,7 @@ def _mitsuba_reference(model: ForwardModel, params: dict[str, float], cot: np.nd
     # cotangent does not depend on this render, so replaying its paths is unbiased.
     c = mi.TensorXf(np.ascontiguousarray(cot, dtype=np.float32).reshape(1, -1, 1))
     bundle.scene.integrator().render_backward(bundle.scene, bundle.params, c, sensor=bundle.sensor(window),
-                                              seed=render_seed(seed, 0, 0), spp=spp)
+                                              seed=render_seed(seed, 0), spp=spp)
     return {n: float(dr.grad(leaf)[0]) for n, leaf in leaves.items()}
 
 
@@ -97,19 +97,23 @@ def test_bands_and_image_effects_keep_their_gradients() -> None:
     p = dict(P, **{"filter_bandwidth.spread": 0.3, "lens_blur.core_sigma_px": 1.2})
     cot = np.random.default_rng(2).random((len(ANGLES), N_PIX)) + 0.5
     lin = m.linearize(p, ANGLES, spp=2048, seed=9)
-    # The same paths; the band's nodes take 569, 910 and 569 samples, where the kept
-    # integrator and mi.render may round a pixel's float32 mean one ulp apart.
-    np.testing.assert_allclose(lin.profiles, m.render_profiles(p, ANGLES, spp=2048, seed=9), rtol=1e-6, atol=0)
+    assert np.array_equal(lin.profiles, m.render_profiles(p, ANGLES, spp=2048, seed=9))
     got = lin.vjp(cot)
 
-    def fd(name: str, h: float) -> float:
+    def fd(name: str, h: float, spp: int = 2048, seed: int = 9) -> float:
         vals = []
         for sign in (-1, 1):
             q = dict(p)
             q[name] += sign * h
-            vals.append(float((m.render_profiles(q, ANGLES, spp=2048, seed=9) * cot).sum()))
+            vals.append(float((m.render_profiles(q, ANGLES, spp=spp, seed=seed) * cot).sum()))
         return (vals[1] - vals[0]) / (2 * h)
 
     assert got["albedo"] == pytest.approx(fd("albedo", 0.02), rel=0.05)
     assert got["lens_blur.core_sigma_px"] == pytest.approx(fd("lens_blur.core_sigma_px", 0.05), rel=0.05)
-    assert got["filter_bandwidth.spread"] == pytest.approx(fd("filter_bandwidth.spread", 0.1), rel=0.1)
+    # The spread moves sigma_t, and free-flight sampling makes a fixed-seed render
+    # discontinuous in sigma_t: its central differences scatter by about 15 % at 2048 spp
+    # (seeds 9-11: -0.19 to -0.25 where the kept-path gradient gives -0.245 to -0.252). So
+    # both sides are averaged over two seeds, the differences at 16384 spp.
+    ad = 0.5 * (got["filter_bandwidth.spread"] + m.linearize(p, ANGLES, spp=2048, seed=10).vjp(cot)["filter_bandwidth.spread"])
+    ref = 0.5 * sum(fd("filter_bandwidth.spread", 0.1, spp=16384, seed=s) for s in (9, 10))
+    assert ad == pytest.approx(ref, rel=0.1)

@@ -4,8 +4,7 @@ The rendered channel is the mixture over the filter's band of renders whose exti
 varies linearly across it: sigma_t(x) = sigma_t * (1 + spread * x), x in [-1, 1] over the
 band, flat passband. The mixture is integrated with `NODES`-point Gauss-Legendre
 quadrature (exact for the mixture of a smooth response to 2*NODES - 1 degree).
-`spread` = 0 is a single wavelength. A render's samples are shared among the nodes by
-their weights (`ForwardModel._bands`), so the band costs one wavelength's render. Derivative: Dr.Jit reverse mode (finite differences,
+`spread` = 0 is a single wavelength. Derivative: Dr.Jit reverse mode (finite differences,
 like sigma_t, when `refractive_boundary` is on; see ForwardModel).
 """
 
