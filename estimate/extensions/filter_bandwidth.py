@@ -4,7 +4,9 @@ The rendered channel is the mixture over the filter's band of renders whose exti
 varies linearly across it: sigma_t(x) = sigma_t * (1 + spread * x), x in [-1, 1] over the
 band, flat passband. The mixture is integrated with `NODES`-point Gauss-Legendre
 quadrature (exact for the mixture of a smooth response to 2*NODES - 1 degree).
-`spread` = 0 is a single wavelength. Derivative: Dr.Jit reverse mode (finite differences,
+`spread` = 0 is a single wavelength. Every node is rendered with the same random numbers
+(`ForwardModel._bands`), so at `spread` = 0 the band renders the single wavelength sample
+for sample and keeps common random numbers with a model without it. Derivative: Dr.Jit reverse mode (finite differences,
 like sigma_t, when `refractive_boundary` is on; see ForwardModel).
 """
 
