@@ -152,7 +152,8 @@ def base_model() -> ForwardModel:
 
 
 def test_neutral_extensions_leave_the_render_unchanged(base_model: ForwardModel) -> None:
-    names = ["lens_blur", "stray_light", "angle_offset", "thickness_error", "beam_halo", "sensor_nonlinearity"]
+    names = ["lens_blur", "stray_light", "angle_offset", "thickness_error", "beam_halo", "sensor_nonlinearity",
+             "filter_bandwidth"]
     full = ForwardModel(GEOM, BEAM, phase="exp1", extensions=names)
     a = base_model.render_profiles({**BASE, "phase.b1": 1.0}, [40.0, 140.0], spp=256, seed=2)
     b = full.render_profiles({**BASE, "phase.b1": 1.0}, [40.0, 140.0], spp=256, seed=2)
