@@ -290,11 +290,8 @@ class ForwardModel:
         spread 0 the mixture is then the single-wavelength render sample for sample, and
         near it the nodes' noise is nearly the same: a band model keeps common random
         numbers with the model without it, as every other candidate of a diagnosis does,
-        and about its Monte Carlo variance. Independent seeds a node (until session 53)
-        left a band render with 0.35 of that variance, which a fixed-seed refit counted as
-        an improvement (the 40-px filter_bandwidth-2 case: the neutral band model's chi^2
-        150 against its control's 260); fewer samples a node with their own seeds, as
-        much too high the other way (322 against 256).
+        and about its Monte Carlo variance. A seed a node gave a band render 0.35 of that
+        variance, which a fixed-seed refit took for a gain (docs/diagnosis-log.md, session 53).
         """
         if "filter_bandwidth" in self.extensions:
             x, w = band_nodes()

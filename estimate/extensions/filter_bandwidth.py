@@ -6,8 +6,9 @@ band, flat passband. The mixture is integrated with `NODES`-point Gauss-Legendre
 quadrature (exact for the mixture of a smooth response to 2*NODES - 1 degree).
 `spread` = 0 is a single wavelength. Every node is rendered with the same random numbers
 (`ForwardModel._bands`), so at `spread` = 0 the band renders the single wavelength sample
-for sample and keeps common random numbers with a model without it. Derivative: Dr.Jit reverse mode (finite differences,
-like sigma_t, when `refractive_boundary` is on; see ForwardModel).
+for sample and keeps common random numbers with a model without it. Derivative: Dr.Jit
+reverse mode (finite differences, like sigma_t, when `refractive_boundary` is on; see
+ForwardModel).
 """
 
 from __future__ import annotations
