@@ -283,8 +283,8 @@ class ForwardModel:
         _keep_live(self, copies)
         return bundle
 
-    def _bands(self) -> list[tuple[float, float]]:
-        """(node x, quadrature weight) of each band node.
+    def _bands(self, values: Mapping[str, float]) -> list[tuple[float, float]]:
+        """(node x, quadrature weight) of each band node; one node at spread 0.
 
         Every node is rendered with the same random numbers (seed) and the full spp. At
         spread 0 the mixture is then the single-wavelength render sample for sample, and
@@ -293,7 +293,9 @@ class ForwardModel:
         and about its Monte Carlo variance. A seed a node gave a band render 0.35 of that
         variance, which a fixed-seed refit took for a gain (docs/diagnosis-log.md, session 53).
         """
-        if "filter_bandwidth" in self.extensions:
+        if "filter_bandwidth" in self.extensions and values.get("filter_bandwidth.spread", 0.0) != 0.0:
+            # At spread 0 every node renders the same image (and d/dspread = sum_k w_k x_k dI/dsigma_t
+            # vanishes with the symmetric nodes), so one render does.
             x, w = band_nodes()
             return list(zip(x.tolist(), w.tolist()))
         return [(0.0, 1.0)]
@@ -324,7 +326,7 @@ class ForwardModel:
         with self.dr.suspend_grad():
             for grp in groups:
                 bundle = self._bundle(len(grp))
-                for x, w in self._bands():
+                for x, w in self._bands(values):
                     bundle.assign(values, {}, [angles[i] for i in grp], x)
                     for q in range(passes):
                         img = self._launch(bundle, window, spp_pass, seed, first_index + grp.start, q, False)
@@ -435,7 +437,7 @@ class ForwardModel:
                 integrator.copy_width = window.width
                 sensor = bundle.sensor(window)
                 group = _KeptGroup(grp, bundle, leaves)
-                for x, w in self._bands():
+                for x, w in self._bands(values):
                     # The leaves go into the scene now (the primal pass ignores their
                     # gradients) and again before the replay, which other renders may precede.
                     bundle.assign(values, leaves, ang, x)

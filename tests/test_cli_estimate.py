@@ -95,12 +95,15 @@ def test_free_scale_is_fitted(session, capsys):
     assert doc["channels"]["g"]["scale"] != pytest.approx(2e5, rel=1e-6)
 
 
-def test_extension_parameters_are_printed(session, capsys):
+def test_extension_parameters_are_printed(session, capsys, monkeypatch):
+    # Every reduced chi2 lies above a hint level of -1: the summary points at `rig diagnose`.
+    monkeypatch.setattr("rig.commands.estimate.CHI2_HINT", -1.0)
     assert main(["estimate", str(session), "--channels", "g", "--columns", "32", "--max-iterations", "2",
                  "--spp-max", "64", "--extensions", "stray_light"]) == 0
     out = capsys.readouterr().out
     line = next(ln for ln in out.splitlines() if "stray_light.offset" in ln)
     assert "stray_light.slope_per_mm" in line and "(solved each iteration)" in line
+    assert f"`rig diagnose {session}` tells that from a mismatch" in out
 
 
 def test_missing_session_exit_2(tmp_path, capsys):
@@ -143,11 +146,14 @@ def test_live_status_names_each_stage_on_a_terminal_and_draws_nothing_off_it(ses
             assert text == ""
 
 
-def test_plain_output_ends_each_channel_with_its_time_and_steps(session, capsys):
+def test_plain_output_ends_each_channel_with_its_time_and_steps(session, capsys, monkeypatch):
+    monkeypatch.setattr("rig.commands.estimate.CHI2_HINT", float("inf"))  # no fit lies above it: no note
     argv = ["estimate", str(session), "--channels", "g", "--columns", "32", "--max-iterations", "3",
             "--spp-max", "32", "--polish-steps", "1", "--scale", "free", "--no-progress"]
     assert main(argv) == 0
-    err = capsys.readouterr().err
+    captured = capsys.readouterr()
+    err = captured.err
     assert "fitting channel g (exp3) ..." in err
     line = next(x for x in err.splitlines() if x.startswith("  g: "))
     assert "iterations + " in line and "polish steps" in line
+    assert "rig diagnose" not in captured.out

@@ -177,11 +177,11 @@ def test_an_extension_said_to_be_an_identity_at_neutral_renders_bit_for_bit_as_w
         assert np.array_equal(a, b), (name, others, beam is frame)
 
 
-@pytest.mark.parametrize("name", ["refractive_boundary", "filter_bandwidth"])
+@pytest.mark.parametrize("name", ["refractive_boundary"])
 def test_a_scene_extension_that_samples_differently_at_neutral_does_not_claim_identity(name) -> None:
-    """An index-matched boundary still draws its reflection decision and a band is several
-    renders: at neutral they agree with the model without them only in the mean, so their
-    screening secants need their own base render."""
+    """An index-matched boundary still draws its reflection decision: at neutral it agrees
+    with the model without it only in the mean, so its screening secants need their own
+    base render."""
     assert not EXTENSIONS[name].neutral_is_identity
     p = {**BASE, "phase.b1": 1.0}
     a = ForwardModel(GEOM, BEAM, phase="exp1").render_profiles(p, [40.0, 140.0], spp=32, seed=4)
@@ -380,17 +380,18 @@ def test_a_band_keeps_the_random_numbers_of_one_wavelength(base_model: ForwardMo
     np.testing.assert_allclose(band.render_profiles(p, angles, spp=64, seed=5),
                                base_model.render_profiles(p, angles, spp=64, seed=5), rtol=1e-5, atol=0)
     q = {**p, "filter_bandwidth.spread": 0.3}
+    # At spread 0 the nodes would render one image three times: one render does.
+    assert len(band._bands(band.validate(p))) == 1 and len(band._bands(band.validate(q))) == 3
     a = np.array([band.render_profiles(q, angles, spp=64, seed=s) for s in range(24)])
     b = np.array([base_model.render_profiles(p, angles, spp=64, seed=100 + s) for s in range(24)])
     ratio = float(np.mean(a.var(axis=0, ddof=1)) / np.mean(b.var(axis=0, ddof=1)))
     assert 0.7 < ratio < 1.4
 
 
-def test_filter_bandwidth_zero_spread_matches_single_wavelength(base_model: ForwardModel) -> None:
+def test_a_filter_spread_changes_the_image_and_has_a_finite_jacobian() -> None:
+    # (Spread 0 against one wavelength: test_a_band_keeps_the_random_numbers_of_one_wavelength.)
     model = ForwardModel(GEOM, BEAM, phase="exp1", extensions=["filter_bandwidth"])
     a = model.render_profiles({**BASE, "phase.b1": 1.0}, [40.0], spp=4096, seed=7)
-    b = base_model.render_profiles({**BASE, "phase.b1": 1.0}, [40.0], spp=4096, seed=8)
-    assert a.sum() == pytest.approx(b.sum(), rel=0.02)
     c = model.render_profiles({**BASE, "phase.b1": 1.0, "filter_bandwidth.spread": 0.5}, [40.0], spp=4096, seed=7)
     assert not np.allclose(a, c)
     jac = model.jacobian({**BASE, "filter_bandwidth.spread": 0.3}, [40.0], ["filter_bandwidth.spread"],

@@ -82,11 +82,11 @@ class Extension:
     #: At its neutral values the extension leaves a render bit for bit as the model without
     #: it renders it at the same seed and spp: it draws no random numbers of its own and
     #: changes no path (an angle offset of 0, a thickness error of 0, a halo of no power, a
-    #: lens blur of zero width whose beam map is then the calibrated one). The screening
-    #: then shares one render as the base of these candidates' secants
-    #: (`estimate.diagnose._screen`); tests/test_extensions.py holds each to it. False where
-    #: the neutral scene differs in its sampling (an index-matched dielectric boundary draws
-    #: a reflection decision; a filter band is several renders).
+    #: lens blur of zero width whose beam map is then the calibrated one, a filter band of
+    #: no spread, rendered as one wavelength). The screening then shares one render as the
+    #: base of these candidates' secants (`estimate.diagnose._screen`);
+    #: tests/test_extensions.py holds each to it. False where the neutral scene differs in
+    #: its sampling (an index-matched dielectric boundary draws a reflection decision).
     neutral_is_identity: ClassVar[bool] = False
 
     @classmethod

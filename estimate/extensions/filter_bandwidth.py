@@ -4,9 +4,9 @@ The rendered channel is the mixture over the filter's band of renders whose exti
 varies linearly across it: sigma_t(x) = sigma_t * (1 + spread * x), x in [-1, 1] over the
 band, flat passband. The mixture is integrated with `NODES`-point Gauss-Legendre
 quadrature (exact for the mixture of a smooth response to 2*NODES - 1 degree).
-`spread` = 0 is a single wavelength. Every node is rendered with the same random numbers
-(`ForwardModel._bands`), so at `spread` = 0 the band renders the single wavelength sample
-for sample and keeps common random numbers with a model without it. Derivative: Dr.Jit
+`spread` = 0 is a single wavelength, rendered as one node. Every node is rendered with the
+same random numbers (`ForwardModel._bands`), so near `spread` = 0 the band keeps common
+random numbers with a model without it. Derivative: Dr.Jit
 reverse mode (finite differences, like sigma_t, when `refractive_boundary` is on; see
 ForwardModel).
 """
@@ -31,6 +31,7 @@ def band_nodes(n: int = NODES) -> tuple[np.ndarray, np.ndarray]:
 class FilterBandwidth(Extension):
     name = "filter_bandwidth"
     kind = "scene"
+    neutral_is_identity = True  # spread 0 renders one node, the single wavelength itself
     parameters = (
         ParameterSpec("spread", 0.0, 0.0, 0.9, "", "ad", 0.02,
                       "relative half-range of sigma_t across the band"),
