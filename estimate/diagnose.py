@@ -263,6 +263,14 @@ class Control(NamedTuple):
     heldout_chi2: float | None
 
 
+@dataclass
+class CloseControl:
+    """A round's control refitted at `CLOSE_CALL_SPP_FACTOR` x the spp (`_close_call`),
+    made at the round's first close call and shared by the later ones."""
+
+    control: Control | None = None
+
+
 @dataclass(frozen=True)
 class GridStart:
     """How a candidate's refit may start from the coarse grid (`estimate.start.coarse_start`)
@@ -292,9 +300,8 @@ class FirstRound:
     localisation: dict[str, Any]
     scores: list[CandidateScore]
     control: Control | None = None
-    #: the control refitted at `CLOSE_CALL_SPP_FACTOR` x the spp, for a close call (`_close_call`):
-    #: {"control": Control} once one was needed
-    close_control: dict[str, Control] = field(default_factory=dict)
+    #: the control refitted at `CLOSE_CALL_SPP_FACTOR` x the spp, once a close call needed it
+    close_control: CloseControl = field(default_factory=CloseControl)
     #: candidate (with "@grid" where its refit started from the coarse grid) -> (its
     #: confirmation entry without the decision, its refit)
     refits: dict[str, tuple[dict[str, Any], RefitResult]] = field(default_factory=dict)
@@ -904,7 +911,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
 
     def closer_look(name: str, entry: dict[str, Any], fit: RefitResult, current: Evaluation,
                     current_exts: list[str], control: Control, cand_how: Mapping[str, Any], round_no: int,
-                    start: Mapping[str, float], close_control: dict[str, Control]
+                    start: Mapping[str, float], close_control: CloseControl
                     ) -> tuple[dict[str, Any], RefitResult]:
         """A close call (`_close_call`) decided again: the round's `control` and the candidate
         refitted from the same start at `CLOSE_CALL_SPP_FACTOR` x the spp, with the render
@@ -915,12 +922,12 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         f = CLOSE_CALL_SPP_FACTOR
         how = {**cand_how, "spp": f * int(cand_how["spp"]),
                "model_variance": np.asarray(cand_how["model_variance"]) / f}
-        if "control" not in close_control:
-            close_control["control"] = _control(
+        if close_control.control is None:
+            close_control.control = _control(
                 problem, make_model(current_exts), current, current_exts, train, held, spp=spp, seed=seed,
                 repeats=repeats, iterations=iterations, floor=floor, yardstick=yardstick, objective=refit_objective,
                 refit_spp_factor=f, train_before=control.train_before)
-        ctrl = close_control["control"]
+        ctrl = close_control.control
         again, fit_again = try_candidate(name, current, current_exts, ctrl, how, round_no, start)
         ok = _passes(again)
         record = {"spp_first": int(cand_how["spp"]), "spp": how["spp"],
@@ -1066,7 +1073,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         # Every refit of the round by its candidate, confirmed or not (`try_pair`'s leads).
         round_fits: dict[str, RefitResult] = {}
         # The round's control at the closer look's spp, refitted at the first close call.
-        close_control: dict[str, Control] = first_round.close_control if round_one else {}
+        close_control = first_round.close_control if round_one else CloseControl()
         while True:
             for cand in tried:
                 # Each entry's time_s: its start's search (the grid's, where asked) and its
