@@ -1211,6 +1211,31 @@ def test_when_the_first_choice_fails_its_final_fit_the_second_pass_tries_the_nex
     assert sum(d.stage_times_s.values()) == pytest.approx(d.time_s, rel=1e-3, abs=0.05)
 
 
+def test_the_second_pass_fits_refits_that_pass_every_test_before_those_that_fail_one():
+    """The refits of the session-54 recapture of the bench boundary session (channel g): by
+    the gain alone the angle offset, worse on the held-out angles and below the control when
+    rendered independently, came second and took the last final fit from the boundary."""
+    from estimate.diagnose import MAGNITUDE_SIGMA, second_pass_order
+
+    def entry(effect, gain, independent, heldout=True, no_harm=True, magnitude=5.0):
+        return {"effect": effect, "delta_bic": gain, "delta_bic_independent": independent, "heldout_ok": heldout,
+                "no_harm": no_harm, "magnitude_sigma": magnitude}
+
+    entries = [entry("stray_light", 800.6, 1788.0), entry("thickness_error", -9.9, -177.5, heldout=False),
+               entry("refractive_boundary", 113.4, 2357.2), entry("sensor_nonlinearity", 4.1, 194.0),
+               entry("angle_offset", 122.4, -72.9, heldout=False), entry("filter_bandwidth", 55.2, 1316.1)]
+    assert second_pass_order(entries) == ["stray_light", "refractive_boundary", "filter_bandwidth", "angle_offset"]
+    # Each test alone sends a refit behind those that pass them all; the estimator still fits
+    # it after them (a refit from a base fit far off can fail them and be the cause).
+    for bad in ({"no_harm": False}, {"heldout": False}, {"independent": 5.0}):
+        kw = {"independent": 2357.2, **bad}
+        got = second_pass_order([entry("refractive_boundary", 900.0, **kw), entry("stray_light", 50.0, 60.0)])
+        assert got == ["stray_light", "refractive_boundary"], bad
+    # A refit below the bar or with a magnitude that cannot be told from absent is not fitted.
+    assert second_pass_order([entry("stray_light", 9.0, 100.0),
+                              entry("angle_offset", 500.0, 600.0, magnitude=0.5 * MAGNITUDE_SIGMA)]) == []
+
+
 def test_a_second_pass_that_cannot_beat_the_first_final_fit_names_nothing(monkeypatch):
     """The second final fit must explain the data better than the one with the stand-in, by
     more than BIC_STRONG after the dispersion and the parameters' price; here the first
