@@ -1868,11 +1868,22 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
     tries: list[dict[str, Any]] = []
     info.update({"chosen": [], "tries": tries, "time_s": 0.0, "time_by_stage_s": {}})
     won: tuple[ChannelDiagnosis, FitResult, dict[str, float]] | None = None
-    for k, name in enumerate(ranked[:SECOND_PASS_FINAL_FITS]):
-        # d2 confirmed the largest gain; any other candidate's diagnosis takes its refit from
-        # the round's cache.
+    def add_time(stage_times: Mapping[str, float], total: float) -> None:
+        for st, v in stage_times.items():
+            info["time_by_stage_s"][st] = info["time_by_stage_s"].get(st, 0.0) + v
+            d.stage_times_s[st] = d.stage_times_s.get(st, 0.0) + v
+        info["time_s"] += total
+        d.time_s += total
+
+    # d2's round (every candidate's refit) counts whether or not the estimator fits its choice.
+    add_time(d2.stage_times_s, d2.time_s)
+    for name in ranked[:SECOND_PASS_FINAL_FITS]:
+        # d2 confirmed the largest fixed-seed gain; any other candidate's diagnosis takes its
+        # refit from the round's cache.
         dk = d2 if list(d2.confirmed) == [name] else diagnose_channel(problem, base, make_model, candidates=[name],
                                                                       max_confirm=1, **how)
+        counted = dict(dk.stage_times_s) if dk is d2 else {}
+        counted_s = dk.time_s if dk is d2 else 0.0
         frk = None
         if dk.confirmed:
             frk = refine_channel(problem, dk, make_model, settings, spp=spp, seed=seed, repeats=repeats, log=log,
@@ -1884,11 +1895,7 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
             spent = time.perf_counter() - t0
             dk.stage_times_s["final_fit"] = dk.stage_times_s.get("final_fit", 0.0) + spent
             dk.time_s += spent
-        for st, v in dk.stage_times_s.items():
-            info["time_by_stage_s"][st] = info["time_by_stage_s"].get(st, 0.0) + v
-            d.stage_times_s[st] = d.stage_times_s.get(st, 0.0) + v
-        info["time_s"] += dk.time_s
-        d.time_s += dk.time_s
+        add_time({st: v - counted.get(st, 0.0) for st, v in dk.stage_times_s.items()}, dk.time_s - counted_s)
         for e in dk.pruned:
             e["pass"] = 2
         d.pruned = list(d.pruned) + list(dk.pruned)
