@@ -1069,6 +1069,17 @@ def _dropped_first_pass(pb, candidates):
     return d, final
 
 
+def _stray_light_second_pass(candidates):
+    """A stray-light recording whose first pass's final fit dropped its glare tail
+    (`_dropped_first_pass`), and quick fit settings for the second pass's final fits."""
+    rec = record({"stray_light.offset": 0.01})
+    pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
+    d, final = _dropped_first_pass(pb, candidates)
+    st = FitSettings(seed=2, scale="free", max_iterations=14, spp_start=64, spp_max=128, final_spp=256, window=3,
+                     polish_steps=1)
+    return pb, d, final, st
+
+
 def test_when_the_final_fit_drops_every_effect_the_other_candidates_are_refitted():
     """The estimator's final fit dropped the only confirmed effect (a glare tail standing in
     for the concealed one): every other candidate is refitted from the
@@ -1171,11 +1182,7 @@ def test_when_the_first_choice_fails_its_final_fit_the_second_pass_tries_the_nex
     first choice's final fit is made to fail."""
     import estimate.diagnose as dg
 
-    rec = record({"stray_light.offset": 0.01})
-    pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
-    d, final = _dropped_first_pass(pb, ["lens_blur", "stray_light", "angle_offset"])
-    st = FitSettings(seed=2, scale="free", max_iterations=14, spp_start=64, spp_max=128, final_spp=256, window=3,
-                     polish_steps=1)
+    pb, d, final, st = _stray_light_second_pass(["lens_blur", "stray_light", "angle_offset"])
     real, fitted = dg.refine_channel, []
 
     def first_not_kept(problem, dk, *a, **k):
@@ -1249,11 +1256,7 @@ def test_a_second_pass_counts_its_refits_when_the_estimator_fits_another_candida
     read 620 s against 900 s of wall time)."""
     import estimate.diagnose as dg
 
-    rec = record({"stray_light.offset": 0.01})
-    pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
-    d, final = _dropped_first_pass(pb, ["lens_blur", "stray_light", "angle_offset"])
-    st = FitSettings(seed=2, scale="free", max_iterations=14, spp_start=64, spp_max=128, final_spp=256, window=3,
-                     polish_steps=1)
+    pb, d, final, st = _stray_light_second_pass(["lens_blur", "stray_light", "angle_offset"])
     real_order, rounds_choice = dg.second_pass_order, []
 
     def its_choice_last(entries):
