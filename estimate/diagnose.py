@@ -1824,11 +1824,10 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
     degenerate n 2.96, and stray light, ranked first by its refit's gain, was not kept by
     its final fit (session 47). From the grid the boundary's refit ended at n 1.53, but
     stray light still gained more (dBIC 1051 against 594) and was again not kept (session
-    48). So the candidates that pass are fitted by the estimator in the order of their
-    refits' gain, those that pass the refit's other tests first, by their independently
-    rendered gain (`second_pass_order`),
-    at most `SECOND_PASS_FINAL_FITS` of them, until one's final fit explains
-    the data better than `final`; each try is in `d.second_pass["tries"]`.
+    48). So the candidates that pass are fitted by the estimator in turn, at most
+    `SECOND_PASS_FINAL_FITS` of them, those that pass the refit's other tests first, by their
+    independently rendered gain (`second_pass_order`), until one's final fit explains the
+    data better than `final`; each try is in `d.second_pass["tries"]`.
 
     The first pass's round from the base fit is not done again: its evaluation,
     screening and control refit come from `d.first_round` (`diagnose_channel`'s `reuse`),
@@ -1868,6 +1867,7 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
     tries: list[dict[str, Any]] = []
     info.update({"chosen": [], "tries": tries, "time_s": 0.0, "time_by_stage_s": {}})
     won: tuple[ChannelDiagnosis, FitResult, dict[str, float]] | None = None
+
     def add_time(stage_times: Mapping[str, float], total: float) -> None:
         for st, v in stage_times.items():
             info["time_by_stage_s"][st] = info["time_by_stage_s"].get(st, 0.0) + v

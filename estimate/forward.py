@@ -286,11 +286,10 @@ class ForwardModel:
     def _bands(self, values: Mapping[str, float]) -> list[tuple[float, float]]:
         """(node x, quadrature weight) of each band node; one node at spread 0.
 
-        Every node is rendered with the same random numbers (seed) and the full spp. At
-        spread 0 the mixture is then the single-wavelength render sample for sample, and
-        near it the nodes' noise is nearly the same: a band model keeps common random
+        Every node is rendered with the same random numbers (seed) and the full spp, so
+        near spread 0 the nodes' noise is nearly the same: a band model keeps common random
         numbers with the model without it, as every other candidate of a diagnosis does,
-        and about its Monte Carlo variance. A seed a node gave a band render 0.35 of that
+        and about its Monte Carlo variance (at spread 0 it is that model, bit for bit). A seed a node gave a band render 0.35 of that
         variance, which a fixed-seed refit took for a gain (docs/diagnosis-log.md, session 53).
         """
         if "filter_bandwidth" in self.extensions and values.get("filter_bandwidth.spread", 0.0) != 0.0:
