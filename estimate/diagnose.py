@@ -1875,15 +1875,11 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
         info["time_s"] += total
         d.time_s += total
 
-    # d2's round (every candidate's refit) counts whether or not the estimator fits its choice.
-    add_time(d2.stage_times_s, d2.time_s)
     for name in ranked[:SECOND_PASS_FINAL_FITS]:
         # d2 confirmed the largest fixed-seed gain; any other candidate's diagnosis takes its
         # refit from the round's cache.
         dk = d2 if list(d2.confirmed) == [name] else diagnose_channel(problem, base, make_model, candidates=[name],
                                                                       max_confirm=1, **how)
-        counted = dict(dk.stage_times_s) if dk is d2 else {}
-        counted_s = dk.time_s if dk is d2 else 0.0
         frk = None
         if dk.confirmed:
             frk = refine_channel(problem, dk, make_model, settings, spp=spp, seed=seed, repeats=repeats, log=log,
@@ -1895,7 +1891,8 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
             spent = time.perf_counter() - t0
             dk.stage_times_s["final_fit"] = dk.stage_times_s.get("final_fit", 0.0) + spent
             dk.time_s += spent
-        add_time({st: v - counted.get(st, 0.0) for st, v in dk.stage_times_s.items()}, dk.time_s - counted_s)
+        if dk is not d2:
+            add_time(dk.stage_times_s, dk.time_s)
         for e in dk.pruned:
             e["pass"] = 2
         d.pruned = list(d.pruned) + list(dk.pruned)
@@ -1907,6 +1904,9 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
         if frk is not None and better is not None and better["gain"] > BIC_STRONG:
             won = (dk, frk, better)
             break
+    # d2's round (every candidate's refit, and the final fit of its choice where the estimator
+    # fitted that) counts whether or not the estimator fitted its choice.
+    add_time(d2.stage_times_s, d2.time_s)
     # The pass-2 entries say what became of each: the named one confirmed, every other not,
     # and those the estimator fitted carry their try's outcome.
     named = list(won[0].confirmed) if won is not None else []

@@ -289,8 +289,9 @@ class ForwardModel:
         Every node is rendered with the same random numbers (seed) and the full spp, so
         near spread 0 the nodes' noise is nearly the same: a band model keeps common random
         numbers with the model without it, as every other candidate of a diagnosis does,
-        and about its Monte Carlo variance (at spread 0 it is that model, bit for bit). A seed a node gave a band render 0.35 of that
-        variance, which a fixed-seed refit took for a gain (docs/diagnosis-log.md, session 53).
+        and about its Monte Carlo variance (at spread 0 it is that model, bit for bit). A
+        seed a node gave a band render 0.35 of that variance, which a fixed-seed refit took
+        for a gain (docs/diagnosis-log.md, session 53).
         """
         if "filter_bandwidth" in self.extensions and values.get("filter_bandwidth.spread", 0.0) != 0.0:
             # At spread 0 every node renders the same image (and d/dspread = sum_k w_k x_k dI/dsigma_t
