@@ -1764,17 +1764,27 @@ def _name_after_check(problem: Any, d: ChannelDiagnosis, model: Any, params: Map
 
 
 def dropped_at_final_fit(d: ChannelDiagnosis) -> list[str]:
-    """The confirmed effects that the estimator's final fit dropped, when it dropped them all
-    (nothing is named although the refits confirmed something), or that it kept but found to
-    explain too little of the mismatch to be named (`_explains_enough`); else []."""
-    if d.confirmed or not d.final_fit.get("kept"):
+    """The confirmed effects that the model that stays dropped, when it dropped them all
+    (nothing is named although the refits confirmed something), or kept but found to explain
+    too little of the mismatch to be named (`_explains_enough`); else []. That model is the
+    estimator's final fit, or, where that fit was worse than the base fit and not kept, the
+    refit kept in its place (`refine_channel`).
+
+    Both are the same evidence: what the first pass confirmed stands in for something else.
+    The refit's case was left out before session 55, when the bench boundary session, its
+    base fit 64 % high in sigma_t, was diagnosed on an NVIDIA H200: the first pass there
+    confirmed a glare tail and stray light, their estimator fit ended at reduced chi2 26.3 at
+    the floor (the base fit's 10.9), and the refit kept instead removed 33 % of the excess,
+    so nothing was named and the boundary was never refitted (`docs/diagnosis-log.md`)."""
+    if d.confirmed or not d.final_fit:
         return []
-    if d.partial.get("stage") == "final fit":
+    stage = "final fit" if d.final_fit.get("kept") else "refit"
+    if d.partial.get("stage") == stage:
         return list(d.partial["effects"])
-    return [e["effect"] for e in d.pruned if e.get("stage") == "final fit" and e.get("dropped")]
+    return [e["effect"] for e in d.pruned if e.get("stage") == stage and e.get("dropped")]
 
 
-def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, base: BaseFit,
+def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult | None, base: BaseFit,
                         make_model: ModelFactory, settings: FitSettings, *, spp: int = 256,
                         seed: int = DEFAULT_SEED, repeats: int = DEFAULT_REPEATS, iterations: int = 8,
                         log: Callable[[str], None] | None = None,
@@ -1783,7 +1793,9 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
     """A second pass when the estimator's final fit (`final`) dropped every effect the refits
     had confirmed (`dropped_at_final_fit`): every other candidate is refitted from the base
     fit (or the coarse grid, below), and the best, then the next, are fitted by the
-    estimator and compared with `final`.
+    estimator and compared with `final`. `final` None: the estimator's fit was not kept and
+    the refit kept in its place (`d.after`) explained too little; that refit is then what a
+    candidate's final fit must beat.
 
     On the simulated bench's recaptured refractive-boundary session the base fit came out
     74 % high in sigma_t. The boundary screened fifth, after a glare tail, a halo, stray
@@ -1846,13 +1858,20 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
     others = [c.name for c in d.candidates if c.name not in dropped]
     flagged = [c.name for c in d.candidates if c.log10_p < SCREEN_LOG10_P and c.name not in dropped]
     info: dict[str, Any] = {"dropped": dropped, "refitted": others, "flagged": flagged, "named": [],
-                            "first_final_fit": dict(d.final_fit)}
+                            "first_final_fit": dict(d.final_fit),
+                            "first_model": "final fit" if final is not None else "refit"}
+    # What a candidate's final fit must explain the data better than: the model with the
+    # stand-in that stays (the estimator's fit, or the refit kept in its place).
+    first: FitResult | Evaluation | None = final if final is not None else d.after
+    if first is None:
+        return None
     d.second_pass = info
     if not others:
         info["outcome"] = "no other candidate to refit"
         d.verdict += f"; {info['outcome']}"
         return None
-    say(f"  the final fit dropped {', '.join(dropped)}: refitting every other candidate "
+    say(f"  the {'final fit' if final is not None else 'refit kept in its place'} dropped {', '.join(dropped)}: "
+        "refitting every other candidate "
         f"({', '.join(others)}) from the base fit or the coarse grid")
     how: dict[str, Any] = {
         "spp": spp, "seed": seed, "repeats": repeats, "iterations": iterations, "log": log,
@@ -1887,7 +1906,7 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
         better = None
         if frk is not None and dk.confirmed:
             t0 = time.perf_counter()
-            better = _against_first(problem, d, final, frk, make_model, spp=spp, seed=seed, repeats=repeats)
+            better = _against_first(problem, d, first, frk, make_model, spp=spp, seed=seed, repeats=repeats)
             spent = time.perf_counter() - t0
             dk.stage_times_s["final_fit"] = dk.stage_times_s.get("final_fit", 0.0) + spent
             dk.time_s += spent
@@ -1925,8 +1944,10 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult, bas
     info["against_first"] = better
     info["named"] = list(dk.confirmed)
     info["outcome"] = "; ".join(t["outcome"] for t in tries)
-    why_first = (f"which explained {100 * d.partial['share_explained']:.0f} % of the excess in the estimator's "
-                 "final fit" if d.partial else "which the estimator's final fit could not tell from absent")
+    where = ("the estimator's final fit" if final is not None
+             else "the refit kept in place of the estimator's final fit (which fitted worse than the base fit)")
+    why_first = (f"which explained {100 * d.partial['share_explained']:.0f} % of the excess in {where}"
+                 if d.partial else f"which {where} could not tell from absent")
     d.adopt_named_model(dk)
     d.verdict = (_verdict(d.before, d.localisation, d.candidates, d.confirmed, d.after)
                  + f" (the first refits confirmed {', '.join(dropped)}, {why_first}; refitting every other candidate, "
@@ -1985,7 +2006,7 @@ def _try_outcome(name: str, final: FitResult | None, dk: ChannelDiagnosis, bette
     return f"named {name}: its final fit explains the data better than the one with {first} (gain {better['gain']:.0f})"
 
 
-def _against_first(problem: Any, d: ChannelDiagnosis, first: FitResult, second: FitResult,
+def _against_first(problem: Any, d: ChannelDiagnosis, first: FitResult | Evaluation, second: FitResult,
                    make_model: ModelFactory, *, spp: int, seed: int, repeats: int) -> dict[str, float]:
     """The second pass's final fit against the first's, in the base fit's noise metric:
     both chi^2 at the same seeds, the drop divided by the second's dispersion (at least 1:
@@ -2304,7 +2325,8 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
             cb_progress, cb_stage = fit_progress(ch, phase) if fit_progress else (None, None)
             fr = refine_channel(pb, d, make_model, fit_settings, spp=spp, seed=seed, repeats=repeats, log=log,
                                 progress=cb_progress, on_stage=cb_stage)
-            if fr is not None and dropped_at_final_fit(d):
+            if dropped_at_final_fit(d):
+                # fr None: the refit kept in place of the final fit is what the pass must beat.
                 fr2 = second_pass_channel(pb, d, fr, base, make_model, fit_settings, spp=spp, seed=seed,
                                           repeats=repeats, iterations=iterations, log=log,
                                           progress=cb_progress, on_stage=cb_stage)

@@ -134,7 +134,10 @@ def summary_text(doc: Mapping[str, Any]) -> str:
             # Since session 48 a second-pass refit may start from the coarse grid (entry "start").
             where = ("from the better of the base fit and the coarse grid with the effect switched on"
                      if any("start" in e for e in d["confirmations"]) else "from the base fit")
-            print(f"  second pass: the estimator's final fit dropped {', '.join(again['dropped'])}; every other "
+            # Since session 55 also where the estimator's fit was not kept ("first_model" "refit").
+            model = ("the refit kept in place of the estimator's final fit (which fitted worse than the base fit)"
+                     if again.get("first_model") == "refit" else "the estimator's final fit")
+            print(f"  second pass: {model} dropped {', '.join(again['dropped'])}; every other "
                   f"{which} ({', '.join(again.get('refitted') or []) or 'none'}) refitted "
                   f"{where}, the held-out and no-harm tests not deciding: {again.get('outcome', '')}", file=out)
             vs = again.get("against_first")

@@ -1121,6 +1121,44 @@ def test_when_the_final_fit_drops_every_effect_the_other_candidates_are_refitted
     assert "second pass: refit with stray_light" in text and "its final fit against the first" in text
 
 
+def test_when_the_refit_kept_in_place_of_the_final_fit_explains_too_little_the_other_candidates_are_refitted():
+    """The bench boundary session on an NVIDIA H200 (session 55): the first pass confirmed a
+    glare tail and stray light, their estimator fit ended worse than the base fit (reduced
+    chi2 at the floor 26.3 against 10.9) and was not kept, and the refit kept in its place
+    removed 33 % of the excess, so nothing was named. That refit is now what the other
+    candidates' final fits must beat: here a glare tail stands in for a stray light."""
+    from estimate.diagnose import dropped_at_final_fit, evaluate, second_pass_channel, summary_text
+
+    rec = record({"stray_light.offset": 0.01})
+    pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
+    d, final = _dropped_first_pass(pb, ["lens_blur", "stray_light"])
+    lm = evaluate(make_model(["lens_blur"]), final.parameters, pb, 6, spp=64, repeats=3)
+    b = d.before.residuals.reduced_chi2_adjusted
+    a = lm.residuals.reduced_chi2_adjusted
+    d.after, d.final_fit, d.pruned = lm, {"kept": False, "time_s": 1.0, "reason": "worse than the base fit"}, []
+    d.partial = {"effects": ["lens_blur"], "share_explained": (b - a) / (b - 1.0), "min_share": 0.5,
+                 "reduced_chi2_adjusted_before": b, "reduced_chi2_adjusted_with": a, "stage": "refit"}
+    assert dropped_at_final_fit(d) == ["lens_blur"]
+    # the stage must be that of the model that stays
+    assert dropped_at_final_fit(dataclasses.replace(d, partial={**d.partial, "stage": "final fit"})) == []
+    st = FitSettings(seed=2, scale="free", max_iterations=14, spp_start=64, spp_max=128, final_spp=256, window=3,
+                     polish_steps=1)
+    fr = second_pass_channel(pb, d, None, BaseFit(dict(TRUE), 1e4, "hg"), make_model, st, spp=64, repeats=3,
+                             iterations=8)
+    again = d.second_pass
+    assert again["first_model"] == "refit" and again["dropped"] == ["lens_blur"]
+    assert fr is not None and d.confirmed == ["stray_light"] and again["named"] == ["stray_light"]
+    vs = again["against_first"]
+    assert vs["chi2_second"] < vs["chi2_first"] and vs["gain"] > vs["needed"]
+    assert vs["k_first"] == len(_free_names(make_model(["lens_blur"]), ["lens_blur"])) + 1
+    assert "in the refit kept in place of the estimator's final fit (which fitted worse than the base fit)" in d.verdict
+    assert "left-out physics: stray_light" in d.verdict
+    text = summary_text({"channels": {"g": d.as_dict()}, "run_id": "x", "refit_run": None})
+    assert ("second pass: the refit kept in place of the estimator's final fit (which fitted worse than the base "
+            "fit) dropped lens_blur; every other candidate") in text
+    assert sum(d.stage_times_s.values()) == pytest.approx(d.time_s, rel=1e-3, abs=0.05)
+
+
 def test_the_second_pass_refits_a_candidate_the_screening_did_not_flag():
     """The score test is local: a base fit far from the data's optimum can leave the effect
     the recording holds unflagged (the bench's boundary session recaptured in session 46,
@@ -1315,6 +1353,7 @@ def test_a_second_pass_without_candidates_left_says_so_and_names_nothing():
     # nothing to do where an effect is still named, or where the final fit was not kept
     assert dropped_at_final_fit(dataclasses.replace(d, confirmed=["stray_light"])) == []
     assert dropped_at_final_fit(dataclasses.replace(d, final_fit={"kept": False})) == []
+    assert dropped_at_final_fit(dataclasses.replace(d, final_fit={})) == []   # no final fit at all
 
 
 def test_a_value_at_an_end_of_its_range_is_told_apart():
