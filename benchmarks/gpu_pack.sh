@@ -35,6 +35,15 @@ find "$tmp/site/mitsuba" -name '*.pyi' -delete
 (cd "$tmp/site" && tar cf - .) | xz -T0 -6 > .gpu/site.tar.xz
 # GPU_PACK=site packs the packages alone (what diagnose256 carries).
 if [ "${GPU_PACK:-all}" = site ]; then du -sh .gpu/site.tar.xz; exit 0; fi
+# GPU_PACK=bench packs the packages and one bench diagnose session, BENCH_CASE
+# (refractive_boundary-1), with only its base fit: gpu_run.sh's bench job (about 47 MB).
+if [ "${GPU_PACK:-all}" = bench ]; then
+  src=benchmarks/results/diagnose_cases/bench/${BENCH_CASE:-refractive_boundary-1}
+  [ -d "$src/session/estimates" ] || { echo "$src/session: no captured session (run bench_diagnose.py --source bench)"; exit 2; }
+  (cd "$src" && tar cf - --exclude='session/diagnoses/*' --exclude='session/estimates/*+diagnosis' \
+     --exclude=session.lock session) | xz -T0 -6 > .gpu/bench.tar.xz
+  du -sh .gpu/site.tar.xz .gpu/bench.tar.xz; exit 0
+fi
 if [ ! -d .gpu/est_session ]; then
   .venv/bin/python benchmarks/bench_estimate.py --keep-session .gpu/est_session --out "$tmp/cpu.json"
 fi

@@ -35,7 +35,8 @@ set -uo pipefail
 job=${1:-estimate}
 OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1
-mkdir -p /tmp/site && tar xJf .gpu/site.tar.xz -C /tmp/site || exit 3
+# A second job in the same call finds the packages already unpacked.
+[ -f /tmp/site/.unpacked ] || { mkdir -p /tmp/site && tar xJf .gpu/site.tar.xz -C /tmp/site && touch /tmp/site/.unpacked; } || exit 3
 export PYTHONPATH=/tmp/site:$(pwd)
 nvidia-smi -L
 python3 -c "import mitsuba, drjit, numpy, scipy; print('mitsuba', mitsuba.__version__, 'drjit', drjit.__version__, 'numpy', numpy.__version__, 'scipy', scipy.__version__)"
@@ -75,20 +76,35 @@ paper)
   ;;
 diagnose256)
   # DIAG_SPP (2048) and DIAG_REFITS (fixed-seed); DIAG_BASE_FROM names a cache whose base
-  # fits are reused (bench_diagnose.py --base-from). What comes back is every case JSON this
+  # fits are reused (bench_diagnose.py --base-from); DIAG_FRESH=1 reruns cases the cache holds. What comes back is every case JSON this
   # run wrote, whichever cache folder bench_diagnose.py chose for these options.
   spp=${DIAG_SPP:-2048}; refits=${DIAG_REFITS:-fixed-seed}
   base_from=(); [ -n "${DIAG_BASE_FROM:-}" ] && base_from=(--base-from "$DIAG_BASE_FROM")
   mkdir -p benchmarks/results/diagnose_cases && touch "$OUT/.start"
   t=$(date +%s)
+  fresh=(); [ -n "${DIAG_FRESH:-}" ] && fresh=(--fresh)
   timeout "${DIAG_LIMIT_S:-560}" python3 benchmarks/bench_diagnose.py --excess 0 --spp "$spp" --base-spp 4096 \
-    --columns 256 --refits "$refits" "${base_from[@]}" --only "${DIAG_CASES:-clean-1,beam_halo-1,beam_halo-2}" \
+    --columns 256 --refits "$refits" "${base_from[@]}" "${fresh[@]}" --only "${DIAG_CASES:-clean-1,beam_halo-1,beam_halo-2}" \
     --time-budget "${DIAG_BUDGET_S:-420}" --label gpu 2>&1 | tee "$OUT/diagnose256.log"
   echo "diagnose256: wall $(( $(date +%s) - t )) s"
   (cd benchmarks/results/diagnose_cases && find . -name '*.json' -newer "$OUT/.start" -print0 \
      | tar cf "$OUT/diagnose256_cases.tar" --null -T -)
   rm -f "$OUT/.start"
   ;;
-*) echo "unknown job $job (estimate, paper or diagnose256)"; exit 2 ;;
+bench)
+  # rig diagnose on a carried bench session (.gpu/bench.tar.xz: session/ with its base fit only,
+  # made by gpu_pack.sh with GPU_PACK=bench), exactly as bench_diagnose.py --source bench runs
+  # it on the cores: channel g, --spp BENCH_SPP (256), fixed-seed refits, the estimator's final
+  # fit. The diagnosis and its refit come back in $OUT/bench_diagnosis.tar.
+  mkdir -p /tmp/bench && tar xJf .gpu/bench.tar.xz -C /tmp/bench || exit 5
+  fit=$(ls -d /tmp/bench/session/estimates/*/ | grep -v '+diagnosis' | tail -1)
+  t=$(date +%s)
+  timeout "${BENCH_LIMIT_S:-300}" python3 -m rig.cli diagnose /tmp/bench/session --fit "$fit" --channels g \
+    --spp "${BENCH_SPP:-256}" --json --no-plots --no-progress > "$OUT/bench_diagnose.json" 2> "$OUT/bench_diagnose.log"
+  echo "bench diagnose rc $? wall $(( $(date +%s) - t )) s"
+  tail -8 "$OUT/bench_diagnose.log"
+  (cd /tmp/bench/session && tar cf "$OUT/bench_diagnosis.tar" diagnoses $(ls -d estimates/*+diagnosis 2>/dev/null))
+  ;;
+*) echo "unknown job $job (estimate, paper, diagnose256 or bench)"; exit 2 ;;
 esac
 echo "total $(( $(date +%s) - t0 )) s"
