@@ -165,8 +165,14 @@ def summary_text(doc: Mapping[str, Any]) -> str:
             what = " and ".join(e["effects"]) + " together" if pair else e["effect"]
             ind = (f" ({e['delta_bic_independent']:.1f} rendered independently)"
                    if e.get("delta_bic_independent") is not None else "")
-            grid = (" (started from the coarse grid)" if (e.get("start") or {}).get("from") == "coarse grid"
-                    else "")
+            start = e.get("start") or {}
+            grid = " (started from the coarse grid)" if start.get("from") == "coarse grid" else ""
+            other = start.get("other")
+            if other:
+                # Since session 55: a second-pass refit that failed from one start tried the other.
+                grid = (f" (started from the {'coarse grid' if start.get('from') == 'coarse grid' else 'fit'}; "
+                        f"from the {other['from']} it gained {other['delta_bic']:.1f}, magnitude "
+                        f"{other['magnitude_sigma']:.1f} sigma)")
             cc = e.get("close_call")
             if cc:
                 # Since session 52: a gain at the bar's edge decided again at more samples.
