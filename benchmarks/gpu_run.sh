@@ -31,6 +31,11 @@
 # Session 46's calls on an H200: DIAG_SPP=512 DIAG_REFITS=decorrelated
 # DIAG_BASE_FROM=synthetic-v11-excess0-spp2048-base4096-cols256 with DIAG_BUDGET_S=300 DIAG_LIMIT_S=520 (370 s, six
 # singles) and DIAG_BUDGET_S=230 DIAG_LIMIT_S=420 (384 s, two cases and three pairs), after GPU_PACK=site gpu_pack.sh.
+# Session 55's calls on an H200 (after GPU_PACK=bench gpu_pack.sh): `BENCH_LIMIT_S=300 bash benchmarks/gpu_run.sh bench`
+# then, in the same call, `DIAG_FRESH=1 DIAG_BASE_FROM=synthetic-v11-excess0-spp2048-base4096-cols256 DIAG_CASES=...
+# bash benchmarks/gpu_run.sh diagnose256` carrying [".gpu/site.tar.xz", ".gpu/bench.tar.xz"] (bench 120 s, three cases
+# 96 s, 250 s with the start), and the next eight cases with DIAG_LIMIT_S=560 DIAG_BUDGET_S=430 (459 s); logs and
+# JSON in benchmarks/results/gpu_session55/.
 set -uo pipefail
 job=${1:-estimate}
 OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT"
