@@ -365,7 +365,8 @@ class ChannelDiagnosis:
     #: "deferred" (left to the estimator's final fit: `after` is the last candidate's refit,
     #: see `diagnose_channel`'s `final_fit_follows`); "" when nothing was confirmed
     model_stage: str = ""
-    #: what `second_pass_channel` did when the estimator's final fit dropped every confirmed effect:
+    #: what `second_pass_channel` did when the estimator's final fit (or, where that was not kept,
+    #: the refit kept in its place: `first_model`) dropped every confirmed effect:
     #: the effects dropped, the candidates refitted, those fitted by the estimator (`chosen`,
     #: each in `tries` with its final fit, its comparison with the first and its outcome), the
     #: last comparison (`against_first`), the outcome and what it named
