@@ -75,7 +75,7 @@ from typing import Any, ClassVar, NamedTuple
 import numpy as np
 from scipy import stats
 
-from estimate.diagnosis_report import plot_diagnosis, refit_name, summary_text
+from estimate.diagnosis_report import REFIT_IN_PLACE, plot_diagnosis, refit_name, summary_text
 from estimate.errors import DataError, EstimateError, ModelParameterError
 from estimate.extensions import EXTENSIONS
 from estimate.fit import FitResult, FitSettings, fit_channel
@@ -307,7 +307,8 @@ class FirstRound:
     #: confirmation entry without the decision, its refit)
     refits: dict[str, tuple[dict[str, Any], RefitResult]] = field(default_factory=dict)
     #: candidate -> where its refit started from the grid's pass (`diagnose_channel`'s
-    #: `grid_start`): the start and its record, so a second try does not search the grid again
+    #: `grid_start`): the start, its record and the start not taken, so a second try does not
+    #: search the grid again
     grid_starts: dict[str, tuple[dict[str, float], dict[str, Any] | None, dict[str, float] | None]] = field(
         default_factory=dict)
 
@@ -826,11 +827,14 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             return refit(m, problem, p, free, iterations=0, uncertainties=False, **cand_how).chi2
         return _candidate_start(m, problem, start, grid_start, chi2_at)
 
-    def refit_from(name: str, start: Mapping[str, float], start_info: dict[str, Any] | None, t_start: float,
-                   current: Evaluation, current_exts: list[str], control: Control, cand_how: Mapping[str, Any],
-                   round_one: bool, close_control: CloseControl, round_no: int) -> tuple[dict[str, Any], RefitResult]:
+    def refit_from(name: str, start: Mapping[str, float], start_info: dict[str, Any] | None,
+                   other: Mapping[str, float] | None, t_start: float, current: Evaluation, current_exts: list[str],
+                   control: Control, cand_how: Mapping[str, Any], round_one: bool, close_control: CloseControl,
+                   round_no: int) -> tuple[dict[str, Any], RefitResult]:
         """`name`'s refit from `start` (its record `start_info`, found in `t_start` s) with its
-        statistics, or the first round's from the same start (`reuse`); `time_s` in the entry."""
+        statistics, or the first round's from the same start (`reuse`); `time_s` in the entry.
+        Where it fails and `other` (the start not taken) is given, also from there, and the
+        better gain stands (`start.other` records the one that lost)."""
         # A refit is cached by its candidate and where it started (the fit, or the grid:
         # `second_pass_channel` takes its next candidate's refit from here).
         cache_key = name if start_info is None or start_info["from"] == "fit" else f"{name}@grid"
@@ -847,9 +851,26 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             entry["time_s"] = {"start": t_start, "refit": time.perf_counter() - t_refit, "reused": False}
             if round_one:
                 first_round.refits[cache_key] = (copy.deepcopy(entry), fit)
-        if start_info is not None:
-            entry["start"] = start_info
-        return entry, fit
+        if start_info is None:
+            return entry, fit
+        entry["start"] = start_info
+        if other is None or _passes(entry, checks_decide=False):
+            return entry, fit
+        # The refit is local and the two starts' chi^2 can be close where the ends are not:
+        # on the bench's glass-like boundary session (base fit 100 % high in sigma_t) the
+        # fit's start was 1.7 % below the grid's, and the boundary refitted from it gained
+        # -13 (magnitude 0), from the grid 842 (11.4 sigma; session 55).
+        alt_info = {**start_info, "from": "fit" if start_info["from"] == "coarse grid" else "coarse grid"}
+        alt, alt_fit = refit_from(name, other, alt_info, None, 0.0, current, current_exts, control, cand_how,
+                                  round_one, close_control, round_no)
+        spent = {k: entry["time_s"][k] + alt["time_s"][k] for k in ("start", "refit")}
+        reused = bool(entry["time_s"]["reused"] and alt["time_s"]["reused"])
+        lost = alt if entry["delta_bic"] >= alt["delta_bic"] else entry
+        won, fit = (entry, fit) if lost is alt else (alt, alt_fit)
+        won["start"] = {**won["start"], "other": {"from": lost["start"]["from"], "delta_bic": lost["delta_bic"],
+                                                  "magnitude_sigma": lost["magnitude_sigma"]}}
+        won["time_s"] = {**spent, "reused": reused}
+        return won, fit
 
     def try_candidate(name: str, current: Evaluation, current_exts: list[str], control: Control,
                       cand_how: Mapping[str, Any], round_no: int, start: Mapping[str, float],
@@ -1118,26 +1139,9 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                     if round_one and grid_start is not None:
                         first_round.grid_starts[cand.name] = (start, start_info, other)
                 t_start = time.perf_counter() - t_cand
-                entry, fit = refit_from(cand.name, start, start_info, t_start, current, current_exts, control,
-                                        cand_how, round_one, close_control, len(confirmed) + 1)
-                if other is not None and start_info is not None and not _passes(entry, checks_decide=False):
-                    # The refit is local and the two starts' chi^2 can be close where the
-                    # ends are not: on the bench's glass-like boundary session (base fit
-                    # 100 % high in sigma_t) the fit's start was 1.7 % below the grid's, and
-                    # the boundary refitted from it gained -13 (magnitude 0), from the grid
-                    # 842 (11.4 sigma; session 55). A refit that fails from one start is
-                    # tried from the other, and the better gain stands.
-                    alt_info = {**start_info, "from": "fit" if start_info["from"] == "coarse grid" else "coarse grid"}
-                    alt, alt_fit = refit_from(cand.name, other, alt_info, 0.0, current, current_exts, control,
-                                              cand_how, round_one, close_control, len(confirmed) + 1)
-                    spent = {k: entry["time_s"][k] + alt["time_s"][k] for k in ("start", "refit")}
-                    reused = bool(entry["time_s"]["reused"] and alt["time_s"]["reused"])
-                    lost = alt if entry["delta_bic"] >= alt["delta_bic"] else entry
-                    entry, fit = (entry, fit) if lost is alt else (alt, alt_fit)
-                    entry["start"] = {**entry["start"], "other": {
-                        "from": lost["start"]["from"], "delta_bic": lost["delta_bic"],
-                        "magnitude_sigma": lost["magnitude_sigma"]}}
-                    entry["time_s"] = {**spent, "reused": reused}
+                # A refit that fails from one start is tried from the other (`refit_from`).
+                entry, fit = refit_from(cand.name, start, start_info, other, t_start, current, current_exts,
+                                        control, cand_how, round_one, close_control, len(confirmed) + 1)
                 if runner_up:
                     entry["runner_up"] = True
                 # The decision: every test counts unless `refit_checks_decide` is off, when the
@@ -1977,7 +1981,7 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult | No
     info["named"] = list(dk.confirmed)
     info["outcome"] = "; ".join(t["outcome"] for t in tries)
     where = ("the estimator's final fit" if final is not None
-             else "the refit kept in place of the estimator's final fit (which fitted worse than the base fit)")
+             else f"{REFIT_IN_PLACE} (which fitted worse than the base fit)")
     why_first = (f"which explained {100 * d.partial['share_explained']:.0f} % of the excess in {where}"
                  if d.partial else f"which {where} could not tell from absent")
     d.adopt_named_model(dk)
@@ -2202,7 +2206,7 @@ def _verdict(before: Evaluation, loc: dict[str, Any], scores: list[CandidateScor
                        "lies outside what the catalogue models or is out of the refits' reach: no cause is named")
     if not confirmed and partial and partial.get("stage"):
         where = ("the estimator's final fit" if partial["stage"] == "final fit"
-                 else "the refit kept in place of the estimator's final fit")
+                 else REFIT_IN_PLACE)
         return head + (f"; the refits confirmed {', '.join(partial['effects'])}, but in {where} "
                        "the reduced chi2 at the noise floor falls only "
                        f"{partial['reduced_chi2_adjusted_before']:.2f} -> {partial['reduced_chi2_adjusted_with']:.2f} "
