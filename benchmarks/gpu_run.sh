@@ -36,6 +36,10 @@
 # bash benchmarks/gpu_run.sh diagnose256` carrying [".gpu/site.tar.xz", ".gpu/bench.tar.xz"] (bench 120 s, three cases
 # 96 s, 250 s with the start), and the next eight cases with DIAG_LIMIT_S=560 DIAG_BUDGET_S=430 (459 s); logs and
 # JSON in benchmarks/results/gpu_session55/.
+# Session 56's calls on an H200 (the same packs): the bench job with BENCH_LIMIT_S=240 then six cases in one call
+# (the bench job ran out at 240 s there, unfinished, with no log: it prints only at the end; 401 s with the start),
+# `BENCH_LIMIT_S=420 bash benchmarks/gpu_run.sh bench` (219 s), then two cases and one case (108 s, 49 s); logs
+# and JSON in benchmarks/results/gpu_session56/. Chain the calls: the machine goes back after 30 s idle.
 set -uo pipefail
 job=${1:-estimate}
 OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT"
@@ -100,14 +104,16 @@ bench)
   # rig diagnose on a carried bench session (.gpu/bench.tar.xz: session/ with its base fit only,
   # made by gpu_pack.sh with GPU_PACK=bench), exactly as bench_diagnose.py --source bench runs
   # it on the cores: channel g, --spp BENCH_SPP (256), fixed-seed refits, the estimator's final
-  # fit. The diagnosis and its refit come back in $OUT/bench_diagnosis.tar.
+  # fit. The diagnosis (diagnosis.yaml, what --json prints) and its refit come back in
+  # $OUT/bench_diagnosis.tar; the step log streams to bench_diagnose.log (--json would silence
+  # it, and a run cut by the timeout would leave nothing to read: session 56).
   mkdir -p /tmp/bench && tar xJf .gpu/bench.tar.xz -C /tmp/bench || exit 5
   fit=$(ls -d /tmp/bench/session/estimates/*/ | grep -v '+diagnosis' | tail -1)
   t=$(date +%s)
   timeout "${BENCH_LIMIT_S:-300}" python3 -m rig.cli diagnose /tmp/bench/session --fit "$fit" --channels g \
-    --spp "${BENCH_SPP:-256}" --json --no-plots --no-progress > "$OUT/bench_diagnose.json" 2> "$OUT/bench_diagnose.log"
+    --spp "${BENCH_SPP:-256}" --no-plots --no-progress > "$OUT/bench_summary.txt" 2> "$OUT/bench_diagnose.log"
   echo "bench diagnose rc $? wall $(( $(date +%s) - t )) s"
-  tail -8 "$OUT/bench_diagnose.log"
+  tail -4 "$OUT/bench_diagnose.log"; head -12 "$OUT/bench_summary.txt"
   (cd /tmp/bench/session && tar cf "$OUT/bench_diagnosis.tar" diagnoses $(ls -d estimates/*+diagnosis 2>/dev/null))
   ;;
 *) echo "unknown job $job (estimate, paper, diagnose256 or bench)"; exit 2 ;;
