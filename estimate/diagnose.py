@@ -272,6 +272,25 @@ class CloseControl:
     control: Control | None = None
 
 
+class Round(NamedTuple):
+    """One confirmation round as its candidates' refits see it (`diagnose_channel`)."""
+
+    #: 1 for the first round, which starts at the base fit (its refits are cached in
+    #: `FirstRound`); one more for each effect confirmed before it
+    number: int
+    #: the fit the round starts from, and its extensions
+    current: Evaluation
+    exts: list[str]
+    control: Control
+    #: the candidates' refit settings: the control's angles, seed, spp and weights
+    how: Mapping[str, Any]
+    close_control: CloseControl
+
+    @property
+    def first(self) -> bool:
+        return self.number == 1
+
+
 @dataclass(frozen=True)
 class GridStart:
     """How a candidate's refit may start from the coarse grid (`estimate.start.coarse_start`)
@@ -805,15 +824,15 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         return joint_refit(exts, fit.parameters, mv, iterations=0, decorrelate=True)
     brightest = float(np.max(before.model))
 
-    def candidate_start(name: str, current: Evaluation, current_exts: list[str], cand_how: Mapping[str, Any]
+    def candidate_start(name: str, rnd: Round
                         ) -> tuple[dict[str, float], dict[str, Any] | None, dict[str, float] | None]:
-        """Where `name`'s refit starts: `current` with the effect at its start value, or
-        the coarse grid's best where `grid_start` asks for it and wins (`_candidate_start`,
-        judged by the refit's chi^2 with the round's settings `cand_how`); and the start
-        not taken, where there was a choice."""
-        exts = current_exts + [name]
+        """Where `name`'s refit starts: the round's current fit with the effect at its start
+        value, or the coarse grid's best where `grid_start` asks for it and wins
+        (`_candidate_start`, judged by the refit's chi^2 with the round's settings); and the
+        start not taken, where there was a choice."""
+        exts = rnd.exts + [name]
         m = make_model(exts)
-        start = _start(m, current.parameters, name, brightest)
+        start = _start(m, rnd.current.parameters, name, brightest)
         if grid_start is None:
             return start, None, None
         if all(start[k] == m.specs[k].neutral for k in MAGNITUDE_PARAMETERS[name] if k in start):
@@ -824,32 +843,30 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         free = _free_names(m, exts)
 
         def chi2_at(p: Mapping[str, float]) -> float:
-            return refit(m, problem, p, free, iterations=0, uncertainties=False, **cand_how).chi2
+            return refit(m, problem, p, free, iterations=0, uncertainties=False, **rnd.how).chi2
         return _candidate_start(m, problem, start, grid_start, chi2_at)
 
     def refit_from(name: str, start: Mapping[str, float], start_info: dict[str, Any] | None,
-                   other: Mapping[str, float] | None, t_start: float, current: Evaluation, current_exts: list[str],
-                   control: Control, cand_how: Mapping[str, Any], round_one: bool, close_control: CloseControl,
-                   round_no: int) -> tuple[dict[str, Any], RefitResult]:
-        """`name`'s refit from `start` (its record `start_info`, found in `t_start` s) with its
-        statistics, or the first round's from the same start (`reuse`); `time_s` in the entry.
+                   other: Mapping[str, float] | None, t_start: float, rnd: Round) -> tuple[dict[str, Any], RefitResult]:
+        """`name`'s refit in round `rnd` from `start` (its record `start_info`, found in
+        `t_start` s) with its statistics, or the first round's from the same start (`reuse`);
+        `time_s` in the entry.
         Where it fails and `other` (the start not taken) is given, also from there, and the
         better gain stands (`start.other` records the one that lost)."""
         # A refit is cached by its candidate and where it started (the fit, or the grid:
         # `second_pass_channel` takes its next candidate's refit from here).
         cache_key = name if start_info is None or start_info["from"] == "fit" else f"{name}@grid"
-        if round_one and cache_key in first_round.refits:
+        if rnd.first and cache_key in first_round.refits:
             cached, fit = first_round.refits[cache_key]
             entry = copy.deepcopy(cached)
             entry["time_s"] = {"start": t_start, "refit": 0.0, "reused": True}
         else:
             t_refit = time.perf_counter()
-            entry, fit = try_candidate(name, current, current_exts, control, cand_how, round_no, start)
+            entry, fit = try_candidate(name, rnd, start)
             if refit_checks_decide and _close_call(entry):
-                entry, fit = closer_look(name, entry, fit, current, current_exts, control, cand_how, round_no,
-                                         start, close_control)
+                entry, fit = closer_look(name, entry, fit, rnd, start)
             entry["time_s"] = {"start": t_start, "refit": time.perf_counter() - t_refit, "reused": False}
-            if round_one:
+            if rnd.first:
                 first_round.refits[cache_key] = (copy.deepcopy(entry), fit)
         if start_info is None:
             return entry, fit
@@ -861,8 +878,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         # fit's start was 1.7 % below the grid's, and the boundary refitted from it gained
         # -13 (magnitude 0), from the grid 842 (11.4 sigma; session 55).
         alt_info = {**start_info, "from": "fit" if start_info["from"] == "coarse grid" else "coarse grid"}
-        alt, alt_fit = refit_from(name, other, alt_info, None, 0.0, current, current_exts, control, cand_how,
-                                  round_one, close_control, round_no)
+        alt, alt_fit = refit_from(name, other, alt_info, None, 0.0, rnd)
         spent = {k: entry["time_s"][k] + alt["time_s"][k] for k in ("start", "refit")}
         reused = bool(entry["time_s"]["reused"] and alt["time_s"]["reused"])
         lost = alt if entry["delta_bic"] >= alt["delta_bic"] else entry
@@ -872,12 +888,11 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         won["time_s"] = {**spent, "reused": reused}
         return won, fit
 
-    def try_candidate(name: str, current: Evaluation, current_exts: list[str], control: Control,
-                      cand_how: Mapping[str, Any], round_no: int, start: Mapping[str, float],
+    def try_candidate(name: str, rnd: Round, start: Mapping[str, float],
                       profile: float | None = None, partners: Mapping[str, float] | None = None
                       ) -> tuple[dict[str, Any], RefitResult]:
-        """One candidate's refit from `start` against the round's `control` (`_control`),
-        with the round's optimiser settings `cand_how`: its statistics (the BIC gain, the
+        """One candidate's refit from `start` against the round's control (`_control`),
+        with the round's optimiser settings: its statistics (the BIC gain, the
         magnitude's distance from absent, the no-harm and held-out tests; `entry`, without
         the decision) and the refit.
 
@@ -886,9 +901,10 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         effects switched on before `name`, each with its own such chi^2 (inf where none was
         refitted). The BIC gain then prices every effect added, and the magnitude test is
         the weakest effect's."""
-        ctrl, cur_train, ctrl_tr, ref_held = control
+        ctrl, cur_train, ctrl_tr, ref_held = rnd.control
+        cand_how = rnd.how
         added = {**(partners or {}), name: ctrl.chi2 if profile is None else profile}
-        exts = current_exts + list(added)
+        exts = rnd.exts + list(added)
         m = make_model(exts)
         free = _free_names(m, exts)
         # Without uncertainties: the Wald test below asks for them only where it decides.
@@ -901,7 +917,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         # The same BIC gain on the independently rendered training chi^2 (the evaluation's
         # seeds, not the refit's): what ranks the candidates that pass (`_rank_key`).
         dbic_ind = ctrl_tr.residuals.chi2_adjusted - tr.residuals.chi2_adjusted - price
-        entry: dict[str, Any] = {"effect": "+".join(added), "round": round_no, "delta_bic": dbic,
+        entry: dict[str, Any] = {"effect": "+".join(added), "round": rnd.number, "delta_bic": dbic,
                                  "delta_bic_independent": dbic_ind,
                                  "chi2_train_before": cur_train.residuals.chi2_adjusted,
                                  "chi2_train_control": ctrl_tr.residuals.chi2_adjusted,
@@ -962,28 +978,26 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             entry["heldout_ok"] = bool(ho.residuals.chi2_adjusted < ref_held + math.sqrt(2.0 * n_held))
         return entry, fit
 
-    def closer_look(name: str, entry: dict[str, Any], fit: RefitResult, current: Evaluation,
-                    current_exts: list[str], control: Control, cand_how: Mapping[str, Any], round_no: int,
-                    start: Mapping[str, float], close_control: CloseControl
+    def closer_look(name: str, entry: dict[str, Any], fit: RefitResult, rnd: Round, start: Mapping[str, float]
                     ) -> tuple[dict[str, Any], RefitResult]:
-        """A close call (`_close_call`) decided again: the round's `control` and the candidate
+        """A close call (`_close_call`) decided again: the round's control and the candidate
         refitted from the same start at `CLOSE_CALL_SPP_FACTOR` x the spp, with the render
         variance in their weights divided by as much; every test as before. The entry and
         refit that decide are the closer look's where it passes, else the first (so a pair
-        round compares refits at one spp); both carry `close_call`. `close_control` caches the
-        closer control for the round (the first round's in `FirstRound.close_control`)."""
+        round compares refits at one spp); both carry `close_call`. The round's `close_control`
+        caches the closer control (the first round's in `FirstRound.close_control`)."""
         f = CLOSE_CALL_SPP_FACTOR
-        how = {**cand_how, "spp": f * int(cand_how["spp"]),
-               "model_variance": np.asarray(cand_how["model_variance"]) / f}
-        if close_control.control is None:
-            close_control.control = _control(
-                problem, make_model(current_exts), current, current_exts, train, held, spp=spp, seed=seed,
+        how = {**rnd.how, "spp": f * int(rnd.how["spp"]),
+               "model_variance": np.asarray(rnd.how["model_variance"]) / f}
+        if rnd.close_control.control is None:
+            rnd.close_control.control = _control(
+                problem, make_model(rnd.exts), rnd.current, rnd.exts, train, held, spp=spp, seed=seed,
                 repeats=repeats, iterations=iterations, floor=floor, yardstick=yardstick, objective=refit_objective,
-                refit_spp_factor=f, train_before=control.train_before)
-        ctrl = close_control.control
-        again, fit_again = try_candidate(name, current, current_exts, ctrl, how, round_no, start)
+                refit_spp_factor=f, train_before=rnd.control.train_before)
+        ctrl = rnd.close_control.control
+        again, fit_again = try_candidate(name, rnd._replace(control=ctrl, how=how), start)
         ok = _passes(again)
-        record = {"spp_first": int(cand_how["spp"]), "spp": how["spp"],
+        record = {"spp_first": int(rnd.how["spp"]), "spp": how["spp"],
                   "delta_bic_first": entry["delta_bic"], "delta_bic": again["delta_bic"],
                   "delta_bic_independent": again["delta_bic_independent"],
                   "magnitude_sigma": again["magnitude_sigma"], "no_harm": again["no_harm"],
@@ -1003,8 +1017,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         entry["close_call"] = record
         return entry, fit
 
-    def try_pair(current: Evaluation, current_exts: list[str], control: Control, cand_how: Mapping[str, Any],
-                 round_fits: Mapping[str, RefitResult]) -> list[str] | None:
+    def try_pair(rnd: Round, round_fits: Mapping[str, RefitResult]) -> list[str] | None:
         """A first round that confirmed nothing: pairs with the candidate that came closest.
 
         Two effects whose signatures overlap can each explain little alone and much
@@ -1022,13 +1035,13 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         offset's refit alone gained dBIC 8.0 (bar 10) and the thickness error was not
         flagged at the base fit (p 0.02).
         """
-        near = [e for e in confirmations if e["round"] == len(confirmed) + 1 and e["effect"] in round_fits
+        near = [e for e in confirmations if e["round"] == rnd.number and e["effect"] in round_fits
                 and _short_of_the_bar(e)]
         if not near:
             return None
         lead = str(max(near, key=_rank_key)["effect"])
         lead_fit = round_fits[lead]
-        exts = current_exts + [lead]
+        exts = rnd.exts + [lead]
         m = make_model(exts)
         at_lead = evaluate(m, lead_fit.parameters, problem, len(_free_names(m, exts)) + 1, spp=spp, seed=seed,
                            repeats=repeats)
@@ -1042,8 +1055,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             t0 = time.perf_counter()
             start = _start(make_model(exts + [c.name]), lead_fit.parameters, c.name, brightest)
             alone = round_fits.get(c.name)
-            entry, fit = try_candidate(c.name, current, current_exts, control, cand_how, len(confirmed) + 1, start,
-                                       profile=lead_fit.chi2, partners={lead: alone.chi2 if alone else math.inf})
+            entry, fit = try_candidate(c.name, rnd, start, profile=lead_fit.chi2,
+                                       partners={lead: alone.chi2 if alone else math.inf})
             entry["time_s"] = {"start": 0.0, "refit": time.perf_counter() - t0, "reused": False}
             entry["pair"] = {"lead": lead, "statistic": c.statistic, "dof": c.dof, "log10_p": c.log10_p}
             ok = _passes(entry)
@@ -1126,7 +1139,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         # Every refit of the round by its candidate, confirmed or not (`try_pair`'s leads).
         round_fits: dict[str, RefitResult] = {}
         # The round's control at the closer look's spp, refitted at the first close call.
-        close_control = first_round.close_control if round_one else CloseControl()
+        rnd = Round(len(confirmed) + 1, current, current_exts, control, cand_how,
+                    first_round.close_control if round_one else CloseControl())
         while True:
             for cand in tried:
                 # Each entry's time_s: its start's search (the grid's, where asked) and its
@@ -1135,13 +1149,12 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                 if round_one and grid_start is not None and cand.name in first_round.grid_starts:
                     start, start_info, other = first_round.grid_starts[cand.name]
                 else:
-                    start, start_info, other = candidate_start(cand.name, current, current_exts, cand_how)
+                    start, start_info, other = candidate_start(cand.name, rnd)
                     if round_one and grid_start is not None:
                         first_round.grid_starts[cand.name] = (start, start_info, other)
                 t_start = time.perf_counter() - t_cand
                 # A refit that fails from one start is tried from the other (`refit_from`).
-                entry, fit = refit_from(cand.name, start, start_info, other, t_start, current, current_exts,
-                                        control, cand_how, round_one, close_control, len(confirmed) + 1)
+                entry, fit = refit_from(cand.name, start, start_info, other, t_start, rnd)
                 if runner_up:
                     entry["runner_up"] = True
                 # The decision: every test counts unless `refit_checks_decide` is off, when the
@@ -1172,7 +1185,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         if choice is None and round_one and refit_checks_decide and max_effects - len(confirmed) >= 2:
             # No single effect explains enough: one that came close may need a second to
             # show what it carries (`try_pair`).
-            pair = try_pair(current, current_exts, control, cand_how, round_fits)
+            pair = try_pair(rnd, round_fits)
             if pair is not None:
                 added_now, choice = pair, "+".join(pair)
                 laps("confirmation")
