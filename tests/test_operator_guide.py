@@ -20,7 +20,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 GUIDE = ROOT / "docs" / "operator-guide.md"
 FAST_FLAGS = {
-    "estimate": ["--max-iterations", "3", "--spp-max", "64", "--polish-steps", "1"],
+    "estimate": ["--max-iterations", "3", "--spp-max", "64", "--polish-steps", "1", "--final-spp", "128"],
     "diagnose": ["--spp", "32", "--no-plots"],
 }
 
