@@ -1812,10 +1812,12 @@ def _name_after_check(problem: Any, d: ChannelDiagnosis, model: Any, params: Map
             + ", ".join(f"{e} {d.importance[e]['chi2_rise']:.0f}" for e in d.confirmed))
 
 
-def dropped_at_final_fit(d: ChannelDiagnosis) -> list[str]:
-    """The confirmed effects that the model that stays dropped, when it dropped them all
-    (nothing is named although the refits confirmed something), or kept but found to explain
-    too little of the mismatch to be named (`_explains_enough`); else []. That model is the
+def stand_in_effects(d: ChannelDiagnosis) -> list[str]:
+    """The confirmed effects that stood in for something else, which the second pass
+    replaces (`second_pass_channel`): those that the model that stays dropped, when it
+    dropped them all (nothing is named although the refits confirmed something), or kept but
+    found to explain too little of the mismatch to be named (`_explains_enough`); else [].
+    (Named `dropped_at_final_fit` until session 56.) That model is the
     estimator's final fit, or, where that fit was worse than the base fit and not kept, the
     refit kept in its place (`refine_channel`).
 
@@ -1840,7 +1842,7 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult | No
                         progress: Callable[[int, float, int], None] | None = None,
                         on_stage: Callable[[str], None] | None = None) -> FitResult | None:
     """A second pass when the estimator's final fit (`final`) dropped every effect the refits
-    had confirmed (`dropped_at_final_fit`): every other candidate is refitted from the base
+    had confirmed (`stand_in_effects`): every other candidate is refitted from the base
     fit (or the coarse grid, below), and the best, then the next, are fitted by the
     estimator and compared with `final`. `final` None: the estimator's fit was not kept and
     the refit kept in its place (`d.after`) explained too little; that refit is then what a
@@ -1900,7 +1902,7 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult | No
     Returns the second final fit when it names an effect, else None.
     """
     say = log or (lambda s: None)
-    dropped = dropped_at_final_fit(d)
+    dropped = stand_in_effects(d)
     if not dropped or not d.significant:
         return None
     # In the screening's order (d.candidates is sorted by score).
@@ -2374,7 +2376,7 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
             cb_progress, cb_stage = fit_progress(ch, phase) if fit_progress else (None, None)
             fr = refine_channel(pb, d, make_model, fit_settings, spp=spp, seed=seed, repeats=repeats, log=log,
                                 progress=cb_progress, on_stage=cb_stage)
-            if dropped_at_final_fit(d):
+            if stand_in_effects(d):
                 # fr None: the refit kept in place of the final fit is what the pass must beat.
                 fr2 = second_pass_channel(pb, d, fr, base, make_model, fit_settings, spp=spp, seed=seed,
                                           repeats=repeats, iterations=iterations, log=log,

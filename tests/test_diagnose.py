@@ -913,13 +913,13 @@ def test_a_final_fit_whose_effect_explains_too_little_names_nothing_and_asks_for
     """The estimator's final fit is kept (reduced chi^2 at the floor 11.8 -> 10.5) and its
     angle offset lies far from absent, but it removes 12 % of the excess and a significant
     mismatch remains (the two-lobe phase session: 14 %): not named, and the second pass is
-    asked to refit the other candidates (`dropped_at_final_fit`)."""
+    asked to refit the other candidates (`stand_in_effects`)."""
     import estimate.diagnose as dg
     from estimate.diagnose import (
         MIN_SHARE,
         ChannelDiagnosis,
-        dropped_at_final_fit,
         refine_channel,
+        stand_in_effects,
     )
 
     _fake_final_fit(monkeypatch, 2000.0, {"angle_offset": ("angle_offset.delta_deg", 0.0, 4000.0)})
@@ -955,7 +955,7 @@ def test_a_final_fit_whose_effect_explains_too_little_names_nothing_and_asks_for
     assert d.partial["share_explained"] == pytest.approx(1.3 / 10.8)
     assert "in the estimator's final fit the reduced chi2 at the noise floor falls only 11.80 -> 10.50" in d.verdict
     assert "no cause is named" in d.verdict
-    assert dropped_at_final_fit(d) == ["angle_offset"]
+    assert stand_in_effects(d) == ["angle_offset"]
 
 
 @pytest.mark.parametrize("joint_chi2_per_pixel, dropped", [(1.0, False), (4.16, True)])
@@ -1086,15 +1086,15 @@ def test_when_the_final_fit_drops_every_effect_the_other_candidates_are_refitted
     base fit, the best is fitted by the estimator and, explaining the data better than the
     fit with the stand-in, named (a stray-light offset here); the report keeps both passes."""
     from estimate.diagnose import (
-        dropped_at_final_fit,
         second_pass_channel,
+        stand_in_effects,
         summary_text,
     )
 
     rec = record({"stray_light.offset": 0.01})
     pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
     d, final = _dropped_first_pass(pb, ["lens_blur", "stray_light"])
-    assert dropped_at_final_fit(d) == ["lens_blur"]
+    assert stand_in_effects(d) == ["lens_blur"]
     st = FitSettings(seed=2, scale="free", max_iterations=14, spp_start=64, spp_max=128, final_spp=256, window=3,
                      polish_steps=1)
     fr = second_pass_channel(pb, d, final, BaseFit(dict(TRUE), 1e4, "hg"), make_model, st, spp=64, repeats=3,
@@ -1127,7 +1127,7 @@ def test_when_the_refit_kept_in_place_of_the_final_fit_explains_too_little_the_o
     chi2 at the floor 26.3 against 10.9) and was not kept, and the refit kept in its place
     removed 33 % of the excess, so nothing was named. That refit is now what the other
     candidates' final fits must beat: here a glare tail stands in for a stray light."""
-    from estimate.diagnose import dropped_at_final_fit, evaluate, second_pass_channel, summary_text
+    from estimate.diagnose import evaluate, second_pass_channel, stand_in_effects, summary_text
 
     rec = record({"stray_light.offset": 0.01})
     pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
@@ -1138,9 +1138,9 @@ def test_when_the_refit_kept_in_place_of_the_final_fit_explains_too_little_the_o
     d.after, d.final_fit, d.pruned = lm, {"kept": False, "time_s": 1.0, "reason": "worse than the base fit"}, []
     d.partial = {"effects": ["lens_blur"], "share_explained": (b - a) / (b - 1.0), "min_share": 0.5,
                  "reduced_chi2_adjusted_before": b, "reduced_chi2_adjusted_with": a, "stage": "refit"}
-    assert dropped_at_final_fit(d) == ["lens_blur"]
+    assert stand_in_effects(d) == ["lens_blur"]
     # the stage must be that of the model that stays
-    assert dropped_at_final_fit(dataclasses.replace(d, partial={**d.partial, "stage": "final fit"})) == []
+    assert stand_in_effects(dataclasses.replace(d, partial={**d.partial, "stage": "final fit"})) == []
     st = FitSettings(seed=2, scale="free", max_iterations=14, spp_start=64, spp_max=128, final_spp=256, window=3,
                      polish_steps=1)
     fr = second_pass_channel(pb, d, None, BaseFit(dict(TRUE), 1e4, "hg"), make_model, st, spp=64, repeats=3,
@@ -1391,7 +1391,7 @@ def test_a_second_pass_that_cannot_beat_the_first_final_fit_names_nothing(monkey
 
 
 def test_a_second_pass_without_candidates_left_says_so_and_names_nothing():
-    from estimate.diagnose import dropped_at_final_fit, second_pass_channel
+    from estimate.diagnose import second_pass_channel, stand_in_effects
 
     rec = record({"stray_light.offset": 0.01})
     pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
@@ -1401,9 +1401,9 @@ def test_a_second_pass_without_candidates_left_says_so_and_names_nothing():
     assert d.confirmed == [] and d.second_pass["outcome"] == "no other candidate to refit"
     assert d.verdict == "first verdict; no other candidate to refit"
     # nothing to do where an effect is still named, or where the final fit was not kept
-    assert dropped_at_final_fit(dataclasses.replace(d, confirmed=["stray_light"])) == []
-    assert dropped_at_final_fit(dataclasses.replace(d, final_fit={"kept": False})) == []
-    assert dropped_at_final_fit(dataclasses.replace(d, final_fit={})) == []   # no final fit at all
+    assert stand_in_effects(dataclasses.replace(d, confirmed=["stray_light"])) == []
+    assert stand_in_effects(dataclasses.replace(d, final_fit={"kept": False})) == []
+    assert stand_in_effects(dataclasses.replace(d, final_fit={})) == []   # no final fit at all
 
 
 def test_a_value_at_an_end_of_its_range_is_told_apart():
