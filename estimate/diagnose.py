@@ -75,7 +75,7 @@ from typing import Any, ClassVar, NamedTuple
 import numpy as np
 from scipy import stats
 
-from estimate.diagnosis_report import REFIT_IN_PLACE, plot_diagnosis, refit_name, summary_text
+from estimate.diagnosis_report import REFIT_IN_PLACE, REFIT_IN_PLACE_WHY, plot_diagnosis, refit_name, summary_text
 from estimate.errors import DataError, EstimateError, ModelParameterError
 from estimate.extensions import EXTENSIONS
 from estimate.fit import FitResult, FitSettings, fit_channel
@@ -826,6 +826,19 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
 
     def candidate_start(name: str, rnd: Round
                         ) -> tuple[dict[str, float], dict[str, Any] | None, dict[str, float] | None]:
+        """Where `name`'s refit starts (`new_start`). In the first round with `grid_start`
+        the answer is kept in `first_round.grid_starts`, so a second try of the same
+        candidate (`second_pass_channel`) does not search the grid again."""
+        keep = rnd.first and grid_start is not None
+        if keep and name in first_round.grid_starts:
+            return first_round.grid_starts[name]
+        found = new_start(name, rnd)
+        if keep:
+            first_round.grid_starts[name] = found
+        return found
+
+    def new_start(name: str, rnd: Round
+                  ) -> tuple[dict[str, float], dict[str, Any] | None, dict[str, float] | None]:
         """Where `name`'s refit starts: the round's current fit with the effect at its start
         value, or the coarse grid's best where `grid_start` asks for it and wins
         (`_candidate_start`, judged by the refit's chi^2 with the round's settings); and the
@@ -1146,12 +1159,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                 # Each entry's time_s: its start's search (the grid's, where asked) and its
                 # refit with the tests; 0 where taken from the round's cache (`reused`).
                 t_cand = time.perf_counter()
-                if round_one and grid_start is not None and cand.name in first_round.grid_starts:
-                    start, start_info, other = first_round.grid_starts[cand.name]
-                else:
-                    start, start_info, other = candidate_start(cand.name, rnd)
-                    if round_one and grid_start is not None:
-                        first_round.grid_starts[cand.name] = (start, start_info, other)
+                start, start_info, other = candidate_start(cand.name, rnd)
                 t_start = time.perf_counter() - t_cand
                 # A refit that fails from one start is tried from the other (`refit_from`).
                 entry, fit = refit_from(cand.name, start, start_info, other, t_start, rnd)
@@ -1996,7 +2004,7 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult | No
     info["named"] = list(dk.confirmed)
     info["outcome"] = "; ".join(t["outcome"] for t in tries)
     where = ("the estimator's final fit" if final is not None
-             else f"{REFIT_IN_PLACE} (which fitted worse than the base fit)")
+             else REFIT_IN_PLACE_WHY)
     why_first = (f"which explained {100 * d.partial['share_explained']:.0f} % of the excess in {where}"
                  if d.partial else f"which {where} could not tell from absent")
     d.adopt_named_model(dk)

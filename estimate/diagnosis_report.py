@@ -16,12 +16,14 @@ from estimate.refit import DECORRELATED
 if TYPE_CHECKING:
     from estimate.diagnose import ChannelDiagnosis
 
-__all__ = ["REFIT_IN_PLACE", "plot_diagnosis", "refit_name", "summary_text"]
+__all__ = ["REFIT_IN_PLACE", "REFIT_IN_PLACE_WHY", "plot_diagnosis", "refit_name", "summary_text"]
 
 
 #: The model that stands in for the estimator's final fit where that fit is worse than the
 #: base fit (`estimate.diagnose.refine_channel`), as the verdicts and the summary name it.
 REFIT_IN_PLACE = "the refit kept in place of the estimator's final fit"
+#: The same with why, where the second pass names the model it had to beat.
+REFIT_IN_PLACE_WHY = f"{REFIT_IN_PLACE} (which fitted worse than the base fit)"
 
 
 def plot_diagnosis(out_dir: Any, d: ChannelDiagnosis, problem: Any) -> list[Any]:
@@ -140,7 +142,7 @@ def summary_text(doc: Mapping[str, Any]) -> str:
             where = ("from the better of the base fit and the coarse grid with the effect switched on"
                      if any("start" in e for e in d["confirmations"]) else "from the base fit")
             # Since session 55 also where the estimator's fit was not kept ("first_model" "refit").
-            model = (f"{REFIT_IN_PLACE} (which fitted worse than the base fit)"
+            model = (REFIT_IN_PLACE_WHY
                      if again.get("first_model") == "refit" else "the estimator's final fit")
             print(f"  second pass: {model} dropped {', '.join(again['dropped'])}; every other "
                   f"{which} ({', '.join(again.get('refitted') or []) or 'none'}) refitted "
