@@ -3,7 +3,7 @@
 The guide is written for the real rig (`--config rig.yaml`); here `rig.yaml` names the
 byte-level twins and a cheap copy of the default world (a few samples per pixel), so the
 commands run exactly as printed. The only change: the fitting commands get budget flags
-(fewer iterations and samples) so the test stays fast; they are listed in FAST_FLAGS.
+(fewer iterations, samples and profile columns) so the test stays fast; they are listed in FAST_FLAGS.
 """
 
 from __future__ import annotations
@@ -20,7 +20,8 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 GUIDE = ROOT / "docs" / "operator-guide.md"
 FAST_FLAGS = {
-    "estimate": ["--max-iterations", "3", "--spp-max", "64", "--polish-steps", "1", "--final-spp", "128"],
+    "estimate": ["--max-iterations", "3", "--spp-max", "64", "--polish-steps", "1", "--final-spp", "128",
+                 "--columns", "64"],
     "diagnose": ["--spp", "32", "--no-plots"],
 }
 
