@@ -1158,9 +1158,12 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         _targeted_significance(before, first_scores)
     first_round = reuse or FirstRound(key, before, loc, list(first_scores))
     laps("screening")
-    conf = _Confirmation(problem, make_model, cands, spp, seed, repeats, iterations, refit_objective,
-                         refit_checks_decide, refit_below_log10_p, max_confirm, grid_start, floor, yardstick,
-                         train, held, float(np.max(before.model)), first_round, say)
+    conf = _Confirmation(problem=problem, make_model=make_model, cands=cands, spp=spp, seed=seed, repeats=repeats,
+                         iterations=iterations, refit_objective=refit_objective,
+                         refit_checks_decide=refit_checks_decide, refit_below_log10_p=refit_below_log10_p,
+                         max_confirm=max_confirm, grid_start=grid_start, floor=floor, yardstick=yardstick,
+                         train=train, held=held, brightest=float(np.max(before.model)), first_round=first_round,
+                         say=say)
     confirmations = conf.confirmations
     current = before
     current_exts = list(base.extensions)
