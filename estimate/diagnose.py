@@ -769,21 +769,53 @@ class _Confirmation:
         optimum, seed, spp and weights, so the same chi^2."""
         return self.joint_refit(exts, fit.parameters, mv, iterations=0, decorrelate=True)
 
-    def control(self, rnd_exts: Sequence[str], current: Evaluation, refit_spp_factor: int = 1,
-                train_before: Evaluation | None = None) -> Control:
-        """A round's control (`_control`): the current model refitted alone with the
-        candidates' settings, at `refit_spp_factor` x the spp."""
-        return _control(self.problem, self.make_model(rnd_exts), current, rnd_exts, self.train, self.held,
-                        spp=self.spp, seed=self.seed, repeats=self.repeats, iterations=self.iterations,
-                        floor=self.floor, yardstick=self.yardstick, objective=self.refit_objective,
-                        refit_spp_factor=refit_spp_factor, train_before=train_before)
+    def refit_how(self, current: Evaluation, spp_factor: int = 1) -> dict[str, Any]:
+        """The refit settings a round's control and candidates share, starting from `current`:
+        the training angles, the refits' seed, `spp_factor` x the spp, and the weights (the
+        current evaluation's render variance at that spp, the noise floor, the objective)."""
+        return {"angle_idx": self.train, "spp": spp_factor * self.spp, "seed": self.seed + 202,
+                "model_variance": _render_variance(current, self.repeats, spp_factor), "noise_scale": self.floor,
+                "objective": self.refit_objective, **self.noise_how}
 
     def candidate_how(self, current: Evaluation) -> dict[str, Any]:
-        """The candidates' refit settings in a round starting from `current`: the control's
-        angles, seed, spp and weights."""
-        return {"angle_idx": self.train, "spp": self.spp, "seed": self.seed + 202,
-                "model_variance": _render_variance(current, self.repeats), "noise_scale": self.floor,
-                "objective": self.refit_objective, **self.noise_how}
+        """The candidates' refit settings in a round starting from `current` (`refit_how`)."""
+        return self.refit_how(current)
+
+    def evaluate_on(self, model: Any, parameters: Mapping[str, float], angle_idx: Sequence[int],
+                    scale: float | None = None) -> Evaluation:
+        """`model` evaluated at `parameters` on the angles `angle_idx` against the yardstick, at
+        the diagnosis' spp, seed and repeats; nothing counted as fitted. `scale`: held at that
+        value (the held-out angles take the training angles' scale) instead of fitted."""
+        return evaluate(model, parameters, self.problem, 0, spp=self.spp, seed=self.seed, repeats=self.repeats,
+                        angle_idx=angle_idx, scale=scale, noise_variance=self.yardstick)
+
+    def control(self, rnd_exts: Sequence[str], current: Evaluation, refit_spp_factor: int = 1,
+                train_before: Evaluation | None = None) -> Control:
+        """The control of a confirmation round: the current model refitted alone, with the
+        candidates' optimiser, seeds and training angles (`refit_how`). A candidate must beat
+        this, not the fit as given: when the fit to diagnose stopped far from its optimum, any
+        extension's refit also re-optimises the material parameters and would otherwise take
+        the credit for it. `refit_spp_factor`: the refit renders this many times the spp (a
+        close call's closer look, `closer_look`), with the render variance in its weights
+        divided by as much; the evaluations stay at the spp, so the round's `train_before`
+        (the current fit on the training angles) may be passed instead of rendered again.
+        """
+        model = self.make_model(rnd_exts)
+        cur_train = train_before if train_before is not None else self.evaluate_on(
+            model, current.parameters, self.train)
+        ctrl = refit(model, self.problem, current.parameters, _free_names(model, rnd_exts),
+                     iterations=self.iterations, uncertainties=False, **self.refit_how(current, refit_spp_factor))
+        ctrl_tr = self.evaluate_on(model, ctrl.parameters, self.train)
+        # Candidates are judged against the control in pairs: same seed, spp, angles,
+        # weights and LM iterations. A fixed-seed refit also fits that render's Monte-Carlo
+        # noise (at 128 spp a control refit of a clean-ish fit raised the independently
+        # rendered chi^2 from 515 to 840); the paired difference of the refits' own chi^2
+        # cancels that common part and leaves what the extension explains.
+        ref_held = None
+        if self.held:
+            ctrl_ho = self.evaluate_on(model, ctrl.parameters, self.held, scale=ctrl_tr.scale)
+            ref_held = ctrl_ho.residuals.chi2_adjusted
+        return Control(ctrl, cur_train, ctrl_tr, ref_held)
 
     def candidate_start(self, name: str, rnd: Round
                         ) -> tuple[dict[str, float], dict[str, Any] | None, dict[str, float] | None]:
@@ -876,7 +908,7 @@ class _Confirmation:
         effects switched on before `name`, each with its own such chi^2 (inf where none was
         refitted). The BIC gain then prices every effect added, and the magnitude test is
         the weakest effect's."""
-        problem, spp, seed, repeats, yardstick = self.problem, self.spp, self.seed, self.repeats, self.yardstick
+        problem = self.problem
         ctrl, cur_train, ctrl_tr, ref_held = rnd.control
         cand_how = rnd.how
         added = {**(partners or {}), name: ctrl.chi2 if profile is None else profile}
@@ -885,8 +917,7 @@ class _Confirmation:
         free = _free_names(m, exts)
         # Without uncertainties: the Wald test below asks for them only where it decides.
         fit = refit(m, problem, start, free, iterations=self.iterations, uncertainties=False, **cand_how)
-        tr = evaluate(m, fit.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats, angle_idx=self.train,
-                      noise_variance=yardstick)
+        tr = self.evaluate_on(m, fit.parameters, self.train)
         n_train = int(np.sum(np.isfinite(tr.residuals.r)))
         price = sum(_bic_penalty(e, n_train) for e in added)
         dbic = ctrl.chi2 - fit.chi2 - price
@@ -942,8 +973,7 @@ class _Confirmation:
         no_harm = tr.residuals.chi2_adjusted <= cur_train.residuals.chi2_adjusted + math.sqrt(2.0 * n_train)
         entry["no_harm"] = bool(no_harm)
         if self.held and ref_held is not None:   # the control evaluates the held-out angles where there are any
-            ho = evaluate(m, fit.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats, angle_idx=self.held,
-                          scale=tr.scale, noise_variance=yardstick)
+            ho = self.evaluate_on(m, fit.parameters, self.held, scale=tr.scale)
             entry["chi2_heldout_before"] = ref_held
             entry["chi2_heldout_after"] = ho.residuals.chi2_adjusted
             # Held out, the extension must not predict worse than the current model by more
@@ -963,8 +993,7 @@ class _Confirmation:
         round compares refits at one spp); both carry `close_call`. The round's `close_control`
         caches the closer control (the first round's in `FirstRound.close_control`)."""
         f = CLOSE_CALL_SPP_FACTOR
-        how = {**rnd.how, "spp": f * int(rnd.how["spp"]),
-               "model_variance": np.asarray(rnd.how["model_variance"]) / f}
+        how = self.refit_how(rnd.current, f)
         if rnd.close_control.control is None:
             rnd.close_control.control = self.control(rnd.exts, rnd.current, refit_spp_factor=f,
                                                      train_before=rnd.control.train_before)
@@ -1413,41 +1442,6 @@ def _refit_noise(objective: str, yardstick: np.ndarray) -> dict[str, Any]:
     """`refit`'s noise argument for a diagnosis' refits: decorrelated refits divide by the
     data's noise alone (the yardstick); fixed-seed ones keep their render's variance."""
     return {"noise_variance": yardstick} if objective == DECORRELATED else {}
-
-
-def _control(problem: Any, model: Any, current: Evaluation, exts: Sequence[str], train: Sequence[int],
-             held: Sequence[int], *, spp: int, seed: int, repeats: int, iterations: int, floor: np.ndarray,
-             yardstick: np.ndarray, objective: str = FIXED_SEED, refit_spp_factor: int = 1,
-             train_before: Evaluation | None = None) -> Control:
-    """The control of a confirmation round: the current model refitted alone, with the
-    candidates' optimiser, seeds and training angles. A candidate must beat this, not the fit
-    as given: when the fit to diagnose stopped far from its optimum, any extension's refit
-    also re-optimises the material parameters and would otherwise take the credit for it.
-    `refit_spp_factor`: the refit renders this many times `spp` (a close call's closer look,
-    `_close_call`), with the render variance in its weights divided by as much; the
-    evaluations stay at `spp`, so the round's control's `train_before` (the current fit on the
-    training angles) may be passed instead of rendered again.
-    """
-    cur_train = train_before if train_before is not None else evaluate(
-        model, current.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats, angle_idx=train,
-        noise_variance=yardstick)
-    ctrl = refit(model, problem, current.parameters, _free_names(model, exts), angle_idx=train,
-                 spp=refit_spp_factor * spp, seed=seed + 202, iterations=iterations,
-                 model_variance=_render_variance(current, repeats, refit_spp_factor),
-                 noise_scale=floor, uncertainties=False, objective=objective, **_refit_noise(objective, yardstick))
-    ctrl_tr = evaluate(model, ctrl.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats,
-                       angle_idx=train, noise_variance=yardstick)
-    # Candidates are judged against the control in pairs: same seed, spp, angles,
-    # weights and LM iterations. A fixed-seed refit also fits that render's Monte-Carlo
-    # noise (at 128 spp a control refit of a clean-ish fit raised the independently
-    # rendered chi^2 from 515 to 840); the paired difference of the refits' own chi^2
-    # cancels that common part and leaves what the extension explains.
-    ref_held = None
-    if held:
-        ctrl_ho = evaluate(model, ctrl.parameters, problem, 0, spp=spp, seed=seed, repeats=repeats,
-                           angle_idx=held, scale=ctrl_tr.scale, noise_variance=yardstick)
-        ref_held = ctrl_ho.residuals.chi2_adjusted
-    return Control(ctrl, cur_train, ctrl_tr, ref_held)
 
 
 def bound_side(value: float, ranges: Sequence[tuple[float, float]]) -> str | None:
