@@ -696,6 +696,21 @@ def _targeted_significance(ev: Evaluation, scores: Sequence[CandidateScore]) -> 
         ev.residuals.extra["significant_by"] = f"score test of {targeted[0].name}"
 
 
+class ModelStage(NamedTuple):
+    """What `_Confirmation.model_stage` leaves: the effects kept and their model, the final
+    evaluation, the backward check's entries and the importance order, and the last model's
+    uncertainties, covariance and fixed-seed optimum (empty where nothing was confirmed)."""
+
+    confirmed: list[str]
+    exts: list[str]
+    current: Evaluation
+    pruned: list[dict[str, Any]]
+    importance: dict[str, dict[str, Any]]
+    uncertainties: dict[str, float]
+    covariance: dict[str, dict[str, float]]
+    fixed_seed: dict[str, float]
+
+
 @dataclass
 class _Confirmation:
     """What one channel's confirmation rounds share (`diagnose_channel`), with their steps
@@ -816,6 +831,65 @@ class _Confirmation:
             ctrl_ho = self.evaluate_on(model, ctrl.parameters, self.held, scale=ctrl_tr.scale)
             ref_held = ctrl_ho.residuals.chi2_adjusted
         return Control(ctrl, cur_train, ctrl_tr, ref_held)
+
+    def model_stage(self, confirmed: list[str], exts: list[str], current: Evaluation,
+                    last_full: tuple[RefitResult, np.ndarray] | None, deferred: RefitResult | None) -> ModelStage:
+        """After the rounds: the backward check of two or more confirmed effects in the joint
+        model (`_prune`; those it drops are refitted out, the others ordered by the chi^2 each
+        carries), then the last model's uncertainties and, for a settled joint refit, its
+        decorrelated step, which becomes `current`. `last_full`: the last settle's refit and
+        render variance (None without one); `deferred`: the candidate's refit that the
+        estimator's final fit will replace (`final_fit_follows`), whose uncertainties are kept.
+        """
+        pruned: list[dict[str, Any]] = []
+        importance: dict[str, dict[str, Any]] = {}
+        full = last_full[0] if last_full is not None else None
+        if len(confirmed) >= 2 and last_full is not None and full is not None and deferred is None:
+            full = self.finish(exts, full, last_full[1])
+            pruned, rises = _prune(self.problem, self.make_model, confirmed, exts, full, spp=self.spp,
+                                   seed=self.seed, model_variance=last_full[1], floor=self.floor,
+                                   n_obs=int(np.sum(np.isfinite(current.residuals.r))),
+                                   objective=self.refit_objective,
+                                   noise_variance=self.noise_how.get("noise_variance"))
+            drop = [e["effect"] for e in pruned if e["dropped"]]
+            for e in pruned:
+                self.say(f"  {e['effect']} with the others in the model: setting it to absent raises chi2 by "
+                         f"{e['chi2_rise']:.1f} (needs {e['needed']:.1f})"
+                         + (f", magnitude {e['magnitude_sigma']:.1f} sigma from absent (needs > {MAGNITUDE_SIGMA:g})"
+                            if "magnitude_sigma" in e else "") + (" -> dropped" if e["dropped"] else " -> kept"))
+            if drop:
+                confirmed = [c for c in confirmed if c not in drop]
+                exts = [c for c in exts if c not in drop]
+                full, current = self.settle(exts, last_full[0].parameters, last_full[1], confirmed)
+            if len(confirmed) >= 2:
+                confirmed, importance = _by_importance(confirmed, rises, "refit")
+                self.say("  named by the chi2 each carries in the refit: "
+                         + ", ".join(f"{e} {importance[e]['chi2_rise']:.0f}" for e in confirmed))
+        # Without a deferred or settled refit nothing was confirmed, and none of these is reported.
+        unc: dict[str, float] = {}
+        cov: dict[str, dict[str, float]] = {}
+        fixed_seed: dict[str, float] = {}
+        if deferred is not None:
+            unc = dict(deferred.uncertainties)
+            cov = {a: {b: v for (a2, b), v in deferred.covariance.items() if a2 == a} for a in deferred.uncertainties}
+        elif last_full is not None and full is not None:
+            # The last model's uncertainties and decorrelated step (a settle's refit has none;
+            # the joint one got them for the backward check).
+            if not full.uncertainties:
+                full = self.finish(exts, full, last_full[1])
+            unc = full.uncertainties
+            cov = {a: {b: v for (a2, b), v in full.covariance.items() if a2 == a} for a in full.uncertainties}
+            if confirmed and full.decorrelated is not None and full.decorrelated != full.parameters:
+                # Every decision above compared fixed-seed LM refits, alike in their render-noise
+                # bias; what is reported is the final model at the decorrelated step from its
+                # optimum (`decorrelated_step`), which does not carry it.
+                fixed_seed = dict(full.parameters)
+                current = self.evaluate_all(exts, full.decorrelated)
+                self.say("  decorrelated step from the fixed-seed refit: "
+                         + ", ".join(f"{k} {fixed_seed[k]:.4g} -> {full.decorrelated[k]:.4g}"
+                                     for k in ("sigma_t", "albedo") if k in fixed_seed)
+                         + f"; reduced chi2 {current.residuals.reduced_chi2:.3f} (HDR)")
+        return ModelStage(confirmed, exts, current, pruned, importance, unc, cov, fixed_seed)
 
     def candidate_start(self, name: str, rnd: Round
                         ) -> tuple[dict[str, float], dict[str, Any] | None, dict[str, float] | None]:
@@ -1196,8 +1270,6 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
     confirmations = conf.confirmations
     current = before
     current_exts = list(base.extensions)
-    current_unc = dict(base.uncertainties)
-    current_cov: dict[str, dict[str, float]] = {}
     confirmed: list[str] = []
     last_full: tuple[RefitResult, np.ndarray] | None = None
     deferred: RefitResult | None = None
@@ -1318,51 +1390,10 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         full, current = conf.settle(current_exts, chosen_fit.parameters, full_mv, confirmed)
         last_full = (full, full_mv)
         laps("model")
-    pruned: list[dict[str, Any]] = []
     confirmed_order = list(confirmed)
-    importance: dict[str, dict[str, Any]] = {}
-    if len(confirmed) >= 2 and last_full is not None and deferred is None:
-        full = conf.finish(current_exts, full, last_full[1])
-        pruned, rises = _prune(problem, make_model, confirmed, current_exts, full, spp=spp, seed=seed,
-                               model_variance=last_full[1], floor=floor,
-                               n_obs=int(np.sum(np.isfinite(current.residuals.r))), objective=refit_objective,
-                               noise_variance=conf.noise_how.get("noise_variance"))
-        drop = [e["effect"] for e in pruned if e["dropped"]]
-        for e in pruned:
-            say(f"  {e['effect']} with the others in the model: setting it to absent raises chi2 by "
-                f"{e['chi2_rise']:.1f} (needs {e['needed']:.1f})"
-                + (f", magnitude {e['magnitude_sigma']:.1f} sigma from absent (needs > {MAGNITUDE_SIGMA:g})"
-                   if "magnitude_sigma" in e else "") + (" -> dropped" if e["dropped"] else " -> kept"))
-        if drop:
-            confirmed = [c for c in confirmed if c not in drop]
-            current_exts = [c for c in current_exts if c not in drop]
-            full, current = conf.settle(current_exts, last_full[0].parameters, last_full[1], confirmed)
-        if len(confirmed) >= 2:
-            confirmed, importance = _by_importance(confirmed, rises, "refit")
-            say("  named by the chi2 each carries in the refit: "
-                + ", ".join(f"{e} {importance[e]['chi2_rise']:.0f}" for e in confirmed))
-    fixed_seed: dict[str, float] = {}
-    if deferred is not None:
-        current_unc = dict(deferred.uncertainties)
-        current_cov = {a: {b: v for (a2, b), v in deferred.covariance.items() if a2 == a}
-                       for a in deferred.uncertainties}
-    elif last_full is not None:
-        # The last model's uncertainties and decorrelated step (a settle's refit has none;
-        # the joint one got them for the backward check).
-        if not full.uncertainties:
-            full = conf.finish(current_exts, full, last_full[1])
-        current_unc = full.uncertainties
-        current_cov = {a: {b: v for (a2, b), v in full.covariance.items() if a2 == a} for a in full.uncertainties}
-        if confirmed and full.decorrelated is not None and full.decorrelated != full.parameters:
-            # Every decision above compared fixed-seed LM refits, alike in their render-noise
-            # bias; what is reported is the final model at the decorrelated step from its
-            # optimum (`decorrelated_step`), which does not carry it.
-            fixed_seed = dict(full.parameters)
-            current = conf.evaluate_all(current_exts, full.decorrelated)
-            say("  decorrelated step from the fixed-seed refit: "
-                + ", ".join(f"{k} {fixed_seed[k]:.4g} -> {full.decorrelated[k]:.4g}"
-                            for k in ("sigma_t", "albedo") if k in fixed_seed)
-                + f"; reduced chi2 {current.residuals.reduced_chi2:.3f} (HDR)")
+    stage = conf.model_stage(confirmed, current_exts, current, last_full, deferred)
+    confirmed, current_exts, current = stage.confirmed, stage.exts, stage.current
+    pruned, importance, fixed_seed = stage.pruned, stage.importance, stage.fixed_seed
     laps("model" if last_full is not None or deferred is not None
          else "confirmation" if confirmations else "screening")
     material = [k for k in before.parameters if _is_material(k)]
@@ -1382,9 +1413,9 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
     ranges = {k: [parameter_bounds(final_model, k), (final_model.specs[k].lower, final_model.specs[k].upper)]
               for e in confirmed for k in FREE_PARAMETERS[e] if k in final_model.specs}
     return ChannelDiagnosis(problem.channel, before, loc, first_scores, confirmations, confirmed, after,
-                            current_unc if confirmed else {}, verdict, sum(laps.seconds.values()), material,
+                            stage.uncertainties if confirmed else {}, verdict, sum(laps.seconds.values()), material,
                             dict(base.uncertainties), [float(a) for a in problem.angles_deg],
-                            current_cov if confirmed else {}, pruned=pruned, confirmed_order=confirmed_order,
+                            stage.covariance if confirmed else {}, pruned=pruned, confirmed_order=confirmed_order,
                             importance=importance, fixed_seed_after=fixed_seed, parameter_ranges=ranges,
                             stage_times_s=dict(laps.seconds),
                             model_stage="deferred" if deferred is not None else "refit" if confirmed else "",
