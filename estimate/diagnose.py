@@ -792,10 +792,6 @@ class _Confirmation:
                 "model_variance": _render_variance(current, self.repeats, spp_factor), "noise_scale": self.floor,
                 "objective": self.refit_objective, **self.noise_how}
 
-    def candidate_how(self, current: Evaluation) -> dict[str, Any]:
-        """The candidates' refit settings in a round starting from `current` (`refit_how`)."""
-        return self.refit_how(current)
-
     def evaluate_on(self, model: Any, parameters: Mapping[str, float], angle_idx: Sequence[int],
                     scale: float | None = None) -> Evaluation:
         """`model` evaluated at `parameters` on the angles `angle_idx` against the yardstick, at
@@ -871,14 +867,14 @@ class _Confirmation:
         fixed_seed: dict[str, float] = {}
         if deferred is not None:
             unc = dict(deferred.uncertainties)
-            cov = {a: {b: v for (a2, b), v in deferred.covariance.items() if a2 == a} for a in deferred.uncertainties}
+            cov = _nested_covariance(deferred)
         elif last_full is not None and full is not None:
             # The last model's uncertainties and decorrelated step (a settle's refit has none;
             # the joint one got them for the backward check).
             if not full.uncertainties:
                 full = self.finish(exts, full, last_full[1])
             unc = full.uncertainties
-            cov = {a: {b: v for (a2, b), v in full.covariance.items() if a2 == a} for a in full.uncertainties}
+            cov = _nested_covariance(full)
             if confirmed and full.decorrelated is not None and full.decorrelated != full.parameters:
                 # Every decision above compared fixed-seed LM refits, alike in their render-noise
                 # bias; what is reported is the final model at the decorrelated step from its
@@ -1315,7 +1311,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         # Every refit of the round by its candidate, confirmed or not (`try_pair`'s leads).
         round_fits: dict[str, RefitResult] = {}
         # The round's control at the closer look's spp, refitted at the first close call.
-        rnd = Round(len(confirmed) + 1, current, current_exts, control, conf.candidate_how(current),
+        rnd = Round(len(confirmed) + 1, current, current_exts, control, conf.refit_how(current),
                     first_round.close_control if round_one else CloseControl())
         while True:
             for cand in tried:
@@ -1467,6 +1463,12 @@ def _render_variance(ev: Evaluation, repeats: int, spp_factor: int = 1) -> np.nd
     at the current evaluation's scale, so every refit of a round divides by the same weights
     (`refit`: a model that dims its renders cannot buy its own)."""
     return ev.model_variance * (ev.scale ** 2 * repeats / spp_factor)
+
+
+def _nested_covariance(fit: RefitResult) -> dict[str, dict[str, float]]:
+    """`fit`'s covariance of its free parameters as {a: {b: cov}} (what `ChannelDiagnosis`
+    reports), from the refit's {(a, b): cov}."""
+    return {a: {b: v for (a2, b), v in fit.covariance.items() if a2 == a} for a in fit.uncertainties}
 
 
 def _refit_noise(objective: str, yardstick: np.ndarray) -> dict[str, Any]:
