@@ -876,6 +876,120 @@ def test_the_backward_check_names_the_model_it_was_made_in(monkeypatch):
     assert any("beam_halo in the refit: setting it to absent" in ln and "dropped" in ln for ln in lines)
 
 
+def _stage_confirmation(lines: list[str]):
+    """A `_Confirmation` whose renders are not wanted: `model_stage` only calls its own
+    `finish`, `settle` and `evaluate_all` and the module's `_prune`, which the test replaces."""
+    import estimate.diagnose as dg
+    from estimate.refit import FIXED_SEED
+
+    return dg._Confirmation(problem=None, make_model=lambda exts: None, cands=[], spp=64, seed=5, repeats=1,
+                            iterations=2, refit_objective=FIXED_SEED, refit_checks_decide=False,
+                            refit_below_log10_p=-3.0, max_confirm=3, grid_start=None, floor=np.ones(3),
+                            yardstick=np.ones(3), train=[0, 1], held=[2], brightest=1.0, first_round=None,
+                            say=lines.append)
+
+
+@pytest.mark.parametrize("drop", [["beam_halo"], []])
+def test_the_rounds_backward_check_refits_without_what_it_drops_and_reports_the_refit_after_it(monkeypatch, drop):
+    """The model stage after two or more confirmed effects (`_Confirmation.model_stage`): the
+    joint refit gets its intervals (`finish`) before the backward check (`_prune`) so the
+    Wald test can act; what the check drops leaves the model and the rest is refitted
+    (`settle`, from the joint refit's parameters and render variance); the effects left are
+    named by the chi^2 each carries; the reported intervals are those of the last model,
+    evaluated at its decorrelated step, with the fixed-seed optimum kept beside them."""
+    import estimate.diagnose as dg
+    from estimate.refit import RefitResult
+
+    lines: list[str] = []
+    conf = _stage_confirmation(lines)
+    three = ["lens_blur", "beam_halo", "stray_light"]
+    p3 = {"sigma_t": 2.1, "lens_blur.core_sigma_px": 1.5, "beam_halo.fraction": 0.001, "stray_light.offset": 0.003}
+    mv = np.full((3, 8), 1e-6)
+    joint = RefitResult(dict(p3), 1.0, {}, 900.0, 4)
+    calls: list[tuple] = []
+
+    def with_intervals(exts, fit):
+        names = [n for n in fit.parameters if n.split(".")[0] in exts or "." not in n]
+        unc = {n: 0.01 * (1 + i) for i, n in enumerate(names)}
+        cov = {(a, b): unc[a] ** 2 if a == b else 0.0 for a in names for b in names}
+        return dataclasses.replace(fit, uncertainties=unc, covariance=cov,
+                                   decorrelated={**fit.parameters, "sigma_t": fit.parameters["sigma_t"] - 0.05})
+
+    def finish(exts, fit, variance):
+        calls.append(("finish", list(exts), variance is mv))
+        return with_intervals(exts, fit)
+
+    p2 = {k: v for k, v in p3.items() if not k.startswith("beam_halo")}
+    settled = RefitResult({**p2, "sigma_t": 2.05}, 1.0, {}, 905.0, 3)
+
+    def settle(exts, start, variance, confirmed):
+        calls.append(("settle", list(exts), start == p3 and variance is mv, list(confirmed)))
+        return settled, SimpleNamespace(name="settled")
+
+    def evaluate_all(exts, parameters):
+        calls.append(("evaluate_all", list(exts), dict(parameters)))
+        return SimpleNamespace(name="decorrelated", residuals=SimpleNamespace(reduced_chi2=1.02))
+
+    rises = {"lens_blur": 300.0, "beam_halo": 2.0, "stray_light": 5000.0}
+
+    def prune(problem, make_model, confirmed, exts, full, **kw):
+        calls.append(("prune", list(confirmed), bool(full.uncertainties), kw["n_obs"], kw["seed"], kw["spp"]))
+        entries = [{"effect": e, "chi2_rise": rises[e], "needed": 20.0, "dropped": e in drop} for e in confirmed[:-1]]
+        return entries, dict(rises)
+
+    monkeypatch.setattr(dg, "_prune", prune)
+    monkeypatch.setattr(conf, "finish", finish)
+    monkeypatch.setattr(conf, "settle", settle)
+    monkeypatch.setattr(conf, "evaluate_all", evaluate_all)
+    current = SimpleNamespace(name="round", residuals=SimpleNamespace(r=np.r_[np.zeros(40), np.full(5, np.nan)]))
+    st = conf.model_stage(list(three), list(three), current, (joint, mv), None)
+
+    kept = [e for e in three if e not in drop]
+    # intervals first (the Wald test), then the check, on every finite pixel, at the round's seed and spp
+    assert calls[0] == ("finish", three, True)
+    assert calls[1] == ("prune", three, True, 40, 5, 64)
+    assert [e["effect"] for e in st.pruned] == ["lens_blur", "beam_halo"]
+    assert st.exts == kept
+    assert st.confirmed == sorted(kept, key=lambda e: -rises[e])            # stray light carries the most
+    assert st.importance == {e: {"chi2_rise": rises[e], "stage": "refit"} for e in kept}
+    if drop:
+        # refitted without the halo, from the joint refit; that refit gets its own intervals
+        assert calls[2] == ("settle", kept, True, kept)
+        assert calls[3] == ("finish", kept, True)
+        last = with_intervals(kept, settled)
+        assert any("beam_halo with the others in the model" in ln and ln.endswith("-> dropped") for ln in lines)
+    else:
+        assert [c[0] for c in calls].count("finish") == 1                   # the check's intervals serve
+        last = with_intervals(three, joint)
+        assert all(not ln.endswith("-> dropped") for ln in lines)
+    assert calls[-1] == ("evaluate_all", kept, last.decorrelated)
+    assert st.current.name == "decorrelated"
+    assert st.fixed_seed == last.parameters and st.uncertainties == last.uncertainties
+    assert st.covariance == {a: {b: last.covariance[(a, b)] for b in last.uncertainties} for a in last.uncertainties}
+    assert "beam_halo.fraction" not in st.uncertainties or not drop
+
+
+def test_a_deferred_model_stage_keeps_the_candidates_intervals_and_checks_nothing(monkeypatch):
+    """With the estimator's final fit to follow (`deferred`: the candidate's refit it replaces),
+    the backward check waits for the final fit (`_prune_final`): no joint check here, and the
+    intervals reported until then are the deferred refit's."""
+    import estimate.diagnose as dg
+    from estimate.refit import RefitResult
+
+    conf = _stage_confirmation([])
+    monkeypatch.setattr(dg, "_prune", lambda *a, **k: pytest.fail("no backward check before the final fit"))
+    monkeypatch.setattr(conf, "finish", lambda *a: pytest.fail("no intervals for a joint refit that was not made"))
+    unc = {"sigma_t": 0.02, "stray_light.offset": 1e-4}
+    deferred = RefitResult({"sigma_t": 2.0, "stray_light.offset": 0.003}, 1.0, unc, 800.0, 5,
+                           covariance={(a, b): unc[a] * unc[b] * (1.0 if a == b else 0.3) for a in unc for b in unc})
+    current = SimpleNamespace(residuals=SimpleNamespace(r=np.zeros(10)))
+    st = conf.model_stage(["lens_blur", "stray_light"], ["lens_blur", "stray_light"], current, None, deferred)
+    assert st.pruned == [] and st.importance == {} and st.fixed_seed == {}
+    assert st.current is current and st.confirmed == ["lens_blur", "stray_light"]
+    assert st.uncertainties == unc
+    assert st.covariance["sigma_t"]["stray_light.offset"] == pytest.approx(0.3 * 0.02 * 1e-4)
+
+
 @pytest.mark.parametrize("tail_sd, lm_chi2, named", [(0.02, 1.0, True), (2.3, 1.0, False), (0.02, 13.1, False)])
 def test_a_lone_effect_is_checked_in_the_refit_that_stands_in_for_a_final_fit_not_kept(monkeypatch, tail_sd,
                                                                                         lm_chi2, named):
