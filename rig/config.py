@@ -12,9 +12,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from rig.errors import UsageError
+from rig.yaml_file import read_yaml
 
 STAGE_DRIVERS = ("sigma-koki",)
 CAMERA_DRIVERS = ("apogee-alta",)
@@ -124,18 +123,7 @@ def load_config(path: str | Path | None = None) -> RigConfig:
     """Read and validate a rig configuration file (default: the packaged simulated rig)."""
     p = Path(path) if path is not None else PACKAGED_SIM_CONFIG
     name = str(path) if path is not None else "rig-sim.yaml (packaged)"
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise UsageError(f"{name}: no such file; pass an existing rig.yaml with --config") from None
-    except (IsADirectoryError, PermissionError, UnicodeDecodeError) as e:
-        raise UsageError(f"{name}: cannot read ({e.__class__.__name__}); pass a readable YAML file") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark is not None else ""
-        raise UsageError(f"{name}:{where}: not valid YAML ({getattr(e, 'problem', e)})") from None
+    data = read_yaml(p, name, UsageError, "no such file; pass an existing rig.yaml with --config")
     if not isinstance(data, dict):
         raise UsageError(f"{name}: must be a YAML mapping with sections stage, camera, filter")
     return parse_config(data, name)

@@ -23,9 +23,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from estimate.extensions import EXTENSIONS
+from rig.yaml_file import read_yaml
 
 __all__ = [
     "DEFAULT_WORLD_PATH",
@@ -411,18 +411,7 @@ def load_world(path: str | os.PathLike[str] | None = None) -> World:
     """Read and validate a world file (None: the documented default world)."""
     p = Path(path) if path is not None else DEFAULT_WORLD_PATH
     src = str(path) if path is not None else f"{DEFAULT_WORLD_PATH.name} (default world)"
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise WorldError(f"{src}: no such world file; pass an existing WORLD.yaml (see worlds/)") from None
-    except (IsADirectoryError, PermissionError, UnicodeDecodeError) as e:
-        raise WorldError(f"{src}: cannot read ({e.__class__.__name__}); pass a readable YAML file") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark is not None else ""
-        raise WorldError(f"{src}:{where}: not valid YAML ({getattr(e, 'problem', e)})") from None
+    data = read_yaml(p, src, WorldError, "no such world file; pass an existing WORLD.yaml (see worlds/)")
     return parse_world(data, src, p.parent)
 
 

@@ -64,3 +64,26 @@ def test_cli_bad_config_one_line_exit_2(tmp_path):
     assert r.returncode == 2
     assert r.stderr.count("\n") == 1 and "not valid YAML" in r.stderr
     assert "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("content, message", [
+    (None, r"^where\.yaml: gone, pass another$"),
+    (b"\xff\xfe not text", r"^where\.yaml: cannot read \(UnicodeDecodeError\); pass a readable YAML file$"),
+    (b"a: [1, 2\nb: 3\n", r"^where\.yaml: line \d+: not valid YAML \("),
+])
+def test_a_yaml_file_that_cannot_be_read_is_one_line_in_the_callers_error(tmp_path, content, message):
+    from rig.yaml_file import read_yaml
+
+    class Mine(ValueError):
+        pass
+
+    p = tmp_path / "where.yaml"
+    if content is not None:
+        p.write_bytes(content)
+    with pytest.raises(Mine, match=message) as e:
+        read_yaml(p, "where.yaml", Mine, "gone, pass another")
+    assert "\n" not in str(e.value)
+    with pytest.raises(Mine, match=r"cannot read \(IsADirectoryError\)"):
+        read_yaml(tmp_path, "where.yaml", Mine, "gone")
+    p.write_text("stage: {port: x}\n", encoding="utf-8")
+    assert read_yaml(p, "where.yaml", Mine, "gone") == {"stage": {"port": "x"}}
