@@ -33,8 +33,7 @@ def evaluate(fm: ForwardModel, problem: Problem, params: Mapping[str, float], *,
     (`loss_unbiased`, `estimate.loss.decorrelated_loss` of the two seeds), chi^2, and the
     parameters ("parameters": `params`, with the `additive` ones solved on these renders at
     `delta_rel`, see `solve_additive`)."""
-    p1 = fm.render_profiles(params, problem.angles_deg, spp=spp, seed=seed)
-    p2 = fm.render_profiles(params, problem.angles_deg, spp=spp, seed=seed + 7_777)
+    p1, p2 = fm.render_profiles_many([(params, seed), (params, seed + 7_777)], problem.angles_deg, spp=spp)
     params = dict(params)
     if additive:
         shift = solve_additive(fm, problem, params, additive, 0.5 * (p1 + p2), delta_rel, fixed_scale)

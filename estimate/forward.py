@@ -53,6 +53,7 @@ __all__ = ["BASE_SPECS", "ForwardModel", "Linearization", "phase_specs", "render
 _INF = float("inf")
 #: Largest number of paths (pixels x spp) traced in one launch; bounds memory (~0.2 kB each).
 _MAX_LANES = 2 ** 22
+_QUEUED_RENDERS = 32
 
 
 #: Scenes (`_SceneBundle`s: a slab per angle, its medium, phase function, beam and sensors)
@@ -320,6 +321,12 @@ class ForwardModel:
     def _render_radiance(self, values: Mapping[str, float], angles: Sequence[float],
                          window: PixelWindow, spp: int, seed: int, first_index: int = 0) -> np.ndarray:
         """Scene radiance (before image-space extensions), shape (N, H, W)."""
+        return _gather_radiance(self._queue_radiance(values, angles, window, spp, seed, first_index),
+                                len(angles), window)
+
+    def _queue_radiance(self, values: Mapping[str, float], angles: Sequence[float], window: PixelWindow,
+                        spp: int, seed: int, first_index: int = 0) -> list[tuple[range, float, Any]]:
+        """The launches of `_render_radiance`, queued and not yet read back (`_gather_radiance`)."""
         groups, passes = self._groups(len(angles), window, spp)
         spp_pass = max(1, math.ceil(int(spp) / passes))
         pending = []
@@ -332,7 +339,24 @@ class ForwardModel:
                         img = self._launch(bundle, window, spp_pass, seed, first_index + grp.start, q, False)
                         # No sync here: Dr.Jit runs this launch while Python traces the next.
                         pending.append((grp, w / passes, img))
-        return _gather_radiance(pending, len(angles), window)
+        return pending
+
+    def _radiances(self, jobs: Sequence[tuple[Mapping[str, float], int]], angles: Sequence[float],
+                   window: PixelWindow, spp: int) -> list[np.ndarray]:
+        """`_render_radiance(values, angles, window, spp, seed)` of each (values, seed) of `jobs`,
+        the same numbers, up to `_QUEUED_RENDERS` of them queued before the first is read back.
+
+        Dr.Jit runs a thread's kernels in order, asynchronously, and reading any result waits
+        for every kernel queued before: renders read one by one leave the cores idle while
+        the next is traced in Python (most of a render at a few samples per pixel,
+        `docs/forward-model.md`); queued together, each render's kernels run while the next
+        is traced. The caller holds the lock."""
+        out: list[np.ndarray] = []
+        for i in range(0, len(jobs), _QUEUED_RENDERS):
+            queued = [self._queue_radiance(values, angles, window, spp, seed)
+                      for values, seed in jobs[i:i + _QUEUED_RENDERS]]
+            out.extend(_gather_radiance(q, len(angles), window) for q in queued)
+        return out
 
     def _image_exts(self) -> list[type[ImageExtension]]:
         return [EXTENSIONS[n] for n in IMAGE_ORDER if n in self.extensions]  # type: ignore[misc]
@@ -387,6 +411,22 @@ class ForwardModel:
             seed: base seed (same seed -> same result).
         """
         return self.render(params, angles_deg, spp=spp, seed=seed)[:, 0, :]
+
+    def render_profiles_many(self, requests: Sequence[tuple[Mapping[str, float], int]], angles_deg: npt.ArrayLike,
+                             *, spp: int = 128) -> list[np.ndarray]:
+        """`render_profiles(params, angles_deg, spp=spp, seed=seed)` for each (params, seed) of
+        `requests`, the same numbers, the renders queued together (`_radiances`: on 2 cores
+        the coarse start's 220 renders at 8 spp took 25 % less time)."""
+        checked = [(self.validate(p), int(seed)) for p, seed in requests]
+        angles = self._check_call(angles_deg, spp, 0)
+        for _, seed in checked:
+            self._check_call(angles, spp, seed)
+        window = self.geometry.window(None, None)
+        y_shape = self._y_shape(angles, window)
+        with self._lock:
+            rads = self._radiances(checked, angles, window, spp)
+        return [self._post(rad, values, profile_only=True, y_shape=y_shape)[:, 0, :]
+                for rad, (values, _) in zip(rads, checked)]
 
     def render(self, params: Mapping[str, float], angles_deg: npt.ArrayLike, *,
                columns: tuple[int, int] | None = None, rows: tuple[int, int] | None = None,
@@ -531,6 +571,9 @@ class ForwardModel:
         out: dict[str, np.ndarray] = {}
         base_rad: np.ndarray | None = None
         y_shape = self._y_shape(angles, window)
+        profile_only = window.height == 1
+        #: per difference: name, the two ends' values (None: the base profiles), the step
+        diffs: list[tuple[str, dict[str, float] | None, dict[str, float] | None, float]] = []
         for name in names:
             spec = self._spec(name)
             if spec.derivative == "image":
@@ -539,6 +582,7 @@ class ForwardModel:
                         base_rad = self._render_radiance(values, angles, window, spp, seed)
                 out[name] = self._image_param_derivative(base_rad, values, name, window, y_shape)
                 continue
+            out[name] = np.empty(0)  # keeps the order of `names`; filled below
             x = values[name]
             h = float((steps or {}).get(name, spec.fd_step * max(1.0, abs(x))))
             lo = x - h
@@ -557,23 +601,21 @@ class ForwardModel:
                 lo = x
                 if hi == x:  # at the upper bound: step down instead
                     hi, lo = x, max(x - h, lower)
-            v_lo = dict(values)
-            v_hi = dict(values)
-            v_lo[name] = lo
-            v_hi[name] = hi
-            profile_only = window.height == 1
-            with self._lock:
-                if one_sided and lo == x:
-                    r_lo = np.asarray(base_profiles, dtype=np.float64)[:, None, :]
-                else:
-                    r_lo = self._post(self._render_radiance(v_lo, angles, window, spp, seed), v_lo, profile_only,
-                                      y_shape)
-                if one_sided and hi == x:
-                    r_hi = np.asarray(base_profiles, dtype=np.float64)[:, None, :]
-                else:
-                    r_hi = self._post(self._render_radiance(v_hi, angles, window, spp, seed), v_hi, profile_only,
-                                      y_shape)
-            out[name] = ((r_hi - r_lo) / (hi - lo))[:, 0, :]
+            diffs.append((name, None if one_sided and lo == x else {**values, name: lo},
+                          None if one_sided and hi == x else {**values, name: hi}, hi - lo))
+        # Every end's render queued before any is read (`_radiances`).
+        jobs = [(v, seed) for _, v_lo, v_hi, _ in diffs for v in (v_lo, v_hi) if v is not None]
+        with self._lock:
+            rads = iter(self._radiances(jobs, angles, window, spp))
+
+        def end(v: dict[str, float] | None) -> np.ndarray:
+            if v is None:  # only one-sided differences leave an end unrendered
+                return np.asarray(base_profiles, dtype=np.float64)[:, None, :]
+            return self._post(next(rads), v, profile_only, y_shape)
+
+        for name, v_lo, v_hi, step in diffs:
+            r_lo = end(v_lo)
+            out[name] = ((end(v_hi) - r_lo) / step)[:, 0, :]
         return out
 
     def additive_parameters(self) -> list[str]:
@@ -799,6 +841,11 @@ class _SceneBundle:
         else:
             self.k_phase = {n: key(f"phase_function.{n.split('.')[1]}") for n in model.specs
                             if n.startswith("phase.b")}
+        #: the exponential phase plugin, told its coefficients before each update (`announce`)
+        self.exp_phase = None
+        if self.k_phase and model.phase.startswith("exp"):
+            media = [sh.interior_medium() for sh in self.scene.shapes() if sh.interior_medium() is not None]
+            self.exp_phase = media[0].phase_function()
         self.k_beam = {n: key(f"beam.{n}") for n in ("angle_deg", "eta", "thickness", "sigma_t",
                                                      "halo_fraction", "halo_sigma_mm")}
         self.eta = 1.5
@@ -878,6 +925,8 @@ class _SceneBundle:
             for name, k in self.k_phase.items():
                 p[k] = val(name) * 1.0
                 p.set_dirty(k)  # recompute the normalisation from the new b's
+            if self.exp_phase is not None:
+                self.exp_phase.announce([values[name] for name in self.k_phase])
         delta = values.get("angle_offset.delta_deg", 0.0)
         e = values.get("thickness_error.e", 0.0)
         n = values.get("refractive_boundary.n", 1.0)

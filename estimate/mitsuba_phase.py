@@ -142,6 +142,7 @@ def _make_plugin_class(mi: Any, dr: Any) -> type:
             self.m_flags = mi.PhaseFunctionFlags.Anisotropic
             self._norm_mu = mi.Float(mu_np)
             self._norm_w = mi.Float(w_np)
+            self._announced: list[float] | None = None
             self._update()
 
         # --- parameters -------------------------------------------------------
@@ -151,6 +152,14 @@ def _make_plugin_class(mi: Any, dr: Any) -> type:
 
         def parameters_changed(self, keys: Any = None) -> None:
             self._update()
+
+        def announce(self, b: Sequence[float]) -> None:
+            """The values b_1..b_M that the next parameter update sets, as the float32 the
+            device holds (`_update` then need not read them back); used once."""
+            if len(b) != self.degree:
+                raise ModelParameterError(
+                    f"{len(b)} coefficients announced for a phase function of degree {self.degree}")
+            self._announced = [float(np.float32(v)) for v in b]
 
         def _poly(self, mu: Any) -> Any:
             """sum_{i>=1} b_i mu^i by Horner (zero for degree 0)."""
@@ -170,7 +179,12 @@ def _make_plugin_class(mi: Any, dr: Any) -> type:
             self.log_norm = m + dr.log(z) + math.log(2.0 * math.pi)
             dr.make_opaque(self.log_norm)
             # Inverse-CDF table (detached: it only shapes the importance sampling).
-            coeffs = [float(dr.detach(bi)[0]) for bi in self.b]
+            # The table is built on the host from the coefficients' values. Reading them back
+            # from the device makes Dr.Jit wait for every kernel queued before (the renders
+            # of a batch of candidates would run one after the other with the cores idle
+            # while each is traced), so a caller that knows them says so first (`announce`).
+            coeffs = self._announced if self._announced is not None else [float(dr.detach(bi)[0]) for bi in self.b]
+            self._announced = None
             self.inv_cdf = mi.Float(inverse_cdf_table(coeffs).astype(np.float32))
             dr.make_opaque(self.inv_cdf)
 

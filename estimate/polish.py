@@ -342,12 +342,11 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
             n_part = spp_k // jac_half if jac_half < spp_k and spp_k % jac_half == 0 else 2
             part_k = spp_k // n_part
             seeds = [seed + 2_000 + 4 * k + i if i < 4 else seed + 200_000 + 64 * k + i for i in range(2 * n_part)]
-            parts = [fm.render_profiles(p, angles, spp=part_k, seed=s_) for s_ in seeds]
+            parts = fm.render_profiles_many([(p, s_) for s_ in seeds], angles, spp=part_k)
             pa, pb = np.mean(parts[:n_part], axis=0), np.mean(parts[n_part:], axis=0)
             bases = [(parts[0], seeds[0], part_k), (parts[n_part], seeds[n_part], part_k)]
         else:
-            pa = fm.render_profiles(p, angles, spp=spp_k, seed=seed + 2 * k)
-            pb = fm.render_profiles(p, angles, spp=spp_k, seed=seed + 2 * k + 1)
+            pa, pb = fm.render_profiles_many([(p, seed + 2 * k), (p, seed + 2 * k + 1)], angles, spp=spp_k)
         if solved:
             shift = solve_additive(fm, problem, p, solved, 0.5 * (pa + pb), reference_delta_rel, fixed_scale,
                                    scale_guess=scale_guess, columns=solved_columns)

@@ -11,7 +11,7 @@ had picked another node in session 13) it picked the whole 32-spp grid's node ev
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -52,8 +52,20 @@ def start_loss(fm: ForwardModel, problem: Problem, params: Mapping[str, float], 
                delta_rel: float, scale: float | None = None) -> float:
     """Log loss of one candidate start at `delta_rel` (scale profiled unless given)."""
     prof = fm.render_profiles(params, problem.angles_deg, spp=spp, seed=seed)
+    return _profile_loss(problem, prof, delta_rel, scale)
+
+
+def _profile_loss(problem: Problem, prof: np.ndarray, delta_rel: float, scale: float | None) -> float:
     s = scale if scale is not None else profile_scale(problem.measured, prof, problem.valid, delta_rel)
     return log_loss(problem.measured, prof, problem.valid, s, delta_rel)[0]
+
+
+def _start_losses(fm: ForwardModel, problem: Problem, candidates: Sequence[Mapping[str, float]], spp: int,
+                  seed: int, delta_rel: float, scale: float | None) -> list[float]:
+    """`start_loss` of each candidate, their renders queued one behind the other
+    (`ForwardModel.render_profiles_many`: the same numbers)."""
+    profs = fm.render_profiles_many([(p, seed) for p in candidates], problem.angles_deg, spp=spp)
+    return [_profile_loss(problem, prof, delta_rel, scale) for prof in profs]
 
 
 def coarse_start(fm: ForwardModel, problem: Problem, base: Mapping[str, float], *, spp: int = 32,
@@ -92,7 +104,7 @@ def coarse_start(fm: ForwardModel, problem: Problem, base: Mapping[str, float], 
                 p.update(fixed)
                 candidates.append(p)
     screen_spp = max(1, int(spp) // 4)
-    losses = [start_loss(fm, problem, p, screen_spp, seed, delta_rel, scale) for p in candidates]
+    losses = _start_losses(fm, problem, candidates, screen_spp, seed, delta_rel, scale)
 
     def rank(i: int) -> tuple[bool, float]:
         # A NaN loss (nothing valid) sorts last, behind every finite one.
@@ -101,7 +113,8 @@ def coarse_start(fm: ForwardModel, problem: Problem, base: Mapping[str, float], 
     pool = list(range(len(candidates)))
     if screen_spp < spp:
         pool = sorted(pool, key=rank)[:RESCORED]
-        for i in pool:
-            losses[i] = start_loss(fm, problem, candidates[i], spp, seed, delta_rel, scale)
+        for i, loss in zip(pool, _start_losses(fm, problem, [candidates[i] for i in pool], spp, seed, delta_rel,
+                                               scale)):
+            losses[i] = loss
     best = min(pool, key=rank)
     return dict(candidates[best]), list(zip(candidates, losses))

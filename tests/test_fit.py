@@ -646,6 +646,9 @@ def test_coarse_start_searches_phase_and_material_jointly():
             calls.append(spp)
             return (p["albedo"] * np.exp(-x * p["sigma_t"] * (1.0 - p["phase.g"])))[None, :]
 
+        def render_profiles_many(self, requests, angles, *, spp):
+            return [self.render_profiles(p, angles, spp=spp, seed=seed) for p, seed in requests]
+
     truth = {"sigma_t": SIGMA_GRID[7], "albedo": ALBEDO_GRID[2], "phase.g": 0.2}
     meas = Toy().render_profiles(truth, None, spp=0, seed=0)
     pb = _toy_problem(x, meas)
@@ -1027,7 +1030,7 @@ def test_one_sided_polish_jacobians_reuse_half_of_each_render(problem, monkeypat
     import estimate.polish as polish_mod
 
     calls: list[tuple[int, int]] = []
-    real_radiance = fm._render_radiance
+    real_radiance = fm._queue_radiance
 
     def counted(values, angles, window, spp, seed, *a, **k):
         calls.append((spp, seed))
@@ -1041,7 +1044,7 @@ def test_one_sided_polish_jacobians_reuse_half_of_each_render(problem, monkeypat
         assert kw["base_profiles"] is not None
         return real_jac(*a, **kw)
 
-    monkeypatch.setattr(fm, "_render_radiance", counted)     # every render goes through it
+    monkeypatch.setattr(fm, "_queue_radiance", counted)      # every render goes through it
     monkeypatch.setattr(fm, "jacobian", jac_counted)
     at = {**fm.default_parameters(), **TRUTH}
     kw = {"steps": 2, "seed": 7, "delta_nodes": [0.045], "reference_delta_rel": 0.045, "fixed_scale": scale,

@@ -118,6 +118,32 @@ def test_renders_are_reproducible_and_seeded(single_model: ForwardModel) -> None
     assert not np.array_equal(a, c)
 
 
+def test_renders_queued_behind_one_another_are_those_made_one_at_a_time(monkeypatch) -> None:
+    """`render_profiles_many` (the coarse start's candidates, each traced while the previous
+    one's kernels run) gives every render's numbers bit for bit, image-space extensions
+    included; the exponential phase plugin, told its coefficients instead of reading them
+    back from the device, builds the same sampling table."""
+    model = _model("exp3", extensions=("lens_blur",))
+    angles = [30.0, 75.0, 140.0]
+    requests = [({"sigma_t": 2.0, "albedo": 0.8, "phase.b1": 1.0}, 4),
+                ({"sigma_t": 4.5, "albedo": 0.6, "phase.b1": 3.0, "phase.b3": -0.4, "lens_blur.core_sigma_px": 2.0}, 4),
+                ({"sigma_t": 1.0, "albedo": 0.95, "phase.b2": 0.7}, 9)]
+    many = model.render_profiles_many(requests, angles, spp=16)
+    one = [model.render_profiles(p, angles, spp=16, seed=s) for p, s in requests]
+    assert len(many) == 3 and all(np.array_equal(a, b) for a, b in zip(many, one))
+    assert not np.array_equal(many[0], many[1])
+    plugin = type(model._bundle(len(angles)).exp_phase)
+    monkeypatch.setattr(plugin, "announce", lambda self, b: None)     # read back from the device
+    read_back = [model.render_profiles(p, angles, spp=16, seed=s) for p, s in requests]
+    assert all(np.array_equal(a, b) for a, b in zip(read_back, one))
+    assert model.render_profiles_many([], angles, spp=16) == []
+    with pytest.raises(ModelParameterError, match="seed"):
+        model.render_profiles_many([(requests[0][0], -1)], angles, spp=16)
+    with pytest.raises(ModelParameterError, match="2 coefficients announced for a phase function of degree 3"):
+        monkeypatch.undo()
+        model._bundle(len(angles)).exp_phase.announce([0.1, 0.2])
+
+
 def test_new_angles_and_parameters_reuse_compiled_kernels() -> None:
     import drjit as dr
 
