@@ -222,10 +222,11 @@ def independent_residuals(problem: Any, ev: Evaluation, model: Any, *, spp: int,
 
 def render_stack(model: Any, params: Mapping[str, float], problem: Any, *, spp: int = 256, seed: int = DEFAULT_SEED,
                  repeats: int = 4, angle_idx: Sequence[int] | None = None) -> np.ndarray:
-    """The (repeats, N, W) renders `evaluate` averages: seeds seed + 7 k."""
+    """The (repeats, N, W) renders `evaluate` averages: seeds seed + 7 k, queued together
+    (`ForwardModel.render_profiles_many`)."""
     idx = list(range(len(problem.angles_deg))) if angle_idx is None else list(angle_idx)
     angles = [float(problem.angles_deg[i]) for i in idx]
-    return np.stack([model.render_profiles(params, angles, spp=spp, seed=seed + 7 * k) for k in range(repeats)])
+    return np.stack(model.render_profiles_many([(params, seed + 7 * k) for k in range(repeats)], angles, spp=spp))
 
 
 #: Largest fraction of the light a refit may put in the lens blur's wide tail (veiling

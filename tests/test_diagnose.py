@@ -1647,7 +1647,14 @@ def test_refit_covariance_from_two_noisy_jacobians_is_not_narrowed_by_their_nois
     assert cov.shape == (3, 3) and np.isnan(cov[2, 2]) and np.all(np.isfinite(cov[:2, :2]))
 
 
-class _NoisyWidth:
+class _OneByOne:
+    """A toy model's `render_profiles_many`: its renders one after the other."""
+
+    def render_profiles_many(self, requests, angles, *, spp):
+        return [self.render_profiles(th, angles, spp=spp, seed=seed) for th, seed in requests]
+
+
+class _NoisyWidth(_OneByOne):
     """A profile exp(-|x| / w) (1 + c x / 4) rendered with Monte Carlo noise whose size
     grows with the width w (common random numbers per seed): a fixed-seed chi^2 then
     prefers narrower profiles, as the slab's renders prefer quieter (lower) albedos."""
@@ -1826,7 +1833,7 @@ def test_a_decorrelated_refits_loss_is_its_end_points_and_pairs_with_an_evaluati
                  noise_variance=nv, **kw).chi2 == own.chi2
 
 
-class _Fireflies:
+class _Fireflies(_OneByOne):
     """A smooth profile rendered with path-tracer-like noise: each pixel the mean of
     spp / 16 lognormal(0, 1.5) path weights (most a little low, a few far high), unbiased."""
 
