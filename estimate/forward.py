@@ -53,7 +53,12 @@ __all__ = ["BASE_SPECS", "ForwardModel", "Linearization", "phase_specs", "render
 _INF = float("inf")
 #: Largest number of paths (pixels x spp) traced in one launch; bounds memory (~0.2 kB each).
 _MAX_LANES = 2 ** 22
+#: Renders queued before the first is read back (`ForwardModel._radiances`), and the most
+#: paths they may hold between them: at a few samples per pixel a render is mostly its tracing
+#: in Python, and 32 queued took the coarse start from 8-9 s to 6 s on 2 cores (16: 6-7 s,
+#: 256: 5.4-6 s); at the spp of the fits a render is its kernels, and queueing gains nothing.
 _QUEUED_RENDERS = 32
+_QUEUED_LANES = 2 ** 24
 
 
 #: Scenes (`_SceneBundle`s: a slab per angle, its medium, phase function, beam and sensors)
@@ -351,10 +356,12 @@ class ForwardModel:
         the next is traced in Python (most of a render at a few samples per pixel,
         `docs/forward-model.md`); queued together, each render's kernels run while the next
         is traced. The caller holds the lock."""
+        lanes = len(angles) * window.width * window.height * int(spp)
+        per_queue = max(1, min(_QUEUED_RENDERS, _QUEUED_LANES // max(1, lanes)))
         out: list[np.ndarray] = []
-        for i in range(0, len(jobs), _QUEUED_RENDERS):
+        for i in range(0, len(jobs), per_queue):
             queued = [self._queue_radiance(values, angles, window, spp, seed)
-                      for values, seed in jobs[i:i + _QUEUED_RENDERS]]
+                      for values, seed in jobs[i:i + per_queue]]
             out.extend(_gather_radiance(q, len(angles), window) for q in queued)
         return out
 

@@ -4,11 +4,13 @@ its scale profiled out (or the calibrated scale). Two stages: every candidate (2
 screened at a quarter of `spp`, and the best `RESCORED` (12) are scored again at `spp`
 (32). A render's cost is nearly proportional to its samples (10 angles on the session-17
 machine: 0.034 s at 8 spp, 0.097 s at 32), so this costs ~9-15 s there against ~25-33 s for
-the whole grid at 32 spp. The renders are queued together (`ForwardModel.render_profiles_many`):
-at 8 spp a render is mostly its tracing in Python, during which the previous one's kernels run
-(session 59: 6.2-6.8 s against 8.0-9.1 s one by one, the same losses). On seven sessions x two models (the benchmark's, an off-grid one,
+the whole grid at 32 spp. On seven sessions x two models (the benchmark's, an off-grid one,
 the demo's three channels, and the paper's two d 0.01 um cases, where a whole grid at 16 spp
 had picked another node in session 13) it picked the whole 32-spp grid's node every time.
+
+The renders are queued together (`ForwardModel.render_profiles_many`): at 8 spp a render is
+mostly its tracing in Python, during which the previous ones' kernels run (session 59, 2 cores,
+a 64-pixel window: 6.2-6.8 s against 8.0-9.1 s one by one, the same losses bit for bit).
 """
 
 from __future__ import annotations
