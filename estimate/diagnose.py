@@ -840,8 +840,8 @@ class _Confirmation:
         pruned: list[dict[str, Any]] = []
         importance: dict[str, dict[str, Any]] = {}
         full = last_full[0] if last_full is not None else None
-        if len(confirmed) >= 2 and last_full is not None and full is not None and deferred is None:
-            full = self.finish(exts, full, last_full[1])
+        if len(confirmed) >= 2 and last_full is not None and deferred is None:
+            full = self.finish(exts, last_full[0], last_full[1])
             pruned, rises = _prune(self.problem, self.make_model, confirmed, exts, full, spp=self.spp,
                                    seed=self.seed, model_variance=last_full[1], floor=self.floor,
                                    n_obs=int(np.sum(np.isfinite(current.residuals.r))),

@@ -425,9 +425,8 @@ class ForwardModel:
         `requests`, the same numbers, the renders queued together (`_radiances`: on 2 cores
         the coarse start's 220 renders at 8 spp took 25 % less time)."""
         checked = [(self.validate(p), int(seed)) for p, seed in requests]
-        angles = self._check_call(angles_deg, spp, 0)
-        for _, seed in checked:
-            self._check_call(angles, spp, seed)
+        # The smallest seed is the one to refuse, if any is.
+        angles = self._check_call(angles_deg, spp, min((seed for _, seed in checked), default=0))
         window = self.geometry.window(None, None)
         y_shape = self._y_shape(angles, window)
         with self._lock:
@@ -589,7 +588,6 @@ class ForwardModel:
                         base_rad = self._render_radiance(values, angles, window, spp, seed)
                 out[name] = self._image_param_derivative(base_rad, values, name, window, y_shape)
                 continue
-            out[name] = np.empty(0)  # keeps the order of `names`; filled below
             x = values[name]
             h = float((steps or {}).get(name, spec.fd_step * max(1.0, abs(x))))
             lo = x - h
@@ -623,7 +621,7 @@ class ForwardModel:
         for name, v_lo, v_hi, step in diffs:
             r_lo = end(v_lo)
             out[name] = ((end(v_hi) - r_lo) / step)[:, 0, :]
-        return out
+        return {name: out[name] for name in names}
 
     def additive_parameters(self) -> list[str]:
         """Parameters that add `value x a fixed image` to the profiles (`ParameterSpec.additive`).
@@ -851,8 +849,8 @@ class _SceneBundle:
         #: the exponential phase plugin, told its coefficients before each update (`announce`)
         self.exp_phase = None
         if self.k_phase and model.phase.startswith("exp"):
-            media = [sh.interior_medium() for sh in self.scene.shapes() if sh.interior_medium() is not None]
-            self.exp_phase = media[0].phase_function()
+            medium = next(m for m in (sh.interior_medium() for sh in self.scene.shapes()) if m is not None)
+            self.exp_phase = medium.phase_function()
         self.k_beam = {n: key(f"beam.{n}") for n in ("angle_deg", "eta", "thickness", "sigma_t",
                                                      "halo_fraction", "halo_sigma_mm")}
         self.eta = 1.5

@@ -55,21 +55,19 @@ def phase_candidates(phase: str) -> list[dict[str, float]]:
 def start_loss(fm: ForwardModel, problem: Problem, params: Mapping[str, float], spp: int, seed: int,
                delta_rel: float, scale: float | None = None) -> float:
     """Log loss of one candidate start at `delta_rel` (scale profiled unless given)."""
-    prof = fm.render_profiles(params, problem.angles_deg, spp=spp, seed=seed)
-    return _profile_loss(problem, prof, delta_rel, scale)
-
-
-def _profile_loss(problem: Problem, prof: np.ndarray, delta_rel: float, scale: float | None) -> float:
-    s = scale if scale is not None else profile_scale(problem.measured, prof, problem.valid, delta_rel)
-    return log_loss(problem.measured, prof, problem.valid, s, delta_rel)[0]
+    return _start_losses(fm, problem, [params], spp, seed, delta_rel, scale)[0]
 
 
 def _start_losses(fm: ForwardModel, problem: Problem, candidates: Sequence[Mapping[str, float]], spp: int,
                   seed: int, delta_rel: float, scale: float | None) -> list[float]:
     """`start_loss` of each candidate, their renders queued one behind the other
-    (`ForwardModel.render_profiles_many`: the same numbers)."""
-    profs = fm.render_profiles_many([(p, seed) for p in candidates], problem.angles_deg, spp=spp)
-    return [_profile_loss(problem, prof, delta_rel, scale) for prof in profs]
+    (`ForwardModel.render_profiles_many`: the same numbers as one by one)."""
+    meas, valid = problem.measured, problem.valid
+    losses = []
+    for prof in fm.render_profiles_many([(p, seed) for p in candidates], problem.angles_deg, spp=spp):
+        s = scale if scale is not None else profile_scale(meas, prof, valid, delta_rel)
+        losses.append(log_loss(meas, prof, valid, s, delta_rel)[0])
+    return losses
 
 
 def coarse_start(fm: ForwardModel, problem: Problem, base: Mapping[str, float], *, spp: int = 32,
