@@ -70,7 +70,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC
-from typing import Any, ClassVar, NamedTuple
+from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
 import numpy as np
 from scipy import stats
@@ -105,6 +105,9 @@ from estimate.residuals import (
 )
 from estimate.screening import CandidateScore, candidate_columns, score_test, screen
 from estimate.start import coarse_start, start_loss
+
+if TYPE_CHECKING:
+    from estimate.forward import ForwardModel
 
 __all__ = [
     "BIC_STRONG",
@@ -239,7 +242,7 @@ FINAL_SPP_FACTOR = 2
 #: boundary's, 10.29 -> 4.03-4.27, where the truth itself takes 64 %).
 MIN_SHARE = 0.5
 
-ModelFactory = Callable[[Sequence[str]], Any]
+ModelFactory = Callable[[Sequence[str]], "ForwardModel"]
 
 
 @dataclass
@@ -525,7 +528,7 @@ def _is_material(name: str) -> bool:
     return name in ("sigma_t", "albedo") or name.startswith("phase.")
 
 
-def _free_names(model: Any, extensions: Sequence[str]) -> list[str]:
+def _free_names(model: ForwardModel, extensions: Sequence[str]) -> list[str]:
     base = [n for n in model.parameter_names if _is_material(n)]
     out = list(base)
     for e in extensions:
@@ -533,7 +536,7 @@ def _free_names(model: Any, extensions: Sequence[str]) -> list[str]:
     return out
 
 
-def _start(model: Any, params: Mapping[str, float], ext: str, brightest: float) -> dict[str, float]:
+def _start(model: ForwardModel, params: Mapping[str, float], ext: str, brightest: float) -> dict[str, float]:
     p = dict(params)
     for k, v in FREE_PARAMETERS[ext].items():
         if k not in p or p[k] == model.specs[k].neutral:
@@ -541,7 +544,7 @@ def _start(model: Any, params: Mapping[str, float], ext: str, brightest: float) 
     return p
 
 
-def _candidate_start(model: Any, problem: Any, start: Mapping[str, float], how: GridStart,
+def _candidate_start(model: ForwardModel, problem: Any, start: Mapping[str, float], how: GridStart,
                      chi2_at: Callable[[Mapping[str, float]], float]
                      ) -> tuple[dict[str, float], dict[str, Any], dict[str, float]]:
     """A candidate refit's start: `start` (the fit's material, the effect at its start value)
@@ -632,7 +635,7 @@ def _magnitude_lr_z(fit: RefitResult, chi2_control: float, chi2_neutral: float, 
     return float(-stats.norm.ppf(0.5 * math.exp(logp))) if logp > -700 else math.sqrt(lr / max(1.0, red))
 
 
-def _with_uncertainties(problem: Any, model: Any, free: Sequence[str], fit: RefitResult,
+def _with_uncertainties(problem: Any, model: ForwardModel, free: Sequence[str], fit: RefitResult,
                         how: Mapping[str, Any]) -> RefitResult:
     """`fit` (a refit made with `uncertainties=False`) with its uncertainties and covariance:
     `refit(iterations=0)` from its optimum with the same seed, spp, angles and weights
@@ -643,7 +646,7 @@ def _with_uncertainties(problem: Any, model: Any, free: Sequence[str], fit: Refi
     return dataclasses.replace(fit, uncertainties=u.uncertainties, covariance=u.covariance)
 
 
-def _neutral_magnitudes(model: Any, params: Mapping[str, float], ext: str) -> dict[str, float]:
+def _neutral_magnitudes(model: ForwardModel, params: Mapping[str, float], ext: str) -> dict[str, float]:
     p = dict(params)
     for n in MAGNITUDE_PARAMETERS[ext]:
         if n in p:
@@ -792,7 +795,7 @@ class _Confirmation:
                 "model_variance": _render_variance(current, self.repeats, spp_factor), "noise_scale": self.floor,
                 "objective": self.refit_objective, **self.noise_how}
 
-    def evaluate_on(self, model: Any, parameters: Mapping[str, float], angle_idx: Sequence[int],
+    def evaluate_on(self, model: ForwardModel, parameters: Mapping[str, float], angle_idx: Sequence[int],
                     scale: float | None = None) -> Evaluation:
         """`model` evaluated at `parameters` on the angles `angle_idx` against the yardstick, at
         the diagnosis' spp, seed and repeats; nothing counted as fitted. `scale`: held at that
@@ -1617,7 +1620,7 @@ def _by_importance(confirmed: Sequence[str], rises: Mapping[str, float], stage: 
     return ranked, {e: {"chi2_rise": float(rises[e]), "stage": stage} for e in ranked if e in rises}
 
 
-def _prune_final(problem: Any, model: Any, params: Mapping[str, float], confirmed: Sequence[str],
+def _prune_final(problem: Any, model: ForwardModel, params: Mapping[str, float], confirmed: Sequence[str],
                  before: Evaluation, *, spp: int, seed: int, repeats: int, renders: np.ndarray | None = None,
                  uncertainties: Mapping[str, float] | None = None,
                  covariance: Mapping[str, Mapping[str, float]] | None = None,
@@ -1733,7 +1736,7 @@ def _ask_magnitude(entry: dict[str, Any], z: float) -> None:
     entry["dropped"] = bool(entry["dropped"] or z <= MAGNITUDE_SIGMA)
 
 
-def _final_fit_start(problem: Any, model: Any, lm: Evaluation, settings: FitSettings,
+def _final_fit_start(problem: Any, model: ForwardModel, lm: Evaluation, settings: FitSettings,
                      cal: ScaleCalibration | None) -> tuple[dict[str, float], dict[str, Any]]:
     """Where the estimator's final fit starts: the LM refit, carried over to the fit's scale.
 
@@ -1883,8 +1886,8 @@ def _explains_enough(d: ChannelDiagnosis, after: Evaluation, min_share: float, s
         d.confirmed, d.importance = [], {}
 
 
-def _name_after_check(problem: Any, d: ChannelDiagnosis, model: Any, params: Mapping[str, float], stage: str, *,
-                      spp: int, seed: int, repeats: int, renders: np.ndarray | None,
+def _name_after_check(problem: Any, d: ChannelDiagnosis, model: ForwardModel, params: Mapping[str, float],
+                      stage: str, *, spp: int, seed: int, repeats: int, renders: np.ndarray | None,
                       uncertainties: Mapping[str, float], covariance: Mapping[str, Mapping[str, float]],
                       say: Callable[[str], None]) -> None:
     """`_prune_final` at the model `params` of `d`'s confirmed effects ("final fit", or the

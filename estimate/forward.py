@@ -575,18 +575,15 @@ class ForwardModel:
         angles = self._check_call(angles_deg, spp, seed)
         window = self.geometry.window(columns, None)
         out: dict[str, np.ndarray] = {}
-        base_rad: np.ndarray | None = None
         y_shape = self._y_shape(angles, window)
         profile_only = window.height == 1
+        #: exact through the image-space function, from one render at `values`
+        image_names = [name for name in names if self._spec(name).derivative == "image"]
         #: per difference: name, the two ends' values (None: the base profiles), the step
         diffs: list[tuple[str, dict[str, float] | None, dict[str, float] | None, float]] = []
         for name in names:
             spec = self._spec(name)
             if spec.derivative == "image":
-                if base_rad is None:
-                    with self._lock:
-                        base_rad = self._render_radiance(values, angles, window, spp, seed)
-                out[name] = self._image_param_derivative(base_rad, values, name, window, y_shape)
                 continue
             x = values[name]
             h = float((steps or {}).get(name, spec.fd_step * max(1.0, abs(x))))
@@ -608,10 +605,16 @@ class ForwardModel:
                     hi, lo = x, max(x - h, lower)
             diffs.append((name, None if one_sided and lo == x else {**values, name: lo},
                           None if one_sided and hi == x else {**values, name: hi}, hi - lo))
-        # Every end's render queued before any is read (`_radiances`).
-        jobs = [(v, seed) for _, v_lo, v_hi, _ in diffs for v in (v_lo, v_hi) if v is not None]
+        # Every render (the image parameters' base first, then each difference's ends) queued
+        # before any is read (`_radiances`).
+        jobs = [(values, seed)] if image_names else []
+        jobs += [(v, seed) for _, v_lo, v_hi, _ in diffs for v in (v_lo, v_hi) if v is not None]
         with self._lock:
             rads = iter(self._radiances(jobs, angles, window, spp))
+        if image_names:
+            base_rad = next(rads)
+            for name in image_names:
+                out[name] = self._image_param_derivative(base_rad, values, name, window, y_shape)
 
         def end(v: dict[str, float] | None) -> np.ndarray:
             if v is None:  # only one-sided differences leave an end unrendered

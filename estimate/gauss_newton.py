@@ -18,6 +18,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
 from estimate.forward import ForwardModel
+from estimate.model_protocols import ProfileModel
 from estimate.problem import Problem
 from estimate.transforms import Transform, transform_for
 
@@ -93,7 +94,7 @@ def snr_step(h_inv: np.ndarray, g_avg: np.ndarray, recent: Sequence[np.ndarray],
     return V @ (mu * shrink * proj)
 
 
-def secant_steps(fm: ForwardModel, params: Mapping[str, float], names: Sequence[str]) -> dict[str, float]:
+def secant_steps(fm: ProfileModel, params: Mapping[str, float], names: Sequence[str]) -> dict[str, float]:
     """Finite-difference steps (in each parameter's own units) for Jacobians that must
     describe the mean trend of Monte Carlo renders rather than one seed's jagged surface:
     5 % in sigma_t, 0.3 in logit albedo, 0.1 in atanh g, 0.5 in b_i, 3x the default

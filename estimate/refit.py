@@ -20,13 +20,13 @@ import logging
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 from scipy import ndimage
 
 from estimate.errors import ModelParameterError
 from estimate.gauss_newton import bounded_cross, secant_steps
+from estimate.model_protocols import ProfileModel, ProfileRecording
 from estimate.residuals import (
     FitResiduals,
     fit_significance,
@@ -105,7 +105,7 @@ class Evaluation:
     n_params: int
 
 
-def recording_variance(problem: Any) -> np.ndarray:
+def recording_variance(problem: ProfileRecording) -> np.ndarray:
     var = np.asarray(problem.variance, dtype=np.float64).copy()
     valid = getattr(problem, "valid", None)
     if valid is not None:
@@ -153,8 +153,8 @@ def smoothed_variance(renders: np.ndarray) -> np.ndarray:
     return pooled * np.maximum(m, floor)
 
 
-def evaluate(model: Any, params: Mapping[str, float], problem: Any, n_params: int, *, spp: int = 256,
-             seed: int = DEFAULT_SEED, repeats: int = 4, angle_idx: Sequence[int] | None = None,
+def evaluate(model: ProfileModel, params: Mapping[str, float], problem: ProfileRecording, n_params: int, *,
+             spp: int = 256, seed: int = DEFAULT_SEED, repeats: int = 4, angle_idx: Sequence[int] | None = None,
              scale: float | None = None, noise_variance: np.ndarray | None = None,
              renders: np.ndarray | None = None) -> Evaluation:
     """Render `repeats` seeds, average, and test the fit (scale refitted unless given).
@@ -188,7 +188,7 @@ def evaluate(model: Any, params: Mapping[str, float], problem: Any, n_params: in
     return Evaluation(dict(model.validate(params)), list(model.extensions), s, mean, mvar, res, n_params)
 
 
-def independent_residuals(problem: Any, ev: Evaluation, model: Any, *, spp: int, repeats: int,
+def independent_residuals(problem: ProfileRecording, ev: Evaluation, model: ProfileModel, *, spp: int, repeats: int,
                           seed: int) -> tuple[np.ndarray, np.ndarray]:
     """The residuals of `ev` weighed by a Monte-Carlo variance independent of its mean render.
 
@@ -220,8 +220,8 @@ def independent_residuals(problem: Any, ev: Evaluation, model: Any, *, spp: int,
     return r / f[:, None], sigma
 
 
-def render_stack(model: Any, params: Mapping[str, float], problem: Any, *, spp: int = 256, seed: int = DEFAULT_SEED,
-                 repeats: int = 4, angle_idx: Sequence[int] | None = None) -> np.ndarray:
+def render_stack(model: ProfileModel, params: Mapping[str, float], problem: ProfileRecording, *, spp: int = 256,
+                 seed: int = DEFAULT_SEED, repeats: int = 4, angle_idx: Sequence[int] | None = None) -> np.ndarray:
     """The (repeats, N, W) renders `evaluate` averages: seeds seed + 7 k, queued together
     (`ForwardModel.render_profiles_many`)."""
     idx = list(range(len(problem.angles_deg))) if angle_idx is None else list(angle_idx)
@@ -238,7 +238,7 @@ def render_stack(model: Any, params: Mapping[str, float], problem: Any, *, spp: 
 MAX_GLARE_FRACTION = 0.1
 
 
-def parameter_bounds(model: Any, name: str) -> tuple[float, float]:
+def parameter_bounds(model: ProfileModel, name: str) -> tuple[float, float]:
     spec = model.specs[name]
     lo = spec.lower
     hi = spec.upper
@@ -372,7 +372,7 @@ def decorrelated_step(render: Callable[[dict[str, float]], tuple[np.ndarray, np.
     return dict(theta), s0
 
 
-def refit(model: Any, problem: Any, start: Mapping[str, float], free: Sequence[str], *,
+def refit(model: ProfileModel, problem: ProfileRecording, start: Mapping[str, float], free: Sequence[str], *,
           angle_idx: Sequence[int] | None = None, spp: int = 256, seed: int = 2000, iterations: int = 12,
           model_variance: np.ndarray | None = None, noise_scale: np.ndarray | None = None,
           decorrelate: bool = False, uncertainties: bool = True, objective: str = FIXED_SEED,
@@ -532,7 +532,7 @@ def _uncertainties(a: np.ndarray, b: np.ndarray, free: Sequence[str], chi2: floa
     return unc, covd
 
 
-def _refit_decorrelated(model: Any, angles: Sequence[float], meas: np.ndarray, sig: np.ndarray,
+def _refit_decorrelated(model: ProfileModel, angles: Sequence[float], meas: np.ndarray, sig: np.ndarray,
                         theta: dict[str, float], free: list[str], bounds: Sequence[tuple[float, float]], *,
                         spp: int, seed: int, iterations: int, uncertainties: bool) -> RefitResult:
     """`refit` on the decorrelated chi^2 of seeds `seed` and `seed + UNCERTAINTY_SEED_OFFSET`.

@@ -43,13 +43,16 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy import stats
 
 from estimate.extensions import EXTENSIONS
 from estimate.extensions.lens_blur import LensBlur
+
+if TYPE_CHECKING:
+    from estimate.forward import ForwardModel
 
 __all__ = ["PROBES", "CandidateScore", "candidate_columns", "score_test", "screen"]
 
@@ -153,7 +156,7 @@ def image_columns(name: str, base: np.ndarray, pixel_mm: float,
     raise KeyError(name)
 
 
-def candidate_columns(model: Any, params: Mapping[str, float], angles_deg: Sequence[float],
+def candidate_columns(model: ForwardModel, params: Mapping[str, float], angles_deg: Sequence[float],
                       base: np.ndarray, names: Sequence[str], *, spp: int, seed: int,
                       render: Callable[..., np.ndarray] | None = None) -> dict[str, list[np.ndarray]]:
     """Derivative (secant) columns of each candidate at the base fit, unscaled profiles (N, W).
