@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -273,5 +274,7 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                       "suite); the estimator's final fit, without --quick, does not share this bias)", file=out)
     if doc.get("refit_run"):
         print(f"refit written as estimate run {doc['refit_run']}", file=out)
-    print(f"diagnosis written to diagnoses/{doc['run_id']}/diagnosis.yaml", file=out)
+    # The whole path where the session's is known: a terminal's reader may be anywhere.
+    where = Path(doc["session"]) if doc.get("session") else Path()
+    print(f"diagnosis written to {where / 'diagnoses' / doc['run_id'] / 'diagnosis.yaml'}", file=out)
     return out.getvalue().rstrip()

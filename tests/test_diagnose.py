@@ -735,6 +735,10 @@ def test_cli_end_to_end_writes_diagnosis_and_json(tmp_path, capsys):
     assert [c["name"] for c in ch["candidates"]] in ([], ["stray_light"])
     written = yaml.safe_load((s / "diagnoses" / doc["run_id"] / "diagnosis.yaml").read_text())
     assert written["format"] == "rig-diagnosis/1" and written["channels"]["g"]["significant"] == ch["significant"]
+    # The summary `rig diagnose` prints says where the file is from anywhere, not from the session.
+    said = next(line for line in doc["summary"].splitlines() if line.startswith("diagnosis written to "))
+    assert Path(said.removeprefix("diagnosis written to ")).resolve() == (s / "diagnoses" / doc["run_id"]
+                                                                         / "diagnosis.yaml").resolve()
     if doc["refit_run"]:   # a confirmed effect: the refit run carries its covariance into the derived values
         refit = yaml.safe_load((Path(doc["refit_run"]) / "results.yaml").read_text())["channels"]["g"]
         assert refit["derived"]["sigma_a"]["uncertainty"] is not None
