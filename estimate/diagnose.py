@@ -1240,8 +1240,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
     yardstick = _yardstick(problem, before)
     say(f"{problem.channel}: reduced chi2 {before.residuals.reduced_chi2:.3f} (HDR variance), "
         f"{before.residuals.reduced_chi2_adjusted:.3f} at noise floor f = {np.median(floor):.2f} "
-        f"(smooth structure as fitted p={before.residuals.p_value_smooth:.2g}; the test that decides comes "
-        f"with the screening); {loc['summary']}")
+        f"(smooth structure as fitted p={before.residuals.p_value_smooth:.2g}; the test that decides, on what "
+        f"the fitted parameters cannot absorb, comes with the screening); {loc['summary']}")
     train, held = _holdout(n)
     laps("locate")
     # The smooth-structure test cannot see a mismatch that changes sign within a few pixels
@@ -2299,7 +2299,10 @@ def _verdict(before: Evaluation, loc: dict[str, Any], scores: list[CandidateScor
              f"({b.reduced_chi2:.2f} with the HDR variance alone)" if f > 1.0 + 1e-9
              else f"reduced chi2 {b.reduced_chi2:.2f}")
     if not b.significant:
-        return (f"no significant mismatch: no smooth structure in the residuals (p = {b.p_value_smooth:.2g}) "
+        # The p-value is of the residuals beyond the fit once the screening has run
+        # (`_targeted_significance`); the one as fitted is in the locate stage's log line.
+        beyond = " beyond what the fitted parameters absorb" if "smooth_as_fitted" in b.extra else ""
+        return (f"no significant mismatch: no smooth structure in the residuals{beyond} (p = {b.p_value_smooth:.2g}) "
                 f"and no candidate's score test rejects; {noise} on {b.dof} degrees of freedom")
     by = b.extra.get("significant_by") or "smooth structure"
     test = f"smooth structure, p = {b.p_value_smooth:.2g}" if by == "smooth structure" else by

@@ -150,6 +150,14 @@ def test_clean_recording_with_frozen_excess_noise_has_no_significant_mismatch():
     truth = np.sqrt(np.mean((31.0 * rec.variance + mv) / (rec.variance + mv), axis=1))
     assert np.all(np.abs(res.noise_scale / truth - 1.0) < 0.35), (res.noise_scale, truth)
     assert res.reduced_chi2_adjusted < 1.3
+    # The verdict's p-value is the test that decided (beyond the fit), and it says so: the
+    # locate stage's line printed the residuals' p as fitted, which may be small.
+    from estimate.diagnose import _verdict
+
+    verdict = _verdict(ev, _loc, _scores, [], None)
+    assert verdict.startswith("no significant mismatch: no smooth structure in the residuals beyond what the "
+                              f"fitted parameters absorb (p = {res.p_value_smooth:.2g})"), verdict
+    assert "smooth_as_fitted" in res.extra
 
 
 @pytest.mark.parametrize("effect", [{"stray_light.offset": 0.003},
