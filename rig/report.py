@@ -30,8 +30,19 @@ def _table(rows: list[list[Any]], head: list[str]) -> str:
 
 
 def _fmt(v: Any) -> str:
+    """A table cell: floats to 5 significant digits (also inside lists and mappings, which
+    YAML gives as full-precision floats: a beam centroid of 8.109064234910571e-07 mm says no
+    more than 8.1091e-07), a missing value as "-", a mapping as "key value, ..."."""
+    if v is None:
+        return "-"
+    if isinstance(v, bool):
+        return str(v)
     if isinstance(v, float):
         return f"{v:.5g}"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return ", ".join(f"{k} {_fmt(x)}" for k, x in v.items()) if v else "-"
     return str(v)
 
 
@@ -106,15 +117,19 @@ def write_report(session_dir: str | os.PathLike[str], out: str | os.PathLike[str
             continue
         parts.append(f"<h3>{html.escape(doc['run_id'])}</h3>")
         st = doc.get("settings") or {}
-        parts.append(f"<p>model {html.escape(str(st.get('model')))}, extensions {html.escape(str(st.get('extensions')))}, "
-                     f"software {html.escape(str(doc.get('software')))}</p>")
+        exts = st.get("extensions") or []
+        parts.append(f"<p>model {html.escape(str(st.get('model')))}, extensions "
+                     f"{html.escape(', '.join(map(str, exts)) if exts else 'none')}, scale "
+                     f"{html.escape(str(st.get('scale') or '-'))}, software {html.escape(_fmt(doc.get('software')))}</p>")
+        # A calibrated scale (the default) is not fitted and has no interval of its own.
+        scale_unc_missing = "from the calibration" if st.get("scale") == "calibrated" else "-"
         rows = []
         for f, ch in (doc.get("channels") or {}).items():
             for k, v in ch["parameters"].items():
                 rows.append([f, k, v, (ch.get("uncertainties") or {}).get(k, "fixed")])
             for k, d in (ch.get("derived") or {}).items():
                 rows.append([f, f"{k} [{d.get('unit') or '-'}] (derived)", d.get("value"), d.get("uncertainty")])
-            rows.append([f, "scale", ch["scale"], ch.get("scale_uncertainty")])
+            rows.append([f, "scale", ch["scale"], ch.get("scale_uncertainty") or scale_unc_missing])
             rows.append([f, "loss / reduced chi2", ch["loss"], ch["reduced_chi2"]])
             rows.append([f, "iterations / time [s]", ch["iterations"], ch["time_s"]])
             if ch.get("still_drifting"):

@@ -68,6 +68,19 @@ def test_json_shape_and_runs_never_overwritten(session, capsys):
     html_path = capsys.readouterr().out.strip().splitlines()[-1]
     html = Path(html_path).read_text()
     assert run["run_id"] in html and "data:image/png;base64," in html
+    # No Python reprs in the tables: a calibrated scale says where it came from, nothing reads None.
+    assert "<td>from the calibration</td>" in html and ">None<" not in html and "{'" not in html
+
+
+def test_report_cells_round_floats_wherever_they_are():
+    """YAML gives full-precision floats; a cell shows 5 significant digits, also inside lists
+    and mappings, a missing value as "-"."""
+    from rig.report import _fmt
+
+    assert _fmt(8.109064234910571e-07) == "8.1091e-07"
+    assert _fmt([258.29982094409644, 253.600102204556]) == "[258.3, 253.6]"
+    assert _fmt({"rig": "0.1.0", "width_mm": (0.24985426399829674, 0.25)}) == "rig 0.1.0, width_mm [0.24985, 0.25]"
+    assert _fmt(None) == "-" and _fmt({}) == "-" and _fmt(True) == "True" and _fmt(3) == "3"
 
 
 @pytest.mark.parametrize("extra, message", [
