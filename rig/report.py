@@ -120,7 +120,8 @@ def write_report(session_dir: str | os.PathLike[str], out: str | os.PathLike[str
         exts = st.get("extensions") or []
         parts.append(f"<p>model {html.escape(str(st.get('model')))}, extensions "
                      f"{html.escape(', '.join(map(str, exts)) if exts else 'none')}, scale "
-                     f"{html.escape(str(st.get('scale') or '-'))}, software {html.escape(_fmt(doc.get('software')))}</p>")
+                     f"{html.escape(str(st.get('scale') or '-'))}, "
+                     f"software {html.escape(_fmt(doc.get('software')))}</p>")
         # A calibrated scale (the default) is not fitted and has no interval of its own.
         scale_unc_missing = "from the calibration" if st.get("scale") == "calibrated" else "-"
         rows = []
