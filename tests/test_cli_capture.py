@@ -308,6 +308,9 @@ def test_calibration_sets_the_band_and_is_attached(tmp_path: Path, capsys: pytes
         assert rec.info["stage_angle_deg"] == pytest.approx(rec.angle_deg - 0.37)
     roi = g["camera_roi"]
     assert roi["y"] <= round(centre[1]) < roi["y"] + roi["height"]
+    # `rig info` names the centre to 0.01 px, not at the calibration's full float precision
+    assert main(["info", str(out)]) == 0
+    assert f"beam centre ({float(centre[0]):.2f}, {float(centre[1]):.2f}) px" in capsys.readouterr().out
     (cal / "calibration.yaml").write_text("beam: {}\n")
     assert main(["capture", "--angles", "1", "--out", str(tmp_path / "t"), "--calibration", str(cal)]) == 2
     assert "beam.center_px" in capsys.readouterr().err

@@ -111,7 +111,10 @@ def _print(d: dict[str, Any], problems: list[str]) -> None:
               f"ROI y {roi.get('y', '?')}+{roi.get('height', '?')} rows")
     cal = d["calibration"]
     if cal:
-        extra = f", beam centre {cal['beam_center_px']} px" if cal.get("beam_center_px") else ""
+        centre = cal.get("beam_center_px")
+        # The calibration keeps the fitted centre at full float precision; 0.01 px is well below its error.
+        extra = (f", beam centre ({', '.join(f'{float(c):.2f}' for c in centre)}) px"
+                 if isinstance(centre, (list, tuple)) and centre else "")
         print(f"calib.   {cal['source']} ({len(cal['files'])} files{extra})" + (f"  [{cal['error']}]" if cal.get("error") else ""))
     else:
         print("calib.   none attached")
