@@ -211,10 +211,10 @@ class Executor:
             if self._done(step.key):
                 return
             bar.update(f"{step.key.id} darks")
-            status = self._status.get(step.key)
-            if status is None:
+            bracketed = self._status.get(step.key)
+            if bracketed is None:
                 raise RuntimeError(f"plan error: Dark step for {step.key.id} before its Bracket")
-            self._dark[step.key] = acquire_darks(self.camera, status.exposures_s, step.n)
+            self._dark[step.key] = acquire_darks(self.camera, bracketed.exposures_s, step.n)
         elif isinstance(step, SaveStack):
             if self._done(step.key):
                 summary.skipped.append(step.key.id)

@@ -50,7 +50,7 @@ def _functions(model: str) -> dict[str, Callable[[Mapping[str, float]], float]]:
 
 def derived_quantities(model: str, params: Mapping[str, float],
                        covariance: Mapping[str, Mapping[str, float]] | None = None,
-                       rel_step: float = 1e-5) -> dict[str, dict[str, float | None]]:
+                       rel_step: float = 1e-5) -> dict[str, dict[str, float | str | None]]:
     """Derived quantities of a fitted parameter set, with 1-sigma uncertainties.
 
     Args:
@@ -68,7 +68,7 @@ def derived_quantities(model: str, params: Mapping[str, float],
     fns = _functions(model)
     names = [n for n in (covariance or {}) if n in params]
     cov = np.array([[float(covariance[a].get(b, 0.0)) for b in names] for a in names]) if names else None  # type: ignore[index]
-    out: dict[str, dict[str, float | None]] = {}
+    out: dict[str, dict[str, float | str | None]] = {}
     for key, f in fns.items():
         value = float(f(params))
         unc: float | None = None

@@ -275,6 +275,6 @@ def summary_text(doc: Mapping[str, Any]) -> str:
     if doc.get("refit_run"):
         print(f"refit written as estimate run {doc['refit_run']}", file=out)
     # The whole path where the session's is known: a terminal's reader may be anywhere.
-    where = Path(doc["session"]) if doc.get("session") else Path()
-    print(f"diagnosis written to {where / 'diagnoses' / doc['run_id'] / 'diagnosis.yaml'}", file=out)
+    session_dir = Path(doc["session"]) if doc.get("session") else Path()
+    print(f"diagnosis written to {session_dir / 'diagnoses' / doc['run_id'] / 'diagnosis.yaml'}", file=out)
     return out.getvalue().rstrip()

@@ -417,7 +417,7 @@ class FitResult:
                 "stop_reason": self.stop_reason, "extensions": list(self.extensions),
                 "derived": self.derived(), "drifting": list(self.drifting), "solved": list(self.solved)}
 
-    def derived(self) -> dict[str, dict[str, float | None]]:
+    def derived(self) -> dict[str, dict[str, float | str | None]]:
         """sigma_s, sigma_a, g, sigma_s' and the transport albedo with 1-sigma uncertainties
         (`estimate.derived.derived_quantities`)."""
         from estimate.derived import derived_quantities
@@ -629,6 +629,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             mean = 0.5 * (pa + pb_)
             if fixed_scale is None:
                 scale = profile_scale(problem.measured, mean, problem.valid, delta_rel, guess=scale)
+            assert scale is not None  # the calibration's, or profiled just now
             curve_loss = log_loss(problem.measured, mean, problem.valid, scale, d_ref)[0]
             m = problem.measured / scale
             dl = max(delta_rel * float(np.max(np.where(problem.valid, m, -np.inf))), 1e-30)

@@ -316,14 +316,14 @@ def mie_poly(
     wq = simpson_weights(theta.size) * np.sin(theta)
     for s in range(0, x.size, chunk):
         xs, ws = x[s: s + chunk], weights[s: s + chunk]
-        r = _size_batch(settings, xs)
-        csca = ws * np.pi * xs**2 * r["qsca"]     # number x cross-section (common 1/k^2 dropped)
-        p_acc += ws @ r["intensity"]
+        batch = _size_batch(settings, xs)
+        csca = ws * np.pi * xs**2 * batch["qsca"]     # number x cross-section (common 1/k^2 dropped)
+        p_acc += ws @ batch["intensity"]
         csca_acc += float(np.sum(csca))
         if g_source == "exact":
-            g_k = r["g"]
+            g_k = batch["g"]
         else:   # the GUI: Simpson's rule over the angular grid, per radius
-            it = r["intensity"]
+            it = batch["intensity"]
             g_k = (it @ (wq * np.cos(theta))) / (it @ wq)
         g_acc += float(np.sum(csca * g_k))
     p = p_acc / csca_acc

@@ -52,6 +52,8 @@ def register_plugins() -> None:
     from mitsuba.python.ad.integrators.prbvolpath import PRBVolpathIntegrator
 
     variant = mi.variant()
+    if variant is None:
+        raise RuntimeError("no Mitsuba variant is set: call estimate.mitsuba_env.init_mitsuba first")
     if variant in _registered:
         return
 
@@ -77,7 +79,7 @@ def register_plugins() -> None:
             `backward_kept`. The paths are traced (evaluated) here; the image may be lazy."""
             film = sensor.film()
             with dr.suspend_grad():
-                sampler, spp = self.prepare(sensor, seed, spp, self.aov_names())
+                sampler, spp = self.prepare(sensor, seed, spp, self.aov_names())  # type: ignore[arg-type]
                 ray, weight, pos = self.sample_rays(scene, sensor, sampler)
                 # The replay must draw the same random numbers: the primal pass uses a clone,
                 # as render_backward's does, and the original is kept for the replay.
@@ -90,7 +92,9 @@ def register_plugins() -> None:
                 dr.eval(L, valid, state, ray, weight, pos)
                 block = film.create_block()
                 block.set_coalesce(block.coalesce() and spp >= 4)
-                ADIntegrator._splat_to_block(block, film, pos, value=L * weight, weight=1.0,
+                # (Mitsuba's stubs ask for Dr.Jit arrays where its own integrators pass numbers.)
+                ADIntegrator._splat_to_block(block, film, pos, value=L * weight,
+                                             weight=1.0,  # type: ignore[arg-type]
                                              alpha=dr.select(valid, mi.Float(1), mi.Float(0)), aovs=aovs,
                                              wavelengths=ray.wavelengths)
                 film.put_block(block)
@@ -115,8 +119,10 @@ def register_plugins() -> None:
                     dr.enable_grad(ones)
                     block = film.create_block()
                     block.set_coalesce(block.coalesce() and kept.spp >= 4)
-                    ADIntegrator._splat_to_block(block, film, kept.pos, value=ones * kept.weight, weight=1.0,
-                                                 alpha=1.0, aovs=[], wavelengths=kept.ray.wavelengths)
+                    # (Mitsuba's stubs ask for Dr.Jit arrays where its own integrators pass numbers.)
+                    ADIntegrator._splat_to_block(block, film, kept.pos, value=ones * kept.weight,
+                                                 weight=1.0, alpha=1.0,  # type: ignore[arg-type]
+                                                 aovs=[], wavelengths=kept.ray.wavelengths)
                     film.put_block(block)
                     image = film.develop()
                     dr.set_grad(image, grad_in)

@@ -124,11 +124,11 @@ def _gl(n: int) -> tuple[np.ndarray, np.ndarray]:
 @lru_cache(maxsize=4)
 def _graded_unit(n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
     """Nodes t in (0, 1] and weights for int_0^1 f(t) dt, panels graded towards t = 0."""
-    edges = [1.0]
-    while edges[-1] > _SMALLEST:
-        edges.append(edges[-1] * _GRADING)
-    edges.append(0.0)
-    edges = np.array(edges[::-1])
+    ends = [1.0]
+    while ends[-1] > _SMALLEST:
+        ends.append(ends[-1] * _GRADING)
+    ends.append(0.0)
+    edges = np.array(ends[::-1])
     x, w = _gl(n_nodes)
     a, b = edges[:-1, None], edges[1:, None]
     t = (0.5 * (b - a) * x + 0.5 * (a + b)).ravel()

@@ -351,6 +351,7 @@ def _fit_tthg(mu: np.ndarray, y: np.ndarray) -> FitResult:
         v, fv = (res.x, float(res.fun)) if res.fun < vals[k] else (starts[k], float(vals[k]))
         if fv < best_f:
             best_v, best_f = v, fv
+    assert best_v is not None  # the starts' own values bound the best from above
     g1, g2, w = (float(np.clip(best_v[i], *bounds[i])) for i in range(3))
     t = TwoTermHG(g1, g2, w)
     return FitResult("tthg", best_f, {"g1": g1, "g2": g2, "w": w, "g": t.asymmetry}, phase=t)

@@ -123,7 +123,7 @@ class Problem:
     beam: BeamProfile
     channel: str
     wavelength_nm: float | None
-    valid: np.ndarray = field(default=None)  # type: ignore[assignment]
+    valid: np.ndarray = field(default=None)  # type: ignore[assignment, arg-type]  # set in __post_init__
     stack_ids: list[str] = field(default_factory=list)
     session_path: str = ""
     missing: list[str] = field(default_factory=list)

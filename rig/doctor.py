@@ -77,7 +77,8 @@ def _rig_requirements() -> tuple[str | None, list[str]]:
     try:
         meta = md.metadata("rig")
         reqs = md.requires("rig") or []
-        return meta.get("Requires-Python"), [r for r in reqs if "extra ==" not in r]
+        python = meta["Requires-Python"] if "Requires-Python" in meta else None
+        return python, [r for r in reqs if "extra ==" not in r]
     except md.PackageNotFoundError:
         import tomllib
 

@@ -748,7 +748,10 @@ def run_selftest(rig: Rig, options: SelfTestOptions | None = None, *,
     try:
         expected = expected_identities(cfg, camera)
         for role, dev in (("stage", stage), ("camera", camera), ("filter", changer)):
-            run.guarded(role, f"{role}.identity", lambda r=role, d=dev: run.add(check_identity(r, d, expected[r])))
+            def identity(r: str = role, d: Any = dev) -> None:
+                run.add(check_identity(r, d, expected[r]))
+
+            run.guarded(role, f"{role}.identity", identity)
         run.each("stage", STAGE_CHECKS, lambda: check_stage_motion(stage, opts))
         run.each("filter", filter_check_names(changer), lambda: check_filters(changer))
 

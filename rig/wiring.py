@@ -136,7 +136,7 @@ def open_changer(cfg: RigConfig, *, sim: bool = False, transcript: Transcript | 
     if f.driver == "manual":
         from drivers.manual_filter import ManualFilterChanger
 
-        return ManualFilterChanger(f.positions, **({"ask": ask} if ask else {}))
+        return ManualFilterChanger(f.positions, ask=ask) if ask else ManualFilterChanger(f.positions)
     from drivers.fw102c import FW102C
 
     port = f.port

@@ -170,6 +170,8 @@ class FW102CTwin(SerialTwin):
             cmd = proto.parse_command(line)
         except ProtocolError:
             cmd = None
+        reply: str | None
+        error: str | None
         if cmd is None:
             reply, error = None, proto.NOT_DEFINED
         elif refuse:

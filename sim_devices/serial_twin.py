@@ -106,7 +106,7 @@ class TwinSerial(serial.SerialBase):
     def open(self) -> None:
         if self._port is None:
             raise serial.SerialException("Port must be configured before it can be used.")
-        if self.is_open:
+        if self.is_open:  # type: ignore[has-type]  # SerialBase sets it in __init__; pyserial has no stubs
             raise serial.SerialException("Port is already open.")
         try:
             self.twin = self.make_twin(urlsplit(self._port))
