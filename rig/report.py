@@ -130,7 +130,8 @@ def write_report(session_dir: str | os.PathLike[str], out: str | os.PathLike[str
                 rows.append([f, k, v, (ch.get("uncertainties") or {}).get(k, "fixed")])
             for k, d in (ch.get("derived") or {}).items():
                 rows.append([f, f"{k} [{d.get('unit') or '-'}] (derived)", d.get("value"), d.get("uncertainty")])
-            rows.append([f, "scale", ch["scale"], ch.get("scale_uncertainty") or scale_unc_missing])
+            s_unc = ch.get("scale_uncertainty")
+            rows.append([f, "scale", ch["scale"], scale_unc_missing if s_unc is None else s_unc])
             rows.append([f, "loss / reduced chi2", ch["loss"], ch["reduced_chi2"]])
             rows.append([f, "iterations / time [s]", ch["iterations"], ch["time_s"]])
             if ch.get("still_drifting"):
