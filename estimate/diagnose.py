@@ -2140,6 +2140,11 @@ def _try_outcome(name: str, final: FitResult | None, dk: ChannelDiagnosis, bette
     its final fit not kept, its magnitude lost there, not better than the first final fit
     (`_against_first`'s `better`), or named."""
     if final is None:
+        # `refine_channel` keeps a final fit unless it fits worse than the base fit; say by how much.
+        ff = dk.final_fit or {}
+        if ff.get("kept") is False and "reduced_chi2_adjusted" in ff and dk.before is not None:
+            return (f"{name}'s final fit was not kept: it ends at reduced chi2 {ff['reduced_chi2_adjusted']:.3g} at "
+                    f"the noise floor, above the base fit's {dk.before.residuals.reduced_chi2_adjusted:.3g}")
         return f"{name}'s final fit was not kept"
     if not dk.confirmed and dk.partial:
         return (f"in the estimator's final fit {name} removes {100 * dk.partial['share_explained']:.0f} % of the "

@@ -1437,6 +1437,25 @@ def test_when_the_first_choice_fails_its_final_fit_the_second_pass_tries_the_nex
     assert sum(d.stage_times_s.values()) == pytest.approx(d.time_s, rel=1e-3, abs=0.05)
 
 
+def test_a_second_pass_try_whose_final_fit_fits_worse_says_by_how_much():
+    """The bench boundary session's stray light: its estimator fit ended above the base fit's
+    reduced chi^2 at the floor, so it was not kept; the try says so with both numbers, where
+    "was not kept" alone read as if the effect itself had been turned away."""
+    from types import SimpleNamespace
+
+    import estimate.diagnose as dg
+
+    before = SimpleNamespace(residuals=SimpleNamespace(reduced_chi2_adjusted=12.898))
+    dk = SimpleNamespace(final_fit={"kept": False, "reduced_chi2_adjusted": 37.21}, before=before,
+                         confirmed=["stray_light"], partial={})
+    assert dg._try_outcome("stray_light", None, dk, None, ["beam_halo"]) == (
+        "stray_light's final fit was not kept: it ends at reduced chi2 37.2 at the noise floor, above the base "
+        "fit's 12.9")
+    # no final fit was made (nothing confirmed): nothing more to say
+    dk.final_fit = {}
+    assert dg._try_outcome("stray_light", None, dk, None, ["beam_halo"]) == "stray_light's final fit was not kept"
+
+
 def test_the_second_pass_fits_refits_that_pass_every_test_before_those_that_fail_one():
     """The refits of the session-54 recapture of the bench boundary session (channel g): by
     the fixed-seed gain alone stray light came first and the angle offset, worse on the
