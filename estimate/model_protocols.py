@@ -3,8 +3,9 @@
 `estimate.forward.ForwardModel` and `estimate.problem.Problem` are the real ones. The
 diagnosis' tests steer it with small stand-ins (a Gaussian profile whose width is the
 "effect", a recording built in memory), so the functions that only render, difference and
-compare profiles take these protocols instead of the concrete classes: a stand-in that lacks
-a member is then a type error, not an `AttributeError` ten minutes into a test.
+compare profiles take these protocols instead of the concrete classes. They say what a
+stand-in must have; mypy (`tests/test_typing.py`) checks the packages' own callers against
+them, not the tests' stand-ins, which are not type-checked.
 
 Units: angles in degrees (the stage angle phi), profiles in the model's radiance units (per
 unit of the calibrated scale), measured radiance and its variance in e-/s and (e-/s)^2.

@@ -106,7 +106,7 @@ class _Reader:
             v = str(v)
         if not isinstance(v, kind) or isinstance(v, bool) and kind is not bool:
             raise self.fail(key, f"must be a {kind.__name__}, got {v!r}")
-        if kind is float and not math.isfinite(float(v)):  # type: ignore[arg-type]  # v is a float here
+        if kind is float and isinstance(v, float) and not math.isfinite(v):
             raise self.fail(key, f"must be finite, got {v!r}")
         if choices is not None and v not in choices:
             raise self.fail(key, f"unknown value {v!r}; use one of: {', '.join(map(str, choices))}")
