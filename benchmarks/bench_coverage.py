@@ -52,8 +52,10 @@ def _git_rev() -> str:
         return "unknown"
 
 
-def fit_draw(seed: int) -> dict:
-    """Make the synthetic session of noise seed `seed`, fit it, return the errors and uncertainties."""
+def fit_draw(seed: int, overrides: dict | None = None) -> dict:
+    """Make the synthetic session of noise seed `seed`, fit it, return the errors and uncertainties.
+    `overrides`: FitSettings fields changed for a trial (`--setting`)."""
+    from fit_overrides import settings_with
     from synth_session import make_session
 
     from estimate.fit import FitSettings, fit_channel
@@ -64,7 +66,9 @@ def fit_draw(seed: int) -> dict:
         session = make_session(tmp / "s", {CHANNEL: TRUTH}, angles=ANGLES, spp=TRUTH_SPP, width=320,
                                scale=SCALE, seed=seed)
         t0 = time.monotonic()
-        r = fit_channel(load_problem(session, CHANNEL), MODEL, settings=FitSettings(seed=seed, scale="calibrated"))
+        st = (settings_with(overrides, seed=seed, scale="calibrated") if overrides
+              else FitSettings(seed=seed, scale="calibrated"))
+        r = fit_channel(load_problem(session, CHANNEL), MODEL, settings=st)
         wall = time.monotonic() - t0
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -117,7 +121,15 @@ def main() -> int:
     ap.add_argument("--draws", type=int, default=8, help="number of noise draws (seeds 0 .. draws-1)")
     ap.add_argument("--fresh", action="store_true", help="forget the draws already in the result file")
     ap.add_argument("--out", type=Path, default=RESULT, help=f"result file (default {RESULT.relative_to(ROOT)})")
+    ap.add_argument("--setting", action="append", default=[], metavar="KEY=VALUE",
+                    help="a FitSettings field to change, e.g. engine=light (JSON values; repeatable)")
     args = ap.parse_args()
+    from fit_overrides import parse_overrides
+    try:
+        overrides = parse_overrides(args.setting)
+    except ValueError as e:
+        print(f"bench_coverage: {e}", file=sys.stderr)
+        return 2
     rev = _git_rev()
     out: Path = args.out
     state = {"draws": []} if args.fresh or not out.exists() else json.loads(out.read_text())
@@ -125,8 +137,9 @@ def main() -> int:
     for seed in range(args.draws):
         if seed in done:
             continue
-        d = fit_draw(seed)
+        d = fit_draw(seed, overrides)
         d["git"] = rev
+        d["setting_overrides"] = overrides
         state["draws"].append(d)
         err = d["parameters"]["sigma_t"] / TRUTH["sigma_t"] - 1
         print(f"draw {seed}: sigma_t {d['parameters']['sigma_t']:.4f} +- {d['uncertainties']['sigma_t']:.4f} "

@@ -142,7 +142,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from estimate.errors import ModelParameterError
 from estimate.evaluation import evaluate, solve_additive
-from estimate.forward import ForwardModel
+from estimate.forward import ENGINES, ForwardModel
 from estimate.gauss_newton import (
     gn_inverse,
     gn_jacobian,
@@ -264,6 +264,9 @@ class FitSettings:
     lm_spp: int = 1024
     uncertainties: bool = True
     scale: str = "free"              # "free": fitted (profiled) per channel; "calibrated": from the beam power
+    #: the forward model's render engine (`estimate.forward.ENGINES`): "camera" (Mitsuba's
+    #: prbvolpath) or "light" (paths from the beam, `estimate.light_paths`)
+    engine: str = "camera"
 
     @classmethod
     def for_variant(cls, variant: str | None = None, **kw: Any) -> FitSettings:
@@ -514,8 +517,10 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     if on_stage:
         on_stage(STAGES[0])
     phase = model_phase(model)
+    if st.engine not in ENGINES:
+        raise ModelParameterError(f"unknown render engine {st.engine!r}; use one of {', '.join(ENGINES)}")
     fm = forward or ForwardModel(problem.geometry, problem.beam, phase=phase, extensions=extensions,
-                                 profile_y_shape=problem.y_shapes())
+                                 profile_y_shape=problem.y_shapes(), engine=st.engine)
     fixed = dict(fixed or {})
     fm.validate(fixed)
     if st.scale not in ("free", "calibrated"):

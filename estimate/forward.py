@@ -45,10 +45,18 @@ from estimate.extensions.lens_blur import TRUNCATION_PX as LENS_BLUR_RADIUS
 from estimate.extensions.lens_blur import psf_2d
 from estimate.extensions.refractive_boundary import INTERNAL_REFLECTIONS
 from estimate.geometry import PixelWindow, RigGeometry
+from estimate.light_paths import LightPaths
 from estimate.mitsuba_env import init_mitsuba
 from estimate.mitsuba_phase import exp_phase_dict, tthg_phase_dict
 
-__all__ = ["BASE_SPECS", "ForwardModel", "Linearization", "phase_specs", "render_seed"]
+__all__ = ["BASE_SPECS", "CAMERA", "ENGINES", "LIGHT", "ForwardModel", "Linearization", "phase_specs",
+           "render_seed"]
+
+#: Render engines (`ForwardModel(engine=...)`): paths from the camera (Mitsuba's prbvolpath)
+#: or from the beam (`estimate.light_paths`).
+CAMERA = "camera"
+LIGHT = "light"
+ENGINES = (CAMERA, LIGHT)
 
 _INF = float("inf")
 #: Largest number of paths (pixels x spp) traced in one launch; bounds memory (~0.2 kB each).
@@ -155,12 +163,22 @@ class ForwardModel:
             `estimate.problem.Problem.y_shapes`), for the lens blur of profile renders
             (`estimate.extensions.lens_blur`); angles without one, other columns and None
             use the line-spread function.
+        engine: how the slab is rendered (`ENGINES`): "camera", Mitsuba's `prbvolpath`
+            from the camera with next-event connections to the beam (derivatives by path
+            replay); or "light", paths from the beam connected to the camera
+            (`estimate.light_paths`: tens of times less Monte Carlo noise a second on the
+            profile row, derivatives by score functions in the same pass; no refractive
+            boundary). With "light", `spp` means spp x the window's width light paths per
+            stage angle.
     """
 
     def __init__(self, geometry: RigGeometry, beam: BeamProfile, *, phase: str = "exp3",
                  extensions: Iterable[str] = (), variant: str | None = None,
                  max_depth: int = 64, rr_depth: int = 16,
-                 profile_y_shape: Mapping[float, np.ndarray] | None = None) -> None:
+                 profile_y_shape: Mapping[float, np.ndarray] | None = None, engine: str = CAMERA) -> None:
+        if engine not in ENGINES:
+            raise ModelParameterError(f"unknown render engine {engine!r}; use one of {', '.join(ENGINES)}")
+        self.engine = engine
         self.geometry = geometry
         self.profile_y_shape: dict[float, np.ndarray] = {
             _angle_key(a): np.asarray(h, dtype=np.float64) for a, h in (profile_y_shape or {}).items()}
@@ -174,6 +192,14 @@ class ForwardModel:
         for name in self.extensions:
             for p in EXTENSIONS[name].parameters:
                 self.specs[f"{name}.{p.name}"] = p
+        if engine == LIGHT and "refractive_boundary" in self.extensions:
+            raise ModelParameterError("the light engine does not trace a refractive boundary; use the camera "
+                                      "engine for a model with refractive_boundary")
+        if engine == LIGHT and "beam_halo" in self.extensions:
+            # The halo moves where light paths start: its derivatives by differences.
+            for p in EXTENSIONS["beam_halo"].parameters:
+                name = f"beam_halo.{p.name}"
+                self.specs[name] = replace(self.specs[name], derivative="fd")
         if "refractive_boundary" in self.extensions:
             # Next-event rays to the refracted beam must stop inside the medium (a
             # dielectric would block them) and prbvolpath drops the attenuation derivative
@@ -202,7 +228,11 @@ class ForwardModel:
         self._lock = threading.Lock()
         self._bundles: dict[int, _SceneBundle] = {}
         self._refractive = "refractive_boundary" in self.extensions
-        self._bundle(1)
+        self._light: LightPaths | None = None
+        if engine == LIGHT:
+            self._light = LightPaths(geometry, phase, self.mi, max_depth=self.max_depth, rr_depth=self.rr_depth)
+        else:
+            self._bundle(1)
 
     # ------------------------------------------------------------------ parameters
     @property
@@ -332,6 +362,9 @@ class ForwardModel:
     def _queue_radiance(self, values: Mapping[str, float], angles: Sequence[float], window: PixelWindow,
                         spp: int, seed: int, first_index: int = 0) -> list[tuple[range, float, Any]]:
         """The launches of `_render_radiance`, queued and not yet read back (`_gather_radiance`)."""
+        if self._light is not None:
+            return [(range(0, len(angles)), w, img)
+                    for x, w, img, _ in self._light_renders(values, angles, window, spp, seed, first_index)]
         groups, passes = self._groups(len(angles), window, spp)
         spp_pass = max(1, math.ceil(int(spp) / passes))
         pending = []
@@ -345,6 +378,73 @@ class ForwardModel:
                         # No sync here: Dr.Jit runs this launch while Python traces the next.
                         pending.append((grp, w / passes, img))
         return pending
+
+    def _light_renders(self, values: Mapping[str, float], angles: Sequence[float], window: PixelWindow, spp: int,
+                       seed: int, first_index: int = 0,
+                       scores: Sequence[str] = ()) -> list[tuple[float, float, Any, dict[str, Any]]]:
+        """The light engine's renders of one call: per band node (x, quadrature weight,
+        image, score images), images laid out (rows, angles, columns), not yet read back.
+        Every node uses the same random numbers, as the camera engine's do (`_bands`)."""
+        assert self._light is not None
+        delta = values.get("angle_offset.delta_deg", 0.0)
+        d = self.geometry.thickness_mm * (1.0 + values.get("thickness_error.e", 0.0))
+        spread = values.get("filter_bandwidth.spread", 0.0)
+        beam = self.beam_for(values)
+        out = []
+        for x, w in self._bands(values):
+            img, d_img = self._light.render(values, [float(a) + delta for a in angles], window,
+                                            int(spp) * window.width, render_seed(seed, first_index), beam=beam,
+                                            thickness_mm=d, sigma_t=values["sigma_t"] * (1.0 + spread * x),
+                                            scores=scores)
+            out.append((x, w, img, d_img))
+        return out
+
+    def _light_scores(self, values: Mapping[str, float], angles: Sequence[float], window: PixelWindow, spp: int,
+                      seed: int, names: Sequence[str]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """The light engine's radiance (N, H, W) and its derivatives for `names` (each an
+        "ad" parameter: sigma_t, albedo, phase.*, filter_bandwidth.spread), from one pass
+        per band node: d/dsigma_t of a node at sigma_t (1 + spread x) is (1 + spread x)
+        times its score image, d/dspread is sigma_t x times it."""
+        assert self._light is not None
+        spread = values.get("filter_bandwidth.spread", 0.0)
+        wanted = [n for n in names if n == "albedo" or n.startswith("phase.")]
+        if "sigma_t" in names or "filter_bandwidth.spread" in names:
+            wanted.insert(0, "sigma_t")
+        renders = self._light_renders(values, angles, window, spp, seed, scores=wanted)
+        self.dr.eval(*[img for _, _, img, _ in renders], *[v for *_, d in renders for v in d.values()])
+        n, h, w_ = len(angles), window.height, window.width
+
+        def host(a: Any) -> np.ndarray:
+            return np.array(a, dtype=np.float64).reshape(h, n, w_).transpose(1, 0, 2)
+
+        rad = np.zeros((n, h, w_))
+        jac = {name: np.zeros((n, h, w_)) for name in names}
+        for x, w, img, d_img in renders:
+            rad += w * host(img)
+            d = {k: host(v) for k, v in d_img.items()}
+            for name in names:
+                if name == "sigma_t":
+                    jac[name] += w * (1.0 + spread * x) * d["sigma_t"]
+                elif name == "filter_bandwidth.spread":
+                    jac[name] += w * values["sigma_t"] * x * d["sigma_t"]
+                else:
+                    jac[name] += w * d[name]
+        return rad, jac
+
+    def _push_forward(self, radiance: np.ndarray, d_radiance: np.ndarray, values: Mapping[str, float],
+                      window: PixelWindow, y_shape: np.ndarray | None) -> np.ndarray:
+        """A radiance derivative (N, H, W) through the image-space extensions (exact for
+        the linear ones, a blur or stray light; linearised for a sensor compression)."""
+        if not self._image_exts():
+            return d_radiance
+        profile_only = window.height == 1
+        top = float(np.max(np.abs(d_radiance)))
+        if top == 0.0:
+            return np.zeros_like(d_radiance)
+        eps = 1e-4 * max(float(np.max(np.abs(radiance))), 1e-30) / top
+        plus = self._post(radiance + eps * d_radiance, values, profile_only, y_shape)
+        minus = self._post(radiance - eps * d_radiance, values, profile_only, y_shape)
+        return (plus - minus) / (2.0 * eps)
 
     def _radiances(self, jobs: Sequence[tuple[Mapping[str, float], int]], angles: Sequence[float],
                    window: PixelWindow, spp: int) -> list[np.ndarray]:
@@ -468,6 +568,13 @@ class ForwardModel:
         dr = self.dr
         mi = self.mi
         ad_names = [n for n, s in self.specs.items() if s.derivative == "ad"]
+        if self._light is not None:
+            with self._lock:
+                rad, jac = self._light_scores(values, angles, window, spp, seed, ad_names)
+            profiles = self._post(rad, values, profile_only=window.height == 1,
+                                  y_shape=self._y_shape(angles, window))[:, 0, :]
+            return Linearization(self, values, angles, window, int(spp), int(seed), columns, rad, profiles, [],
+                                 light_jacobian=jac)
         groups, passes = self._groups(len(angles), window, spp)
         spp_pass = max(1, math.ceil(int(spp) / passes))
         kept: list[_KeptGroup] = []
@@ -579,11 +686,20 @@ class ForwardModel:
         profile_only = window.height == 1
         #: exact through the image-space function, from one render at `values`
         image_names = [name for name in names if self._spec(name).derivative == "image"]
+        #: the light engine's score columns, from that same render
+        score_names = ([name for name in names if self._spec(name).derivative == "ad"]
+                       if self._light is not None else [])
+        base_rad: np.ndarray | None = None
+        if score_names:
+            with self._lock:
+                base_rad, jac_rad = self._light_scores(values, angles, window, spp, seed, score_names)
+            for name in score_names:
+                out[name] = self._push_forward(base_rad, jac_rad[name], values, window, y_shape)[:, 0, :]
         #: per difference: name, the two ends' values (None: the base profiles), the step
         diffs: list[tuple[str, dict[str, float] | None, dict[str, float] | None, float]] = []
         for name in names:
             spec = self._spec(name)
-            if spec.derivative == "image":
+            if spec.derivative == "image" or name in score_names:
                 continue
             x = values[name]
             h = float((steps or {}).get(name, spec.fd_step * max(1.0, abs(x))))
@@ -607,12 +723,13 @@ class ForwardModel:
                           None if one_sided and hi == x else {**values, name: hi}, hi - lo))
         # Every render (the image parameters' base first, then each difference's ends) queued
         # before any is read (`_radiances`).
-        jobs = [(values, seed)] if image_names else []
+        jobs = [(values, seed)] if image_names and base_rad is None else []
         jobs += [(v, seed) for _, v_lo, v_hi, _ in diffs for v in (v_lo, v_hi) if v is not None]
         with self._lock:
             rads = iter(self._radiances(jobs, angles, window, spp))
         if image_names:
-            base_rad = next(rads)
+            if base_rad is None:
+                base_rad = next(rads)
             for name in image_names:
                 out[name] = self._image_param_derivative(base_rad, values, name, window, y_shape)
 
@@ -713,7 +830,8 @@ class Linearization:
 
     def __init__(self, model: ForwardModel, values: dict[str, float], angles: list[float], window: PixelWindow,
                  spp: int, seed: int, columns: tuple[int, int] | None, radiance: np.ndarray,
-                 profiles: np.ndarray, groups: list[_KeptGroup]) -> None:
+                 profiles: np.ndarray, groups: list[_KeptGroup],
+                 light_jacobian: dict[str, np.ndarray] | None = None) -> None:
         self.model = model
         self.values = values
         self.angles = angles
@@ -725,6 +843,8 @@ class Linearization:
         #: the rendered profiles (N, W), image-space extensions applied
         self.profiles = profiles
         self._groups: list[_KeptGroup] | None = groups
+        #: the light engine's d radiance / d parameter (N, H, W) for the "ad" parameters
+        self._light_jacobian = light_jacobian
 
     def vjp(self, cotangent: np.ndarray, *, fd_parameters: bool = True,
             base_profiles: np.ndarray | None = None) -> dict[str, float]:
@@ -745,6 +865,16 @@ class Linearization:
         window = self.window
         grads = {n: 0.0 for n in m.specs}
         image_exts = m._image_exts()
+        if self._light_jacobian is not None:
+            # The light engine's score images: the product needs no second pass.
+            if image_exts:
+                cot_rad, ext_grads = m._pullback(self.radiance, cot, self.values, window,
+                                                 m._y_shape(self.angles, window))
+                grads.update(ext_grads)
+            else:
+                cot_rad = cot
+            for name, d_rad in self._light_jacobian.items():
+                grads[name] = float(np.sum(d_rad * cot_rad))
         with m._lock:
             for group in groups:
                 grp = group.grp

@@ -1,0 +1,206 @@
+"""The light engine (estimate.light_paths, `ForwardModel(engine="light")`) against the
+independent numpy references of tests/reference_mc.py, against the camera engine, and its
+score-function derivatives against finite differences."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from reference_mc import hg_eval, hg_sample, isotropic_eval, mc_slab_profile, single_scattering_profile
+
+import estimate.light_paths as light_paths
+from estimate.beam import BeamProfile
+from estimate.errors import ModelParameterError
+from estimate.forward import ForwardModel
+from estimate.geometry import RigGeometry
+from estimate.light_paths import LightPaths, SourceTables
+
+N_PIX = 32
+PITCH = 0.05  # mm in object space
+BEAM_R = 0.3  # 1/e^2 radius of the references' Gaussian beam (unit power)
+
+
+def _geometry(n_pix: int = N_PIX, pitch: float = PITCH, thickness: float = 1.0) -> RigGeometry:
+    # As tests/test_forward_model.py: one row centred on y = 0, pixels like reference_mc's.
+    return RigGeometry(thickness_mm=thickness, sensor_px=(n_pix, 1), pixel_um=20.0,
+                       magnification=0.02 / pitch, image_center_px=(n_pix / 2, 0.5))
+
+
+def _model(phase: str = "exp0", engine: str = "light", **kw) -> ForwardModel:
+    return ForwardModel(_geometry(), BeamProfile.gaussian(BEAM_R), phase=phase, engine=engine, **kw)
+
+
+@pytest.mark.parametrize("sigma_t", [0.5, 3.0])
+def test_single_scattering_matches_analytic(sigma_t: float) -> None:
+    """One collision a path: the analytic single-scattering profile, pixel by pixel."""
+    model = _model("exp0", max_depth=1)
+    angles = [35.0, 70.0, 115.0, 155.0]
+    prof = model.render_profiles({"sigma_t": sigma_t, "albedo": 0.7}, angles, spp=32768, seed=3)
+    for k, phi in enumerate(angles):
+        ref = single_scattering_profile(sigma_t, 0.7, 1.0, isotropic_eval, phi, BEAM_R, PITCH, N_PIX, PITCH)
+        assert prof[k].sum() == pytest.approx(ref.sum(), rel=0.01), phi
+        # per pixel, within the render's noise: a few per cent at a million paths an angle,
+        # 10 % where few paths get there (back-lit at 65 deg, sigma_t 3: the light that
+        # scatters near the front face has crossed e^-7 of the slab)
+        bright = ref > 0.2 * ref.max()
+        assert np.allclose(prof[k][bright], ref[bright], rtol=0.15), phi
+        assert np.mean(prof[k][bright] / ref[bright]) == pytest.approx(1.0, abs=0.015), phi
+        assert prof[k][ref < 1e-6 * ref.max()].sum() < 1e-3 * prof[k].sum(), phi
+
+
+def test_multiple_scattering_albedo_one_matches_mcml_reference() -> None:
+    """All orders, forward-peaked HG, against the photon Monte Carlo (as the camera engine's test)."""
+    model = _model("hg")
+    params = {"sigma_t": 4.0, "albedo": 1.0, "phase.g": 0.5}
+    for phi in (30.0, 150.0):
+        prof = model.render_profiles(params, [phi], spp=4096, seed=5)[0]
+        ref, _, _ = mc_slab_profile(4.0, 1.0, 1.0, hg_sample(0.5), hg_eval(0.5), phi, BEAM_R, PITCH,
+                                     N_PIX, PITCH, n_photons=200_000, seed=7)
+        assert prof.sum() == pytest.approx(ref.sum(), rel=0.03), phi
+        bright = ref > 0.3 * ref.max()
+        assert np.allclose(prof[bright], ref[bright], rtol=0.08), phi
+
+
+def _region_sums(stack: np.ndarray, ref: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    sel = (ref > lo * ref.max()) & (ref <= hi * ref.max())
+    return stack[..., sel].sum(axis=-1)
+
+
+@pytest.mark.parametrize("phase,params,exts", [
+    ("exp3", {"phase.b1": 3.0, "phase.b2": 1.0, "phase.b3": 0.5}, ()),
+    ("tthg", {"phase.g_forward": 0.7, "phase.g_backward": -0.3, "phase.w_forward": 0.8}, ()),
+    ("hg", {"phase.g": 0.6, "beam_halo.fraction": 0.05, "beam_halo.sigma_mm": 0.5}, ("beam_halo",)),
+])
+def test_light_and_camera_engines_agree(phase: str, params: dict, exts: tuple) -> None:
+    """The exponential plugin's, the two-lobe blend's and the halo's conventions as the camera
+    engine has them: the profiles' peak and shoulder sums agree within their Monte Carlo errors."""
+    geo = RigGeometry(thickness_mm=1.0, magnification=0.3, profile_columns=(232, 280))
+    beam = BeamProfile.gaussian(0.5)
+    p = {"sigma_t": 2.0, "albedo": 0.9, **params}
+    angles = [30.0, 150.0]
+    light = ForwardModel(geo, beam, phase=phase, extensions=exts, engine="light")
+    camera = ForwardModel(geo, beam, phase=phase, extensions=exts)
+    lt = np.array([light.render_profiles(p, angles, spp=2048, seed=s) for s in range(4)])
+    cm = np.array([camera.render_profiles(p, angles, spp=4096, seed=s) for s in range(6)])
+    for k, phi in enumerate(angles):
+        ref = lt[:, k].mean(axis=0)
+        for lo, hi in ((0.3, 2.0), (0.03, 0.3)):
+            a, b = _region_sums(lt[:, k], ref, lo, hi), _region_sums(cm[:, k], ref, lo, hi)
+            se = math.sqrt(a.var(ddof=1) / a.size + b.var(ddof=1) / b.size)
+            assert abs(a.mean() - b.mean()) < max(4.0 * se, 0.005 * a.mean()), (phi, lo)
+            assert abs(a.mean() / b.mean() - 1.0) < 0.04, (phi, lo)
+
+
+def test_scores_match_finite_differences() -> None:
+    """One pass's score images against central differences of renders at many paths."""
+    geo = RigGeometry(thickness_mm=1.0, magnification=0.3, profile_columns=(240, 272))
+    beam = BeamProfile.gaussian(0.5)
+    model = ForwardModel(geo, beam, phase="tthg", engine="light")
+    lp = LightPaths(geo, "tthg", model.mi)
+    values = model.validate({"sigma_t": 2.0, "albedo": 0.8, "phase.g_forward": 0.6, "phase.g_backward": -0.2,
+                             "phase.w_forward": 0.7})
+    window = geo.window()
+    names = ["sigma_t", "albedo", "phase.g_forward", "phase.g_backward", "phase.w_forward"]
+    n = 400_000
+
+    def render(v: dict, seed: int, scores: tuple = ()) -> tuple[float, dict]:
+        img, d = lp.render(v, [40.0, 140.0], window, n, seed, beam=beam, thickness_mm=1.0, scores=scores)
+        return float(np.array(img).sum()), {k: float(np.array(x).sum()) for k, x in d.items()}
+
+    score = {k: np.mean([render(values, s, tuple(names))[1][k] for s in range(3)]) for k in names}
+    for name in names:
+        h = 0.05
+        fd = np.mean([(render({**values, name: values[name] + h}, 100 + s)[0]
+                       - render({**values, name: values[name] - h}, 200 + s)[0]) / (2 * h) for s in range(3)])
+        total = render(values, 300)[0]
+        # Independent renders: the difference's error is about 2e-3 of the total over 2h.
+        assert score[name] == pytest.approx(fd, abs=0.03 * abs(fd) + 3e-3 * total / h), name
+
+
+def test_forward_model_vjp_and_jacobian_use_the_same_scores() -> None:
+    geo = RigGeometry(thickness_mm=1.0, magnification=0.3, profile_columns=(232, 280))
+    exts = ("lens_blur", "stray_light", "filter_bandwidth", "angle_offset", "beam_halo")
+    fm = ForwardModel(geo, BeamProfile.gaussian(0.5), phase="exp2", extensions=exts, engine="light")
+    assert fm.derivative_kind("beam_halo.fraction") == "fd"   # the halo moves the paths' starts
+    assert fm.derivative_kind("sigma_t") == "ad"
+    p = fm.validate({"sigma_t": 2.0, "albedo": 0.9, "phase.b1": 2.0, "phase.b2": 0.5, "lens_blur.core_sigma_px": 1.2,
+                     "stray_light.offset": 1e-3, "filter_bandwidth.spread": 0.3, "angle_offset.delta_deg": 1.0,
+                     "beam_halo.fraction": 0.02})
+    angles = [30.0, 150.0]
+    lin = fm.linearize(p, angles, spp=256, seed=4)
+    # the same paths (float32 sums in another order: 1e-7)
+    np.testing.assert_allclose(lin.profiles, fm.render_profiles(p, angles, spp=256, seed=4), rtol=1e-5)
+    cot = np.random.default_rng(0).normal(size=lin.profiles.shape)
+    grads = lin.vjp(cot, base_profiles=lin.profiles)
+    names = ["sigma_t", "albedo", "phase.b1", "filter_bandwidth.spread", "lens_blur.core_sigma_px",
+             "stray_light.offset", "angle_offset.delta_deg", "beam_halo.fraction"]
+    jac = fm.jacobian(p, angles, names, spp=256, seed=4, base_profiles=lin.profiles)
+    for name in names:
+        assert grads[name] == pytest.approx(float(np.sum(jac[name] * cot)), rel=1e-4, abs=1e-12), name
+    with pytest.raises(RuntimeError, match="already"):
+        lin.vjp(cot)
+
+
+def test_paths_in_chunks_render_the_same(monkeypatch) -> None:
+    model = _model("hg")
+    p = {"sigma_t": 3.0, "albedo": 0.9, "phase.g": 0.4}
+    whole = model.render_profiles(p, [30.0, 150.0], spp=64, seed=2)
+    monkeypatch.setattr(light_paths, "CHUNK_PATHS", 1000)
+    parts = model.render_profiles(p, [30.0, 150.0], spp=64, seed=2)
+    np.testing.assert_allclose(parts, whole, rtol=1e-5, atol=1e-7 * whole.max())
+    other = model.render_profiles(p, [30.0, 150.0], spp=64, seed=3)
+    assert not np.allclose(other, whole)
+
+
+def test_source_tables_sample_the_bilinear_map() -> None:
+    """The start's u follows the marginal of the map's bilinear surface, and the conditional
+    share of v over the whole line is 1: a light render's power equals the map's."""
+    rng = np.random.default_rng(1)
+    prof = BeamProfile.centered(rng.uniform(0.0, 1.0, (7, 9)), 0.1)
+    t = SourceTables.from_profile(prof)
+    u = np.linspace(t.u_lo, t.u_lo + (t.e.shape[1] - 1) * t.pitch, 4001)
+    v = np.linspace(t.v_lo, t.v_lo + (t.e.shape[0] - 1) * t.pitch, 4001)
+    surface = prof.lookup(u[None, :], v[:, None])
+    assert t.power == pytest.approx(np.trapezoid(np.trapezoid(surface, v, axis=0), u), rel=1e-4)
+
+    from estimate.mitsuba_env import init_mitsuba
+
+    mi = init_mitsuba()
+    lp = LightPaths(_geometry(), "exp0", mi)
+    tables, dev = lp._source(prof)
+    xi = mi.Float(rng.random(200_000).astype(np.float32))
+    us, i, a = lp._sample_u(tables, dev, xi)
+    hist, edges = np.histogram(np.array(us), bins=40, range=(u[0], u[-1]), density=True)
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    marginal = np.interp(centres, u, np.trapezoid(surface, v, axis=0)) / t.power
+    assert np.allclose(hist, marginal, atol=0.06 * marginal.max())
+    whole = lp._v_mass(tables, dev, i, a, mi.Bool(False), mi.Float(0.0), mi.Float(1.0), mi.Float(-50.0),
+                       mi.Float(50.0))
+    assert np.allclose(np.array(whole), 1.0, atol=1e-5)
+
+
+def test_light_engine_refuses_what_it_does_not_trace() -> None:
+    with pytest.raises(ModelParameterError, match="refractive boundary"):
+        _model("exp0", extensions=["refractive_boundary"])
+    with pytest.raises(ModelParameterError, match="unknown render engine"):
+        _model("exp0", engine="photon")
+    geo = RigGeometry(thickness_mm=1.0, sensor_px=(8, 100))
+    fm = ForwardModel(geo, BeamProfile.gaussian(BEAM_R), phase="exp0", engine="light")
+    with pytest.raises(ModelParameterError, match="at most 64 rows"):
+        fm.render({"sigma_t": 1.0, "albedo": 0.9}, [30.0], rows=(0, 100), columns=(0, 8), spp=4)
+    with pytest.raises(ModelParameterError, match="no power"):
+        SourceTables.from_profile(BeamProfile.centered(np.zeros((3, 3)), 0.1))
+
+
+def test_a_full_window_band_is_lit_around_the_profile_row() -> None:
+    """Several rows a window: each vertex adds to every row its share of start positions."""
+    g = RigGeometry(thickness_mm=1.0, sensor_px=(24, 24), magnification=0.4)
+    model = ForwardModel(g, BeamProfile.disk(0.2), phase="exp0", engine="light")
+    img = model.render({"sigma_t": 3.0, "albedo": 0.9}, [150.0], rows=(0, 24), columns=(0, 24), spp=2048, seed=1)[0]
+    rows = img.sum(axis=1)
+    assert abs(int(np.argmax(rows)) + 0.5 - 12) <= 1.5
+    # symmetric in y about the beam's axis (the disk is centred on it), within the noise
+    bright = rows[:12] > 0.2 * rows.max()
+    np.testing.assert_allclose(rows[:12][bright], rows[12:][::-1][bright], rtol=0.05)
