@@ -167,9 +167,8 @@ class ForwardModel:
             from the camera with next-event connections to the beam (derivatives by path
             replay); or "light", paths from the beam connected to the camera
             (`estimate.light_paths`: tens of times less Monte Carlo noise a second on the
-            profile row, derivatives by score functions in the same pass; no refractive
-            boundary). With "light", `spp` means spp x the window's width light paths per
-            stage angle.
+            profile row, derivatives by score functions in the same pass). With "light",
+            `spp` means spp x the window's width light paths per stage angle.
     """
 
     def __init__(self, geometry: RigGeometry, beam: BeamProfile, *, phase: str = "exp3",
@@ -192,15 +191,12 @@ class ForwardModel:
         for name in self.extensions:
             for p in EXTENSIONS[name].parameters:
                 self.specs[f"{name}.{p.name}"] = p
-        if engine == LIGHT and "refractive_boundary" in self.extensions:
-            raise ModelParameterError("the light engine does not trace a refractive boundary; use the camera "
-                                      "engine for a model with refractive_boundary")
         if engine == LIGHT and "beam_halo" in self.extensions:
             # The halo moves where light paths start: its derivatives by differences.
             for p in EXTENSIONS["beam_halo"].parameters:
                 name = f"beam_halo.{p.name}"
                 self.specs[name] = replace(self.specs[name], derivative="fd")
-        if "refractive_boundary" in self.extensions:
+        if "refractive_boundary" in self.extensions and engine == CAMERA:
             # Next-event rays to the refracted beam must stop inside the medium (a
             # dielectric would block them) and prbvolpath drops the attenuation derivative
             # of such rays: sigma_t (and the band spread acting through it) by differences.
@@ -395,7 +391,7 @@ class ForwardModel:
             img, d_img = self._light.render(values, [float(a) + delta for a in angles], window,
                                             int(spp) * window.width, render_seed(seed, first_index), beam=beam,
                                             thickness_mm=d, sigma_t=values["sigma_t"] * (1.0 + spread * x),
-                                            scores=scores)
+                                            eta=values.get("refractive_boundary.n", 1.0), scores=scores)
             out.append((x, w, img, d_img))
         return out
 

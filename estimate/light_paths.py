@@ -166,7 +166,8 @@ class LightPaths:
     # ------------------------------------------------------------------ rendering
     def render(self, values: Mapping[str, float], angles_deg: Sequence[float], window: PixelWindow,
                paths_per_angle: int, seed: int, *, beam: BeamProfile, thickness_mm: float,
-               sigma_t: float | None = None, scores: Sequence[str] = ()) -> tuple[Any, dict[str, Any]]:
+               sigma_t: float | None = None, eta: float = 1.0,
+               scores: Sequence[str] = ()) -> tuple[Any, dict[str, Any]]:
         """Radiance of `window` at each stage angle, and its derivatives for `scores`.
 
         Args:
@@ -180,6 +181,8 @@ class LightPaths:
             thickness_mm: the slab's thickness.
             sigma_t: the extinction to trace with (1/mm; a filter band's node), default
                 values["sigma_t"].
+            eta: the slab's refractive index against the air (1: index-matched, the faces
+                let every path out; > 1: Fresnel reflection and refraction, see the module doc).
             scores: parameter names whose derivative images are wanted: "sigma_t" (that
                 is, d/d of the extinction traced with), "albedo", the phase parameters.
 
@@ -231,6 +234,10 @@ class LightPaths:
         dr.make_opaque(phis)
         sig_t = o(values["sigma_t"] if sigma_t is None else sigma_t)
         albedo = o(values["albedo"])
+        if not (math.isfinite(eta) and eta >= 1.0):
+            raise ModelParameterError(f"refractive index {eta!r}: the light engine takes n >= 1")
+        refractive = eta != 1.0
+        n_in = o(eta)
 
         def trace(start: int, size: int) -> None:
             """Paths start .. start + size (angle i's are i * n .. (i + 1) * n)."""
@@ -258,8 +265,16 @@ class LightPaths:
             px = -u * cos_p + s * sin_p
             py = Float(0.0) + 0.0 * px
             pz = z_face + 0.0 * px
-            wx, wy, wz = -sin_p, Float(0.0) + 0.0 * px, -cos_p
             weight = dr.full(Float, 1.0, size)
+            if refractive:
+                # Snell on entry, and the share (1 - F) that enters; the footprint on the face,
+                # and so the power, is what the light paths carry.
+                r_in, cos_t, _, _ = mi.fresnel(dr.abs(cos_p), n_in)
+                cos_t = dr.abs(cos_t)
+                wx, wy, wz = -sin_p / n_in, Float(0.0) + 0.0 * px, dr.select(front, -cos_t, cos_t)
+                weight = weight * (1.0 - r_in)
+            else:
+                wx, wy, wz = -sin_p, Float(0.0) + 0.0 * px, -cos_p
             active = dr.full(Bool, True, size) & (dr.abs(px) <= hw)
 
             length = dr.zeros(Float, size)
@@ -272,15 +287,30 @@ class LightPaths:
                        length: Any, k_coll: Any, depth: Any, rng: Any, *acc: Any) -> tuple[Any, ...]:
                 score = dict(zip(phase_scored, acc))
                 t = -dr.log(1.0 - rng.next_float32()) / sig_t
+                xi_face = rng.next_float32()
+                if refractive:
+                    # A flight that reaches a face: Fresnel reflection (total beyond the critical
+                    # angle) with its probability, else the path leaves. Either way no collision.
+                    t_face = dr.select(wz > 0.0, -pz / wz, dr.select(wz < 0.0, (-D - pz) / wz, 1e30))
+                    hit = t >= t_face
+                    t = dr.minimum(t, t_face)
+                    r_face = mi.fresnel(-dr.abs(wz), n_in)[0]
+                    mirror = active & hit & (xi_face < r_face)
+                    collided = active & ~hit
+                    active = active & (collided | mirror)
+                else:
+                    mirror = Bool(False)
+                    collided = active
                 px, py, pz = px + t * wx, py + t * wy, pz + t * wz
                 length = length + t
-                k_coll = k_coll + 1.0
-                active = active & (pz <= 0.0) & (pz >= -D) & (dr.abs(px) <= hw)
-                # The camera's connection (direction +z, so mu = wz).
-                log_p, dlog_p = phase.log_eval(wz, names)
+                k_coll = k_coll + dr.select(collided, 1.0, 0.0)
+                active = active & (mirror | ((pz <= 0.0) & (pz >= -D))) & (dr.abs(px) <= hw)
+                collided = collided & active
+                # The camera's connection (direction +z, so mu = wz; see `_connection`).
+                conn, dconn_sig, dlog_p = self._connection(phase, wz, pz, sig_t, D, n_in if refractive else None, names)
                 col = dr.floor(px / pitch + cx) - window.col0
-                seen = active & (col >= 0) & (col < W)
-                base = w0 * weight * albedo * dr.exp(log_p + sig_t * pz) / (pitch * pitch)
+                seen = collided & (col >= 0) & (col < W)
+                base = w0 * weight * albedo * conn / (pitch * pitch)
                 col_u = UInt32(dr.clip(col, 0, W - 1))
                 for r, (y_lo, y_hi) in enumerate(rows):
                     mass = self._v_mass(tables, dev, col_i, col_a, in_halo, cv, halo_k, y_lo - py, y_hi - py)
@@ -289,19 +319,19 @@ class LightPaths:
                     dr.scatter_reduce(dr.ReduceOp.Add, image, c, at, seen)
                     for name in names:
                         if name == "sigma_t":
-                            sc = k_coll / sig_t - length + pz
+                            sc = k_coll / sig_t - length + dconn_sig
                         elif name == "albedo":
                             sc = k_coll / albedo
                         else:
                             sc = score[name] + dlog_p[name]
                         dr.scatter_reduce(dr.ReduceOp.Add, d_img[name], c * sc, at, seen)
-                weight = weight * albedo
-                # The next direction.
+                # The next direction (a collision's; a mirrored flight turns its z).
                 mu, ratio = phase.sample(rng.next_float32(), rng.next_float32())
                 if phase_scored:
                     _, dlog_s = phase.log_eval(mu, phase_scored)
-                    score = {name: score[name] + dlog_s[name] for name in phase_scored}
-                weight = weight * ratio
+                    score = {name: dr.select(collided, score[name] + dlog_s[name], score[name])
+                             for name in phase_scored}
+                weight = dr.select(collided, weight * albedo * ratio, weight)
                 sin_t = dr.safe_sqrt(1.0 - mu * mu)
                 sp, cp = dr.sincos(2.0 * math.pi * rng.next_float32())
                 # An orthonormal frame around w (Duff et al. 2017, branchless).
@@ -309,9 +339,12 @@ class LightPaths:
                 a = -1.0 / (sign + wz)
                 b = wx * wy * a
                 lx, ly = sin_t * cp, sin_t * sp
-                wx, wy, wz = (lx * (1.0 + sign * wx * wx * a) + ly * b + mu * wx,
+                nx, ny, nz = (lx * (1.0 + sign * wx * wx * a) + ly * b + mu * wx,
                               lx * sign * b + ly * (sign + wy * wy * a) + mu * wy,
                               -lx * sign * wx - ly * wy + mu * wz)
+                wx = dr.select(collided, nx, wx)
+                wy = dr.select(collided, ny, wy)
+                wz = dr.select(collided, nz, dr.select(mirror, -wz, wz))
                 depth = depth + 1
                 # Russian roulette once the path is long: survival probability its weight
                 # (relative to its start), at most 0.95; survivors carry 1 / that.
@@ -332,6 +365,36 @@ class LightPaths:
             trace(start, min(CHUNK_PATHS, total - start))
             dr.eval(image, *d_img.values())   # one chunk's paths in memory at a time
         return image, d_img
+
+    def _connection(self, phase: _PhaseOps, wz: Any, pz: Any, sig_t: Any, D: Any, eta: Any | None,
+                    names: Sequence[str]) -> tuple[Any, Any, dict[str, Any]]:
+        """A vertex's radiance towards the camera per unit of its scattered power and
+        albedo: (C, d log C / d sigma_t, d log C / d phase parameter for those in `names`).
+
+        Index-matched: C = p(mu = wz) exp(sigma_t z) (z = pz <= 0, the depth is -z).
+        With a refractive index n the light leaves through the front face at normal
+        incidence, transmitted by T0 = 1 - F0 with the radiance divided by n^2 (the solid
+        angle widens outside), and it may first reflect off the back face: the direct term
+        and the one sent down (mu = -wz) and reflected with F0, each followed by any number
+        of round trips between the faces (F0^2 exp(-2 sigma_t d) each):
+
+            C = T0 / n^2 [p(wz) e^(sigma_t z) + F0 p(-wz) e^(-sigma_t (2 d + z))] / (1 - F0^2 e^(-2 sigma_t d))
+        """
+        dr = self.dr
+        log_p, dlog_p = phase.log_eval(wz, names)
+        direct = dr.exp(log_p + sig_t * pz)
+        if eta is None:
+            return direct, pz, dlog_p
+        f0 = self.mi.fresnel(self.mi.Float(1.0), eta)[0]
+        log_q, dlog_q = phase.log_eval(-wz, names)
+        back = f0 * dr.exp(log_q - sig_t * (2.0 * D + pz))
+        r = f0 * f0 * dr.exp(-2.0 * sig_t * D)
+        both = direct + back
+        inv = 1.0 / dr.maximum(both, 1e-30)
+        c = (1.0 - f0) / (eta * eta) * both / (1.0 - r)
+        dsig = (direct * pz - back * (2.0 * D + pz)) * inv - 2.0 * D * r / (1.0 - r)
+        dphase = {k: (direct * dlog_p[k] + back * dlog_q[k]) * inv for k in dlog_p}
+        return c, dsig, dphase
 
     # ------------------------------------------------------------------ source helpers
     def _sample_u(self, t: SourceTables, dev: Mapping[str, Any], xi: Any) -> tuple[Any, Any, Any]:

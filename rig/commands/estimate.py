@@ -55,8 +55,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--engine", choices=("light", "camera"), default=None,
                    help="how the forward model renders the slab: light paths from the beam connected to the "
                         "camera (light, default; about ten times faster and less noisy on the profile row) or "
-                        "Mitsuba's prbvolpath from the camera (camera; needed with refractive_boundary, and "
-                        "the default there)")
+                        "Mitsuba's prbvolpath from the camera (camera)")
     p.add_argument("--seed", type=int, default=0, help="random seed (renders, delta draws)")
     p.add_argument("--scale", choices=("calibrated", "free"), default="calibrated",
                    help="measured/rendered intensity scale: from the calibrated beam power and the lens's "
@@ -112,10 +111,7 @@ def run(args: argparse.Namespace) -> int:
     from estimate.mitsuba_env import default_variant
 
     variant = default_variant()
-    if args.engine == "light" and "refractive_boundary" in exts:
-        raise UsageError("--engine light does not trace a refractive boundary: drop --engine (the camera "
-                         "engine is then used) or the refractive_boundary extension")
-    engine = args.engine or ("camera" if "refractive_boundary" in exts else "light")
+    engine = args.engine or "light"
     settings = FitSettings.for_variant(variant, seed=args.seed, scale=args.scale, engine=engine)
     if args.max_iterations is not None:
         settings.max_iterations = args.max_iterations
