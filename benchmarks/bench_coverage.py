@@ -52,7 +52,7 @@ def _git_rev() -> str:
         return "unknown"
 
 
-def fit_draw(seed: int, overrides: dict | None = None) -> dict:
+def fit_draw(seed: int, overrides: dict | None = None, truth_engine: str = "camera") -> dict:
     """Make the synthetic session of noise seed `seed`, fit it, return the errors and uncertainties.
     `overrides`: FitSettings fields changed for a trial (`--setting`)."""
     from fit_overrides import settings_with
@@ -64,7 +64,7 @@ def fit_draw(seed: int, overrides: dict | None = None) -> dict:
     tmp = Path(tempfile.mkdtemp(prefix=f"bench_coverage_{seed}_"))
     try:
         session = make_session(tmp / "s", {CHANNEL: TRUTH}, angles=ANGLES, spp=TRUTH_SPP, width=320,
-                               scale=SCALE, seed=seed)
+                               scale=SCALE, seed=seed, engine=truth_engine)
         t0 = time.monotonic()
         st = (settings_with(overrides, seed=seed, scale="calibrated") if overrides
               else FitSettings(seed=seed, scale="calibrated"))
@@ -122,7 +122,10 @@ def main() -> int:
     ap.add_argument("--fresh", action="store_true", help="forget the draws already in the result file")
     ap.add_argument("--out", type=Path, default=RESULT, help=f"result file (default {RESULT.relative_to(ROOT)})")
     ap.add_argument("--setting", action="append", default=[], metavar="KEY=VALUE",
-                    help="a FitSettings field to change, e.g. engine=light (JSON values; repeatable)")
+                    help="a FitSettings field to change, e.g. engine=camera (JSON values; repeatable)")
+    ap.add_argument("--truth-engine", choices=("camera", "light"), default="camera",
+                    help="the render engine of the sessions' truth profiles (camera: not the estimator's "
+                         "default, and with the frozen Monte Carlo noise of its 32768-spp renders)")
     args = ap.parse_args()
     from fit_overrides import parse_overrides
     try:
@@ -137,9 +140,10 @@ def main() -> int:
     for seed in range(args.draws):
         if seed in done:
             continue
-        d = fit_draw(seed, overrides)
+        d = fit_draw(seed, overrides, args.truth_engine)
         d["git"] = rev
         d["setting_overrides"] = overrides
+        d["truth_engine"] = args.truth_engine
         state["draws"].append(d)
         err = d["parameters"]["sigma_t"] / TRUTH["sigma_t"] - 1
         print(f"draw {seed}: sigma_t {d['parameters']['sigma_t']:.4f} +- {d['uncertainties']['sigma_t']:.4f} "

@@ -2398,7 +2398,7 @@ def _check_same_session(session_dir: Any, run_doc: Mapping[str, Any], run_dir: A
 def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[str] | None = None,
                   channels: Sequence[str] | None = None, spp: int | None = None, repeats: int = DEFAULT_REPEATS,
                   iterations: int = 8, seed: int = DEFAULT_SEED, plots: bool = True, log: Callable[[str], None] | None = None,
-                  refine: bool = True, refit_objective: str = FIXED_SEED,
+                  refine: bool = True, refit_objective: str = FIXED_SEED, engine: str = "camera",
                   fit_progress: Callable[[str, str], tuple[Callable[[int, float, int], None], Callable[[str], None]]]
                   | None = None) -> dict[str, Any]:
     """Diagnose every channel of an estimate run of a session and write the results.
@@ -2407,7 +2407,9 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
     is confirmed, the refit as a new estimate run. With `refine` (default) the final model
     of a channel with confirmed effects is fitted by the estimator with the run's own
     settings (`refine_channel`); without, the Levenberg-Marquardt refit is the final one.
-    `spp` None takes `default_diagnose_spp()` (256 on the CPU, 2048 on a GPU).
+    `spp` None takes `default_diagnose_spp()` (256 on the CPU, 2048 on a GPU). `engine`: the
+    forward model's render engine for every model of the diagnosis (`estimate.forward.ENGINES`;
+    its bars were set on the camera engine's renders, docs/diagnosis-log.md).
     Returns the diagnosis document (`channels.<f>` = `ChannelDiagnosis.as_dict()`, plus
     `refit_run`). `fit_progress(channel, model)`, when given, returns the (progress,
     on_stage) callbacks for a channel's final fit (`rig.fit_progress.FitProgress.channel`).
@@ -2431,6 +2433,9 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
             raise ModelParameterError(f"unknown effect {e!r}; known: {', '.join(sorted(EXTENSIONS))}")
     if refit_objective not in OBJECTIVES:
         raise ModelParameterError(f"refit objective {refit_objective!r}: expected one of {', '.join(OBJECTIVES)}")
+    from estimate.forward import ENGINES
+    if engine not in ENGINES:
+        raise ModelParameterError(f"unknown render engine {engine!r}; use one of {', '.join(ENGINES)}")
     if spp is None:
         spp = default_diagnose_spp()
     session = Path(session_dir)
@@ -2447,7 +2452,7 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
     out: dict[str, Any] = {"format": "rig-diagnosis/1", "fit_run": str(run_dir), "session": str(session.resolve()),
                            "created": datetime.now(UTC).isoformat(timespec="seconds"),
                            "settings": {"spp": spp, "repeats": repeats, "iterations": iterations, "seed": seed,
-                                        "refit_objective": refit_objective,
+                                        "refit_objective": refit_objective, "engine": engine,
                                         "effects": list(effects) if effects else list(CANDIDATES),
                                         "final_fit": "estimator" if refine else "levenberg-marquardt"},
                            "channels": {}}
@@ -2469,7 +2474,7 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
             key = tuple(exts)
             if key not in _cache:
                 _cache[key] = ForwardModel(_pb.geometry, _pb.beam, phase=_phase, extensions=key,
-                                           profile_y_shape=_pb.y_shapes())
+                                           profile_y_shape=_pb.y_shapes(), engine=engine)
             return _cache[key]
 
         base = BaseFit({k: float(v) for k, v in (c.get("parameters") or {}).items()}, float(c.get("scale", 1.0)),

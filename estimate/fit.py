@@ -264,9 +264,11 @@ class FitSettings:
     lm_spp: int = 1024
     uncertainties: bool = True
     scale: str = "free"              # "free": fitted (profiled) per channel; "calibrated": from the beam power
-    #: the forward model's render engine (`estimate.forward.ENGINES`): "camera" (Mitsuba's
-    #: prbvolpath) or "light" (paths from the beam, `estimate.light_paths`)
-    engine: str = "camera"
+    #: the forward model's render engine (`estimate.forward.ENGINES`): "light" (paths from
+    #: the beam, `estimate.light_paths`: on the bench's synthetic session a fit took 10 s
+    #: against the camera engine's 99 s, with a quarter of its uncertainty) or "camera"
+    #: (Mitsuba's prbvolpath from the camera)
+    engine: str = "light"
 
     @classmethod
     def for_variant(cls, variant: str | None = None, **kw: Any) -> FitSettings:

@@ -118,9 +118,13 @@ def write_report(session_dir: str | os.PathLike[str], out: str | os.PathLike[str
         parts.append(f"<h3>{html.escape(doc['run_id'])}</h3>")
         st = doc.get("settings") or {}
         exts = st.get("extensions") or []
+        fit_raw = st.get("fit")
+        fit_st: dict = fit_raw if isinstance(fit_raw, dict) else {}
+        # Runs before the light engine (session 61) were rendered from the camera.
+        engine = fit_st.get("engine") or ("camera" if fit_st else "-")
         parts.append(f"<p>model {html.escape(str(st.get('model')))}, extensions "
                      f"{html.escape(', '.join(map(str, exts)) if exts else 'none')}, scale "
-                     f"{html.escape(str(st.get('scale') or '-'))}, "
+                     f"{html.escape(str(st.get('scale') or '-'))}, render engine {html.escape(str(engine))}, "
                      f"software {html.escape(_fmt(doc.get('software')))}</p>")
         # A calibrated scale (the default) is not fitted and has no interval of its own.
         scale_unc_missing = "from the calibration" if st.get("scale") == "calibrated" else "-"

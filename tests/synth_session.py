@@ -60,8 +60,10 @@ def write_calibration(caldir: Path, filters: Sequence[str], beam_sigma_mm: float
 def make_session(path: Path, truth: Mapping[str, Mapping[str, float]], *, angles: Sequence[float],
                  phase: str = "exp3", scale: float = 5.0e3, spp: int = 2048, seed: int = 0,
                  noise: bool = True, width: int = 512, skip: Sequence[str] = (),
-                 calibration: bool = True, collection_sr_error: float = 1.0, lens_config: bool = True) -> Path:
-    """Write a session whose channel f holds profiles of `truth[f]` (ForwardModel parameters).
+                 calibration: bool = True, collection_sr_error: float = 1.0, lens_config: bool = True,
+                 engine: str = "camera") -> Path:
+    """Write a session whose channel f holds profiles of `truth[f]` (ForwardModel parameters),
+    rendered by the forward model's `engine` (camera by default: not the estimator's).
 
     `skip` lists stack ids left pending; the configuration's collection_sr is the true one
     times `collection_sr_error` (`lens_config` False: no camera keys at all). Returns the
@@ -101,7 +103,7 @@ def make_session(path: Path, truth: Mapping[str, Mapping[str, float]], *, angles
                  CENTER_PX[1] - 0.5 - (round(CENTER_PX[1]) - 12)))
             geo = RigGeometry(thickness_mm=1.0, magnification=0.3, image_center_px=CENTER_PX,
                               profile_row=PROFILE_ROW, profile_columns=(x0, x0 + width))
-            fm = ForwardModel(geo, beam, phase=phase)
+            fm = ForwardModel(geo, beam, phase=phase, engine=engine)
             prof = fm.render_profiles(dict(truth[f]), list(angles), spp=spp, seed=seed + 1000) * scale
             t_exp = 1.0  # s: the variance of an e-/s estimate from one exposure of t seconds
             for k, a in enumerate(angles):

@@ -70,6 +70,20 @@ def test_json_shape_and_runs_never_overwritten(session, capsys):
     assert run["run_id"] in html and "data:image/png;base64," in html
     # No Python reprs in the tables: a calibrated scale says where it came from, nothing reads None.
     assert "<td>from the calibration</td>" in html and ">None<" not in html and "{'" not in html
+    # The light engine by default (estimate.light_paths), named in the run and the report.
+    assert fit["engine"] == "light" and "render engine light" in html
+
+
+def test_engine_flag_chooses_the_forward_models_renderer(session, capsys):
+    argv = ["estimate", str(session), "--channels", "g", "--columns", "32", "--max-iterations", "2",
+            "--spp-max", "32", "--polish-steps", "1", "--engine", "camera", "--json"]
+    assert main(argv) == 0
+    (run,) = json.loads(capsys.readouterr().out)["runs"]
+    doc = yaml.safe_load((Path(run["path"]) / "results.yaml").read_text())
+    assert doc["settings"]["fit"]["engine"] == "camera"
+    assert main(["estimate", str(session), "--engine", "photons"]) == 2
+    err = capsys.readouterr().err
+    assert "invalid choice" in err and "Traceback" not in err
 
 
 def test_report_cells_round_floats_wherever_they_are():

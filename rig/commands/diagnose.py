@@ -47,6 +47,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "Levenberg-Marquardt; its optimum leans towards quieter renders, so a 256-px window wants "
                         "about 2048 spp) or the decorrelated chi2 of two seeds (decorrelated, Gauss-Newton; no such "
                         "lean, so fewer spp serve: see docs/diagnosis-log.md, session 45)")
+    p.add_argument("--engine", choices=("camera", "light"), default="camera",
+                   help="the forward model's render engine for the diagnosis' models: Mitsuba's prbvolpath from "
+                        "the camera (camera, default: the one the diagnosis' bars were set on) or light paths from "
+                        "the beam (light: much less render noise a second; see docs/diagnosis-log.md, session 61)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     p.add_argument("--json", action="store_true", help="print the diagnosis as JSON")
     p.add_argument("--no-progress", action="store_true",
@@ -82,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
     with FitProgress(enabled=not (args.json or args.no_progress)) as live:
         doc = run_diagnosis(session, args.fit, effects=effects, channels=_list(args.channels, True), spp=args.spp,
                             seed=args.seed, plots=not args.no_plots, log=log, refine=not args.quick,
-                            fit_progress=live.channel, refit_objective=args.refits)
+                            fit_progress=live.channel, refit_objective=args.refits, engine=args.engine)
     if args.json:
         print(json.dumps(doc, indent=1, default=float))
     else:
