@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from capture.exr_io import read_exr, write_exr
+from capture.exr_io import write_exr
 from capture.hdr import HdrResult, NoiseModel
 from capture.plan import CapturePlan, StackKey
 from capture.session import Session
@@ -33,18 +33,36 @@ BEAM_POWER = 1.0e6          # e-/s through the calibration ND (calibration.yaml 
 CALIBRATION_ND = 1.0e-3
 
 
-def write_calibration(caldir: Path, filters: Sequence[str], beam_sigma_mm: float = 0.25,
-                      power: float = BEAM_POWER, rotation_zero_deg: float = 180.0) -> Path:
-    """A calibration directory with a Gaussian beam map per filter (e-/s per pixel)."""
-    caldir.mkdir(parents=True, exist_ok=True)
+def beam_samples(beam_sigma_mm: float = 0.25, power: float = BEAM_POWER) -> tuple[np.ndarray, np.ndarray]:
+    """(samples, frame) of the synthetic Gaussian beam on the 24 x 24 pixels around the axis.
+
+    The true beam is the bilinear surface through `samples` (a Gaussian of `beam_sigma_mm`
+    sampled at the pixel centres, e-/s x pixel area each); `frame` is what a camera records of
+    it, its integral over each pixel (the kernel (1/8, 3/4, 1/8) per axis,
+    `estimate.beam.map_from_pixel_image` undoes it). Both sum to `power`. Sessions render their
+    truth with the samples and the estimator reads the frame, as on the rig."""
     n = 24
     x0 = round(CENTER_PX[0]) - n // 2
     y0 = round(CENTER_PX[1]) - n // 2
     jj, ii = np.mgrid[0:n, 0:n]
     xm = (x0 + ii + 0.5 - CENTER_PX[0]) * PITCH_MM
     ym = -(y0 + jj + 0.5 - CENTER_PX[1]) * PITCH_MM
-    img = np.exp(-(xm ** 2 + ym ** 2) / (2 * beam_sigma_mm ** 2))
-    img *= power / img.sum()
+    samples = np.exp(-(xm ** 2 + ym ** 2) / (2 * beam_sigma_mm ** 2))
+    samples *= power / samples.sum()
+    k = np.array([0.125, 0.75, 0.125])
+    frame = np.apply_along_axis(lambda r: np.convolve(r, k, mode="same"), 1, samples)
+    frame = np.apply_along_axis(lambda c: np.convolve(c, k, mode="same"), 0, frame)
+    return samples, frame * (power / frame.sum())
+
+
+def write_calibration(caldir: Path, filters: Sequence[str], beam_sigma_mm: float = 0.25,
+                      power: float = BEAM_POWER, rotation_zero_deg: float = 180.0) -> Path:
+    """A calibration directory with a Gaussian beam frame per filter (e-/s per pixel, `beam_samples`)."""
+    caldir.mkdir(parents=True, exist_ok=True)
+    n = 24
+    x0 = round(CENTER_PX[0]) - n // 2
+    y0 = round(CENTER_PX[1]) - n // 2
+    _, img = beam_samples(beam_sigma_mm, power)
     entries = {}
     for f in filters:
         write_exr(caldir / f"beam_{f}.exr", {"radiance": img, "variance": img * 0.01},
@@ -96,7 +114,8 @@ def make_session(path: Path, truth: Mapping[str, Mapping[str, float]], *, angles
     rng = np.random.default_rng(seed)
     with s:
         for f in filters:
-            img = np.asarray(read_exr(path.parent / (path.name + "_cal") / f"beam_{f}.exr")["radiance"], dtype=float)
+            # The truth's beam is the one the calibration frame recorded (`beam_samples`).
+            img, _ = beam_samples()
             beam = BeamProfile.from_camera_image(
                 img / PITCH_MM ** 2, PITCH_MM,
                 (CENTER_PX[0] - 0.5 - (round(CENTER_PX[0]) - 12),
