@@ -12,7 +12,8 @@ uncertainties, per parameter and for the derived sigma_a, sigma_s' and g:
 - the RMS error against the RMS reported uncertainty.
 
 Each draw's result is kept in benchmarks/results/bench_coverage.json as soon as its fit ends, so
-an interrupted run goes on where it stopped (`--fresh` starts again). About 5 min a draw on 2 cores.
+an interrupted run goes on where it stopped (`--fresh` starts again). About 100 s a draw on 2 cores
+(session 61: 90 s of it the 32768-spp truth renders, 10 s the fit with the light engine).
 
     .venv/bin/python benchmarks/bench_coverage.py [--draws 8] [--fresh]
 """

@@ -187,9 +187,9 @@ class LightPaths:
                 is, d/d of the extinction traced with), "albedo", the phase parameters.
 
         Returns:
-            (image, derivatives): Dr.Jit arrays, not yet evaluated, laid out as
-            (rows, angles, columns), radiance per steradian in the map's units; each
-            derivative image per unit of its parameter.
+            (image, derivatives): Dr.Jit arrays (evaluated, one chunk of `CHUNK_PATHS`
+            paths at a time), laid out as (rows, angles, columns), radiance per steradian in
+            the map's units; each derivative image per unit of its parameter.
         """
         dr = self.dr
         mi = self.mi
