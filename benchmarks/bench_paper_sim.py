@@ -50,10 +50,10 @@ SCALE = "calibrated"  # intensity scale of the fits (--scale); as rig estimate's
 #: to the polish after the Adam steps and the polish's Jacobians for the uncertainties since 28;
 #: the sandwich's data-only meat since 30; its meat with the Jacobians' noise since 34, the
 #: polish's share with its steps' render correlation since 36, the excess share's posterior
-#: mean since 37).
+#: mean since 37; the light engine since 61).
 #: FitSettings fields changed by `--setting` (none by default).
 OVERRIDES: dict = {}
-RECIPE = "jointgrid-smoothgn-davg-polish-cross-chi2-crossunc-onesided128-damped-handover-datameat-jacmeat-bpost"
+RECIPE = "jointgrid-smoothgn-davg-polish-cross-chi2-crossunc-onesided128-damped-handover-datameat-jacmeat-bpost-light"
 
 WORLD_TEMPLATE = """\
 # Paper section 4 simulation case: poly-disperse Mie, mean diameter {d} um, sigma_t {s} /mm.
