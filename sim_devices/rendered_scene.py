@@ -179,7 +179,7 @@ class RenderedScene:
             beam = BeamProfile.centered(self._beam_map, self._beam_pitch, w.beam.offset_mm)
             exts = [e for e in w.effects if e not in ("lens_blur", "stray_light", "sensor_nonlinearity")]
             m = ForwardModel(geom, beam, phase=w.materials[filter_name].model, extensions=exts,
-                             max_depth=w.render.max_depth)
+                             max_depth=w.render.max_depth, engine=w.render.engine)
             self._models[filter_name] = m
         return m
 
@@ -252,8 +252,18 @@ class RenderedScene:
         img = np.zeros((rows_n, cols_n))
         angle = ((phys_deg + 180.0) % 360.0) - 180.0
         for i, (r0, r1, spp) in enumerate(self.row_tiers()):
-            img[r0:r1] = model.render(params, [angle], columns=(0, cols_n), rows=(r0, r1), spp=spp,
-                                      seed=self.image_seed(phys_deg, filter_name, i))[0]
+            if self.world.render.engine == "camera":
+                img[r0:r1] = model.render(params, [angle], columns=(0, cols_n), rows=(r0, r1), spp=spp,
+                                          seed=self.image_seed(phys_deg, filter_name, i))[0]
+                continue
+            # The light engine adds every vertex to every row of a window, at most MAX_ROWS
+            # of them: a tier in blocks, each its own paths (seed).
+            from estimate.light_paths import MAX_ROWS
+
+            for j, b0 in enumerate(range(r0, r1, MAX_ROWS)):
+                b1 = min(r1, b0 + MAX_ROWS)
+                img[b0:b1] = model.render(params, [angle], columns=(0, cols_n), rows=(b0, b1), spp=spp,
+                                          seed=self.image_seed(phys_deg, filter_name, i) + 7919 * j)[0]
         return img
 
     def image_seed(self, phys_deg: float, filter_name: str, tier: int) -> int:

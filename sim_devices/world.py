@@ -132,6 +132,10 @@ class RenderSettings:
         cache_dir: disk cache of radiance images; None = $RIG_SIM_CACHE or ~/.cache/rig/sim-renders.
         mie_degree: degree of the exponential phase fitted to a Mie table.
         max_depth: path length limit.
+        engine: the forward model's render engine (`estimate.forward.ENGINES`): "camera"
+            (Mitsuba's prbvolpath, the default: not the estimator's own) or "light" (paths
+            from the beam: far less frozen Monte Carlo noise at the same cost, closer to a
+            real recording, which has none).
     """
 
     spp_profile: int = 1024
@@ -143,6 +147,7 @@ class RenderSettings:
     cache_dir: str | None = None
     mie_degree: int = 8
     max_depth: int = 64
+    engine: str = "camera"
 
     def cache_path(self) -> Path:
         if self.cache_dir:
@@ -181,7 +186,9 @@ class World:
         d = {"thickness_mm": self.thickness_mm, "half_width_mm": self.half_width_mm,
              "materials": {f: m.parameters() | {"model": m.model} for f, m in self.materials.items()},
              "beam": asdict(self.beam), "optics": asdict(self.optics), "effects": self.effects,
-             "render": {k: v for k, v in asdict(self.render).items() if k != "cache_dir"}}
+             # (the engine only when not the camera's, so the caches of earlier worlds stay valid)
+             "render": {k: v for k, v in asdict(self.render).items()
+                        if k != "cache_dir" and not (k == "engine" and v == "camera")}}
         if self.beam.profile.get("type") == "map":
             d["beam_map_sha"] = hashlib.sha256(Path(self.beam.profile["file"]).read_bytes()).hexdigest()
         return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()
@@ -321,11 +328,15 @@ def parse_world(data: Any, source: str = "<world>", base_dir: Path | None = None
     cache = rs.data.get("cache_dir")
     if cache is not None and not isinstance(cache, str):
         raise rs.fail("cache_dir", f"must be a path string, got {cache!r}")
+    engine = rs.data.get("engine", "camera")
+    if engine not in ("camera", "light"):
+        raise rs.fail("engine", f"must be camera or light, got {engine!r}")
     render = RenderSettings(
         spp_profile=rs.integer("spp_profile", 1024, 1), profile_halfwidth_rows=rs.integer("profile_halfwidth_rows", 2),
         spp_band=rs.integer("spp_band", 32, 1), band_halfwidth_rows=rs.integer("band_halfwidth_rows", 16),
         spp_outside=rs.integer("spp_outside", 1, 0), seed=rs.integer("seed", 1),
-        cache_dir=cache, mie_degree=rs.integer("mie_degree", 8, 1), max_depth=rs.integer("max_depth", 64, 1))
+        cache_dir=cache, mie_degree=rs.integer("mie_degree", 8, 1), max_depth=rs.integer("max_depth", 64, 1),
+        engine=str(engine))
 
     s = root.section("slab", required=True)
     s.known({"thickness_mm", "half_width_mm"})

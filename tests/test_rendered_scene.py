@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sim_devices.rendered_scene import RenderedScene
-from sim_devices.world import parse_world
+from sim_devices.world import WorldError, parse_world
 
 FULL = (slice(0, 512), slice(0, 512))
 
@@ -192,3 +192,22 @@ def test_stray_light_that_goes_negative_on_the_frame_is_refused_in_one_line(tmp_
     with pytest.raises(UsageError, match=r"w\.yaml: effects\.stray_light") as e:
         install_world(cfg, str(tmp_path / "w.yaml"))
     assert "\n" not in str(e.value)
+
+
+def test_the_light_engine_renders_the_same_frame_with_less_noise(tmp_path):
+    """`render.engine: light`: the frame in blocks of at most 64 rows, the same radiance as
+    the camera engine's (its own cache entry), and a world file with another engine is refused."""
+    base = _world(tmp_path).raw["render"]
+    cam = RenderedScene(_world(tmp_path, render={**base, "spp_profile": 256, "spp_outside": 1}), magnification=0.3)
+    light_world = _world(tmp_path, render={**base, "spp_profile": 256, "spp_outside": 1, "engine": "light"})
+    light = RenderedScene(light_world, magnification=0.3)
+    assert light.cache_key(45.0, "g") != cam.cache_key(45.0, "g")
+    a, b = cam.radiance(45.0, "g"), light.radiance(45.0, "g")
+    r0, r1 = light.profile_rows()
+    assert b[r0:r1].sum() == pytest.approx(a[r0:r1].sum(), rel=0.05)
+    assert b[:r0 - 3].sum() > 0    # the rows outside the band, rendered in 64-row blocks
+    # the camera engine's default leaves the truth hash (and the caches) of earlier worlds alone
+    assert parse_world({**_world(tmp_path).raw, "render": {**base, "engine": "camera"}}, "t.yaml").truth_hash() \
+        == _world(tmp_path).truth_hash()
+    with pytest.raises(WorldError, match="render.engine: must be camera or light"):
+        _world(tmp_path, render={**base, "engine": "photons"})
