@@ -23,8 +23,9 @@ step "rig capture --sim --angles 10 --filters rgb   (HDR stack per angle and fil
 "$RIG" info "$RUN/session" | tail -n 1
 
 step "rig estimate   (sigma_t, albedo, exponential phase function per channel)"
-# The full default fit (2-3.5 min per channel on 2 slow CPU cores, session 25; far less on a GPU);
-# DEMO_ESTIMATE_ARGS="--polish-steps 2" for a quicker, rougher look (at most 4 polish steps instead of 8)
+# The full default fit with the light engine (about 10-20 s a channel on 2 cores since session 61;
+# the camera engine, --engine camera, took 1-3.5 min); DEMO_ESTIMATE_ARGS="--polish-steps 2" for a
+# quicker, rougher look (at most 4 polish steps instead of 8)
 "$RIG" estimate "$RUN/session" ${DEMO_ESTIMATE_ARGS:-}
 
 step "rig diagnose   (does the fit leave anything the model does not explain?)"

@@ -47,7 +47,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--final-spp", type=int, default=None,
                    help="samples per pixel of the Gauss-Newton polish and the final evaluation (1024 on the CPU, "
                         "8192 on a GPU, where a fit at 8192 takes less than one at 1024 on 2 CPU cores and gives "
-                        "honest intervals at sigma_t 6 /mm; 8192 on 2 cores takes about 14 min a channel)")
+                        "honest intervals at sigma_t 6 /mm; 8192 on 2 cores took about 14 min a channel with the "
+                        "camera engine, far less with the light engine)")
     p.add_argument("--polish-steps", type=int, default=None,
                    help="full Gauss-Newton steps at the final spp after the iterations (4, up to twice that while the "
                         "last ones still walk; the result averages the last three points); 0: none, fewer for a "
