@@ -170,7 +170,7 @@ def synthetic_recording(case: dict[str, Any], excess: float = 0.0,
         truth lies outside the catalogue ("truth_phase")."""
         key = (*exts, phase)
         if key not in models:
-            models[key] = ForwardModel(geometry, beam, phase=phase, extensions=tuple(exts))
+            models[key] = ForwardModel(geometry, beam, phase=phase, extensions=tuple(exts), engine=ENGINE)
         return models[key]
 
     params = dict(TRUE)
@@ -212,6 +212,8 @@ def synthetic_recording(case: dict[str, Any], excess: float = 0.0,
 OPTIMUM_FIT_SPP = 4096
 #: Levenberg-Marquardt iterations of the synthetic diagnosis' refits.
 REFIT_ITERATIONS = 8
+#: The forward model's render engine of the recordings and the diagnosis (`--engine`).
+ENGINE = "camera"
 
 
 def _check_recording(cached: Path, prior: dict[str, Any], excess: float, columns: int) -> None:
@@ -400,6 +402,9 @@ def run_bench(case: dict[str, Any], work: Path, channel: str, angles: int, spp: 
     world["name"] = f"diag-{case['id']}"
     world["effects"] = {k: dict(v) for k, v in case["effects"].items()}
     world.setdefault("render", {})["seed"] = int(case.get("seed", 1))
+    # The bench renders with the diagnosis' engine (--engine; the camera engine by default).
+    if ENGINE != "camera":
+        world["render"]["engine"] = ENGINE
     wpath = work / "world.yaml"
     wpath.write_text(yaml.safe_dump(world, sort_keys=False))
     cal = work / "cal"
@@ -416,7 +421,8 @@ def run_bench(case: dict[str, Any], work: Path, channel: str, angles: int, spp: 
                   and "+diagnosis" not in d.name)
     t0 = time.perf_counter()
     doc = json.loads(_rig("diagnose", str(session), "--fit", str(runs[-1]), "--channels", channel, "--spp", str(spp),
-                          "--json", "--no-plots", "--refits", refits, *(() if final_fit else ("--quick",)), log=log))
+                          "--json", "--no-plots", "--refits", refits, "--engine", ENGINE,
+                          *(() if final_fit else ("--quick",)), log=log))
     out = doc["channels"][channel]
     out["diagnose_wall_s"] = time.perf_counter() - t0
     mat = world["materials"][channel]
@@ -460,7 +466,8 @@ def truth_at_floor(work: Path, channel: str, spp: int, truth: dict[str, float]) 
             # The bench adds stray light to the radiance of a unit-power beam; the estimator
             # renders with the measured beam map, whose total is pb.beam.power().
             params[f"{e}.{k}"] = float(v) * (pb.beam.power() if e == "stray_light" else 1.0)
-    fm = ForwardModel(pb.geometry, pb.beam, phase="exp3", extensions=list(effects), profile_y_shape=pb.y_shapes())
+    fm = ForwardModel(pb.geometry, pb.beam, phase="exp3", extensions=list(effects), profile_y_shape=pb.y_shapes(),
+                      engine=ENGINE)
     ev = evaluate(fm, params, pb, len(fm.parameter_names) + 1, spp=spp, seed=DEFAULT_SEED, repeats=DEFAULT_REPEATS)
     return float(ev.residuals.reduced_chi2_adjusted)
 
@@ -784,6 +791,9 @@ def main() -> int:
                     help="bench: diagnose with `rig diagnose --quick` (the Levenberg-Marquardt refit is the final "
                          "model; no estimator's final fit); results under the label bench_quick")
     ap.add_argument("--time-budget", type=float, default=None, metavar="S", help="stop starting cases after S s")
+    ap.add_argument("--engine", choices=("camera", "light"), default="camera",
+                    help="the forward model's render engine, for the recordings (the synthetic truth; the bench's "
+                         "render.engine) and the diagnosis alike; light is cached and reported apart")
     ap.add_argument("--label", default=None,
                     help="suffix of the written table and JSON entry (a spot check of a few cases, say, "
                          "without overwriting the whole suite's table)")
@@ -810,6 +820,10 @@ def main() -> int:
         variant_tag += f"-it{args.refit_iterations}"
     if args.refits != "fixed-seed" and args.source == "synthetic":
         variant_tag += "-dec"
+    global ENGINE
+    ENGINE = args.engine
+    if args.engine != "camera":
+        variant_tag += f"-{args.engine}"
     base_from = None
     if args.base_from is not None:
         if args.source != "synthetic":
@@ -821,7 +835,8 @@ def main() -> int:
             ap.error(f"--base-from {args.base_from}: no such cache directory (here or under "
                      f"{RESULTS / 'diagnose_cases'})")
     # The bench cache keeps the captured sessions (expensive): one spp per cache, --fresh to redo.
-    cache = RESULTS / "diagnose_cases" / (args.source if args.source == "bench"
+    cache = RESULTS / "diagnose_cases" / (args.source + ("" if args.engine == "camera" else f"-{args.engine}")
+                                          if args.source == "bench"
                                           else f"synthetic-{SYNTHETIC_VERSION}-excess{args.excess:g}-spp{args.spp}{variant_tag}")
     if args.outside and (args.source != "synthetic" or args.limits):
         ap.error("--outside is a synthetic series of its own (not with --source bench or --limits)")
