@@ -184,3 +184,15 @@ def test_plain_output_ends_each_channel_with_its_time_and_steps(session, capsys,
     line = next(x for x in err.splitlines() if x.startswith("  g: "))
     assert "iterations + " in line and "polish steps" in line
     assert "rig diagnose" not in captured.out
+
+
+def test_python_dash_m_rig_is_the_rig_command():
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "rig", "estimate", "--help"], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0 and "--engine" in r.stdout
+    bad = subprocess.run([sys.executable, "-m", "rig", "estimate", "/nonexistent/session"], capture_output=True,
+                         text=True, timeout=120)
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr
