@@ -43,15 +43,23 @@ def single_model() -> ForwardModel:
     return _model("exp0", max_depth=2)  # depth 2 = exactly the single-scattered light
 
 
+@pytest.mark.parametrize("engine", ["camera", "light"])
 @pytest.mark.parametrize("sigma_t", [0.5, 3.0])
-def test_single_scattering_matches_analytic(single_model: ForwardModel, sigma_t: float) -> None:
+def test_single_scattering_matches_analytic(single_model: ForwardModel, sigma_t: float, engine: str) -> None:
+    """Both engines against the closed form. The light engine's depth counts collisions (one:
+    single scattering), and its per-pixel noise is largest where few paths get there (back-lit
+    at 65 deg, sigma_t 3: the light that scatters near the front face has crossed e^-7 of the
+    slab), so its pixels are held to their mean and a wider band."""
+    model = single_model if engine == "camera" else _model("exp0", max_depth=1, engine="light")
+    spp, rtol = (65536, 0.06) if engine == "camera" else (32768, 0.15)
     angles = [35.0, 70.0, 115.0, 155.0]
-    prof = single_model.render_profiles({"sigma_t": sigma_t, "albedo": 0.7}, angles, spp=65536, seed=3)
+    prof = model.render_profiles({"sigma_t": sigma_t, "albedo": 0.7}, angles, spp=spp, seed=3)
     for k, phi in enumerate(angles):
         ref = single_scattering_profile(sigma_t, 0.7, 1.0, isotropic_eval, phi, BEAM_R, PITCH, N_PIX, PITCH)
         assert prof[k].sum() == pytest.approx(ref.sum(), rel=0.01), phi
         bright = ref > 0.2 * ref.max()
-        assert np.allclose(prof[k][bright], ref[bright], rtol=0.06), phi
+        assert np.allclose(prof[k][bright], ref[bright], rtol=rtol), phi
+        assert np.mean(prof[k][bright] / ref[bright]) == pytest.approx(1.0, abs=0.015), phi
         # where the reference is dark the render is dark too (orientation, beam position)
         assert prof[k][ref < 1e-6 * ref.max()].sum() < 1e-3 * prof[k].sum(), phi
 
@@ -67,10 +75,11 @@ def test_optically_thin_slab_is_single_scattering() -> None:
         assert prof[k].sum() == pytest.approx(ref.sum(), rel=0.01), phi
 
 
-def test_multiple_scattering_albedo_one_matches_mcml_reference() -> None:
+@pytest.mark.parametrize("engine", ["camera", "light"])
+def test_multiple_scattering_albedo_one_matches_mcml_reference(engine: str) -> None:
     """Albedo 1, index-matched, forward-peaked: the whole profile (all orders) against the
     photon Monte Carlo whose R + T + A = 1 bookkeeping tests/test_reference_mc.py checks."""
-    model = _model("hg")
+    model = _model("hg", engine=engine)
     params = {"sigma_t": 4.0, "albedo": 1.0, "phase.g": 0.5}
     for phi in (30.0, 150.0):
         prof = model.render_profiles(params, [phi], spp=4096, seed=5)[0]

@@ -1,5 +1,6 @@
 """The light engine (estimate.light_paths, `ForwardModel(engine="light")`) against the
-independent numpy references of tests/reference_mc.py, against the camera engine, and its
+independent numpy references of tests/reference_mc.py (its single-scattering and all-orders
+checks are in tests/test_forward_model.py, beside the camera engine's), against the camera engine, and its
 score-function derivatives against finite differences."""
 
 from __future__ import annotations
@@ -30,37 +31,6 @@ def _geometry(n_pix: int = N_PIX, pitch: float = PITCH, thickness: float = 1.0) 
 
 def _model(phase: str = "exp0", engine: str = "light", **kw) -> ForwardModel:
     return ForwardModel(_geometry(), BeamProfile.gaussian(BEAM_R), phase=phase, engine=engine, **kw)
-
-
-@pytest.mark.parametrize("sigma_t", [0.5, 3.0])
-def test_single_scattering_matches_analytic(sigma_t: float) -> None:
-    """One collision a path: the analytic single-scattering profile, pixel by pixel."""
-    model = _model("exp0", max_depth=1)
-    angles = [35.0, 70.0, 115.0, 155.0]
-    prof = model.render_profiles({"sigma_t": sigma_t, "albedo": 0.7}, angles, spp=32768, seed=3)
-    for k, phi in enumerate(angles):
-        ref = single_scattering_profile(sigma_t, 0.7, 1.0, isotropic_eval, phi, BEAM_R, PITCH, N_PIX, PITCH)
-        assert prof[k].sum() == pytest.approx(ref.sum(), rel=0.01), phi
-        # per pixel, within the render's noise: a few per cent at a million paths an angle,
-        # 10 % where few paths get there (back-lit at 65 deg, sigma_t 3: the light that
-        # scatters near the front face has crossed e^-7 of the slab)
-        bright = ref > 0.2 * ref.max()
-        assert np.allclose(prof[k][bright], ref[bright], rtol=0.15), phi
-        assert np.mean(prof[k][bright] / ref[bright]) == pytest.approx(1.0, abs=0.015), phi
-        assert prof[k][ref < 1e-6 * ref.max()].sum() < 1e-3 * prof[k].sum(), phi
-
-
-def test_multiple_scattering_albedo_one_matches_mcml_reference() -> None:
-    """All orders, forward-peaked HG, against the photon Monte Carlo (as the camera engine's test)."""
-    model = _model("hg")
-    params = {"sigma_t": 4.0, "albedo": 1.0, "phase.g": 0.5}
-    for phi in (30.0, 150.0):
-        prof = model.render_profiles(params, [phi], spp=4096, seed=5)[0]
-        ref, _, _ = mc_slab_profile(4.0, 1.0, 1.0, hg_sample(0.5), hg_eval(0.5), phi, BEAM_R, PITCH,
-                                     N_PIX, PITCH, n_photons=200_000, seed=7)
-        assert prof.sum() == pytest.approx(ref.sum(), rel=0.03), phi
-        bright = ref > 0.3 * ref.max()
-        assert np.allclose(prof[bright], ref[bright], rtol=0.08), phi
 
 
 def _region_sums(stack: np.ndarray, ref: np.ndarray, lo: float, hi: float) -> np.ndarray:
