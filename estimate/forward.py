@@ -225,6 +225,8 @@ class ForwardModel:
         self._bundles: dict[int, _SceneBundle] = {}
         self._refractive = "refractive_boundary" in self.extensions
         self._light: LightPaths | None = None
+        #: the light engine's renders use the continuous column response (`jacobian`'s differences)
+        self._tent = False
         if engine == LIGHT:
             self._light = LightPaths(geometry, phase, self.mi, max_depth=self.max_depth, rr_depth=self.rr_depth)
         else:
@@ -391,7 +393,8 @@ class ForwardModel:
             img, d_img = self._light.render(values, [float(a) + delta for a in angles], window,
                                             int(spp) * window.width, render_seed(seed, first_index), beam=beam,
                                             thickness_mm=d, sigma_t=values["sigma_t"] * (1.0 + spread * x),
-                                            eta=values.get("refractive_boundary.n", 1.0), scores=scores)
+                                            eta=values.get("refractive_boundary.n", 1.0), scores=scores,
+                                            tent=self._tent)
             out.append((x, w, img, d_img))
         return out
 
@@ -717,12 +720,24 @@ class ForwardModel:
                     hi, lo = x, max(x - h, lower)
             diffs.append((name, None if one_sided and lo == x else {**values, name: lo},
                           None if one_sided and hi == x else {**values, name: hi}, hi - lo))
+        if self._light is not None:
+            # The light engine's differences render both ends with the continuous (tent) column
+            # response (`LightPaths.render(tent=...)`), the base too: the given base profiles
+            # have the pixels' box response.
+            diffs = [(n, dict(values) if lo is None else lo, dict(values) if hi is None else hi, st)
+                     for n, lo, hi, st in diffs]
         # Every render (the image parameters' base first, then each difference's ends) queued
         # before any is read (`_radiances`).
         jobs = [(values, seed)] if image_names and base_rad is None else []
-        jobs += [(v, seed) for _, v_lo, v_hi, _ in diffs for v in (v_lo, v_hi) if v is not None]
+        fd_jobs = [(v, seed) for _, v_lo, v_hi, _ in diffs for v in (v_lo, v_hi) if v is not None]
         with self._lock:
-            rads = iter(self._radiances(jobs, angles, window, spp))
+            rad_list = self._radiances(jobs, angles, window, spp)
+            self._tent = self._light is not None
+            try:
+                rad_list += self._radiances(fd_jobs, angles, window, spp)
+            finally:
+                self._tent = False
+            rads = iter(rad_list)
         if image_names:
             if base_rad is None:
                 base_rad = next(rads)

@@ -167,7 +167,7 @@ class LightPaths:
     def render(self, values: Mapping[str, float], angles_deg: Sequence[float], window: PixelWindow,
                paths_per_angle: int, seed: int, *, beam: BeamProfile, thickness_mm: float,
                sigma_t: float | None = None, eta: float = 1.0,
-               scores: Sequence[str] = ()) -> tuple[Any, dict[str, Any]]:
+               scores: Sequence[str] = (), tent: bool = False) -> tuple[Any, dict[str, Any]]:
         """Radiance of `window` at each stage angle, and its derivatives for `scores`.
 
         Args:
@@ -185,6 +185,11 @@ class LightPaths:
                 let every path out; > 1: Fresnel reflection and refraction, see the module doc).
             scores: parameter names whose derivative images are wanted: "sigma_t" (that
                 is, d/d of the extinction traced with), "albedo", the phase parameters.
+            tent: each vertex split between the two nearest column centres (a 2-px triangle
+                response, continuous in the vertex's x) instead of added to the column it
+                falls in (the pixel's box). For differences in parameters that move every
+                path (the angle offset, the thickness): with the box, vertices near a
+                column's edge change column and common random numbers cancel little of it.
 
         Returns:
             (image, derivatives): Dr.Jit arrays (evaluated, one chunk of `CHUNK_PATHS`
@@ -308,23 +313,31 @@ class LightPaths:
                 collided = collided & active
                 # The camera's connection (direction +z, so mu = wz; see `_connection`).
                 conn, dconn_sig, dlog_p = self._connection(phase, wz, pz, sig_t, D, n_in if refractive else None, names)
-                col = dr.floor(px / pitch + cx) - window.col0
-                seen = collided & (col >= 0) & (col < W)
                 base = w0 * weight * albedo * conn / (pitch * pitch)
-                col_u = UInt32(dr.clip(col, 0, W - 1))
+                if tent:
+                    # Split between the two nearest column centres, linearly: continuous in the
+                    # vertex's x, so a small move of every path moves the image smoothly.
+                    fx = px / pitch + cx - window.col0 - 0.5
+                    col = dr.floor(fx)
+                    share = fx - col
+                    parts = [(col, 1.0 - share), (col + 1.0, share)]
+                else:
+                    parts = [(dr.floor(px / pitch + cx) - window.col0, Float(1.0))]
                 for r, (y_lo, y_hi) in enumerate(rows):
                     mass = self._v_mass(tables, dev, col_i, col_a, in_halo, cv, halo_k, y_lo - py, y_hi - py)
-                    c = base * mass
-                    at = UInt32(r * n_ang * W) + ang_i * W + col_u
-                    dr.scatter_reduce(dr.ReduceOp.Add, image, c, at, seen)
-                    for name in names:
-                        if name == "sigma_t":
-                            sc = k_coll / sig_t - length + dconn_sig
-                        elif name == "albedo":
-                            sc = k_coll / albedo
-                        else:
-                            sc = score[name] + dlog_p[name]
-                        dr.scatter_reduce(dr.ReduceOp.Add, d_img[name], c * sc, at, seen)
+                    for col, part in parts:
+                        seen = collided & (col >= 0) & (col < W)
+                        c = base * mass * part
+                        at = UInt32(r * n_ang * W) + ang_i * W + UInt32(dr.clip(col, 0, W - 1))
+                        dr.scatter_reduce(dr.ReduceOp.Add, image, c, at, seen)
+                        for name in names:
+                            if name == "sigma_t":
+                                sc = k_coll / sig_t - length + dconn_sig
+                            elif name == "albedo":
+                                sc = k_coll / albedo
+                            else:
+                                sc = score[name] + dlog_p[name]
+                            dr.scatter_reduce(dr.ReduceOp.Add, d_img[name], c * sc, at, seen)
                 # The next direction (a collision's; a mirrored flight turns its z).
                 mu, ratio = phase.sample(rng.next_float32(), rng.next_float32())
                 if phase_scored:

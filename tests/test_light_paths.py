@@ -200,3 +200,27 @@ def test_a_full_window_band_is_lit_around_the_profile_row() -> None:
     # symmetric in y about the beam's axis (the disk is centred on it), within the noise
     bright = rows[:12] > 0.2 * rows.max()
     np.testing.assert_allclose(rows[:12][bright], rows[12:][::-1][bright], rtol=0.05)
+
+
+def test_tent_response_keeps_the_light_and_smooths_differences_in_the_angle():
+    """The continuous column response (`tent`) splits each vertex between two columns: the same
+    light in all, and differences in a parameter that moves every path are less noisy."""
+    geo = RigGeometry(thickness_mm=1.0, magnification=0.5, profile_columns=(236, 276))
+    beam = BeamProfile.disk(0.3)
+    model = ForwardModel(geo, beam, phase="hg", engine="light")
+    lp = LightPaths(geo, "hg", model.mi)
+    values = model.validate({"sigma_t": 2.0, "albedo": 0.9, "phase.g": 0.6})
+    window = geo.window()
+
+    def render(angle: float, seed: int, tent: bool) -> np.ndarray:
+        img, _ = lp.render(values, [angle], window, 40 * 512, seed, beam=beam, thickness_mm=1.0, tent=tent)
+        return np.array(img, dtype=np.float64)
+
+    box, tent = render(60.0, 1, False), render(60.0, 1, True)
+    inner = slice(3, -3)   # away from the window's edges, where the tent sends light outside
+    assert tent[inner].sum() == pytest.approx(box[inner].sum(), rel=0.02)
+    noise = {}
+    for t in (False, True):
+        cols = np.array([(render(60.2, s, t) - render(59.8, s, t)) / 0.4 for s in range(4)])
+        noise[t] = np.sqrt(np.mean(cols.var(axis=0, ddof=1))) / np.sqrt(np.mean(cols.mean(axis=0) ** 2))
+    assert noise[True] < 0.7 * noise[False]
