@@ -2433,9 +2433,8 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
             raise ModelParameterError(f"unknown effect {e!r}; known: {', '.join(sorted(EXTENSIONS))}")
     if refit_objective not in OBJECTIVES:
         raise ModelParameterError(f"refit objective {refit_objective!r}: expected one of {', '.join(OBJECTIVES)}")
-    from estimate.forward import ENGINES
-    if engine not in ENGINES:
-        raise ModelParameterError(f"unknown render engine {engine!r}; use one of {', '.join(ENGINES)}")
+    from estimate.forward import check_engine
+    check_engine(engine)
     if spp is None:
         spp = default_diagnose_spp()
     session = Path(session_dir)

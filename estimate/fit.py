@@ -142,7 +142,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from estimate.errors import ModelParameterError
 from estimate.evaluation import evaluate, solve_additive
-from estimate.forward import ENGINES, ForwardModel
+from estimate.forward import ForwardModel, check_engine
 from estimate.gauss_newton import (
     gn_inverse,
     gn_jacobian,
@@ -519,8 +519,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     if on_stage:
         on_stage(STAGES[0])
     phase = model_phase(model)
-    if st.engine not in ENGINES:
-        raise ModelParameterError(f"unknown render engine {st.engine!r}; use one of {', '.join(ENGINES)}")
+    check_engine(st.engine)   # a hand-edited results.yaml's too, before any work
     fm = forward or ForwardModel(problem.geometry, problem.beam, phase=phase, extensions=extensions,
                                  profile_y_shape=problem.y_shapes(), engine=st.engine)
     fixed = dict(fixed or {})

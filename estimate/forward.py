@@ -49,14 +49,21 @@ from estimate.light_paths import LightPaths
 from estimate.mitsuba_env import init_mitsuba
 from estimate.mitsuba_phase import exp_phase_dict, tthg_phase_dict
 
-__all__ = ["BASE_SPECS", "CAMERA", "ENGINES", "LIGHT", "ForwardModel", "Linearization", "phase_specs",
-           "render_seed"]
+__all__ = ["BASE_SPECS", "CAMERA", "ENGINES", "LIGHT", "ForwardModel", "Linearization", "check_engine",
+           "phase_specs", "render_seed"]
 
 #: Render engines (`ForwardModel(engine=...)`): paths from the camera (Mitsuba's prbvolpath)
 #: or from the beam (`estimate.light_paths`).
 CAMERA = "camera"
 LIGHT = "light"
 ENGINES = (CAMERA, LIGHT)
+
+
+def check_engine(engine: str) -> str:
+    """`engine` if it names a render engine, else `ModelParameterError` (one line)."""
+    if engine not in ENGINES:
+        raise ModelParameterError(f"unknown render engine {engine!r}; use one of {', '.join(ENGINES)}")
+    return engine
 
 _INF = float("inf")
 #: Largest number of paths (pixels x spp) traced in one launch; bounds memory (~0.2 kB each).
@@ -175,9 +182,7 @@ class ForwardModel:
                  extensions: Iterable[str] = (), variant: str | None = None,
                  max_depth: int = 64, rr_depth: int = 16,
                  profile_y_shape: Mapping[float, np.ndarray] | None = None, engine: str = CAMERA) -> None:
-        if engine not in ENGINES:
-            raise ModelParameterError(f"unknown render engine {engine!r}; use one of {', '.join(ENGINES)}")
-        self.engine = engine
+        self.engine = check_engine(engine)
         self.geometry = geometry
         self.profile_y_shape: dict[float, np.ndarray] = {
             _angle_key(a): np.asarray(h, dtype=np.float64) for a, h in (profile_y_shape or {}).items()}
@@ -225,8 +230,6 @@ class ForwardModel:
         self._bundles: dict[int, _SceneBundle] = {}
         self._refractive = "refractive_boundary" in self.extensions
         self._light: LightPaths | None = None
-        #: the light engine's renders use the continuous column response (`jacobian`'s differences)
-        self._tent = False
         if engine == LIGHT:
             self._light = LightPaths(geometry, phase, self.mi, max_depth=self.max_depth, rr_depth=self.rr_depth)
         else:
@@ -358,11 +361,13 @@ class ForwardModel:
                                 len(angles), window)
 
     def _queue_radiance(self, values: Mapping[str, float], angles: Sequence[float], window: PixelWindow,
-                        spp: int, seed: int, first_index: int = 0) -> list[tuple[range, float, Any]]:
-        """The launches of `_render_radiance`, queued and not yet read back (`_gather_radiance`)."""
+                        spp: int, seed: int, first_index: int = 0, tent: bool = False) -> list[tuple[range, float, Any]]:
+        """The launches of `_render_radiance`, queued and not yet read back (`_gather_radiance`).
+        `tent`: the light engine's continuous column response (`LightPaths.render`; ignored by the
+        camera engine)."""
         if self._light is not None:
             return [(range(0, len(angles)), w, img)
-                    for x, w, img, _ in self._light_renders(values, angles, window, spp, seed, first_index)]
+                    for _, w, img, _ in self._light_renders(values, angles, window, spp, seed, first_index, tent=tent)]
         groups, passes = self._groups(len(angles), window, spp)
         spp_pass = max(1, math.ceil(int(spp) / passes))
         pending = []
@@ -378,8 +383,8 @@ class ForwardModel:
         return pending
 
     def _light_renders(self, values: Mapping[str, float], angles: Sequence[float], window: PixelWindow, spp: int,
-                       seed: int, first_index: int = 0,
-                       scores: Sequence[str] = ()) -> list[tuple[float, float, Any, dict[str, Any]]]:
+                       seed: int, first_index: int = 0, scores: Sequence[str] = (),
+                       tent: bool = False) -> list[tuple[float, float, Any, dict[str, Any]]]:
         """The light engine's renders of one call: per band node (x, quadrature weight,
         image, score images), images laid out (rows, angles, columns), not yet read back.
         Every node uses the same random numbers, as the camera engine's do (`_bands`)."""
@@ -394,7 +399,7 @@ class ForwardModel:
                                             int(spp) * window.width, render_seed(seed, first_index), beam=beam,
                                             thickness_mm=d, sigma_t=values["sigma_t"] * (1.0 + spread * x),
                                             eta=values.get("refractive_boundary.n", 1.0), scores=scores,
-                                            tent=self._tent)
+                                            tent=tent)
             out.append((x, w, img, d_img))
         return out
 
@@ -446,7 +451,7 @@ class ForwardModel:
         return (plus - minus) / (2.0 * eps)
 
     def _radiances(self, jobs: Sequence[tuple[Mapping[str, float], int]], angles: Sequence[float],
-                   window: PixelWindow, spp: int) -> list[np.ndarray]:
+                   window: PixelWindow, spp: int, tent: bool = False) -> list[np.ndarray]:
         """`_render_radiance(values, angles, window, spp, seed)` of each (values, seed) of `jobs`,
         the same numbers, up to `_QUEUED_RENDERS` of them queued before the first is read back.
 
@@ -459,7 +464,7 @@ class ForwardModel:
         per_queue = max(1, min(_QUEUED_RENDERS, _QUEUED_LANES // max(1, lanes)))
         out: list[np.ndarray] = []
         for i in range(0, len(jobs), per_queue):
-            queued = [self._queue_radiance(values, angles, window, spp, seed)
+            queued = [self._queue_radiance(values, angles, window, spp, seed, tent=tent)
                       for values, seed in jobs[i:i + per_queue]]
             out.extend(_gather_radiance(q, len(angles), window) for q in queued)
         return out
@@ -731,13 +736,8 @@ class ForwardModel:
         jobs = [(values, seed)] if image_names and base_rad is None else []
         fd_jobs = [(v, seed) for _, v_lo, v_hi, _ in diffs for v in (v_lo, v_hi) if v is not None]
         with self._lock:
-            rad_list = self._radiances(jobs, angles, window, spp)
-            self._tent = self._light is not None
-            try:
-                rad_list += self._radiances(fd_jobs, angles, window, spp)
-            finally:
-                self._tent = False
-            rads = iter(rad_list)
+            rads = iter(self._radiances(jobs, angles, window, spp)
+                        + self._radiances(fd_jobs, angles, window, spp, tent=self._light is not None))
         if image_names:
             if base_rad is None:
                 base_rad = next(rads)

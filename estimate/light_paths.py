@@ -557,6 +557,6 @@ class _PhaseOps:
         if self.phase == "hg":
             return self._sample_hg(self.g[0], xi1), Float(1.0)
         forward = xi2 < self.w
-        # Reuse xi2 within the chosen lobe's share for nothing else: xi1 samples the lobe.
+        # xi2 picks the lobe (forward with probability w), xi1 the cosine within it.
         mu = dr.select(forward, self._sample_hg(self.g[0], xi1), self._sample_hg(self.g[1], xi1))
         return mu, Float(1.0)

@@ -251,17 +251,14 @@ class RenderedScene:
         cols_n, rows_n = self.sensor_px
         img = np.zeros((rows_n, cols_n))
         angle = ((phys_deg + 180.0) % 360.0) - 180.0
-        for i, (r0, r1, spp) in enumerate(self.row_tiers()):
-            if self.world.render.engine == "camera":
-                img[r0:r1] = model.render(params, [angle], columns=(0, cols_n), rows=(r0, r1), spp=spp,
-                                          seed=self.image_seed(phys_deg, filter_name, i))[0]
-                continue
-            # The light engine adds every vertex to every row of a window, at most MAX_ROWS
-            # of them: a tier in blocks, each its own paths (seed).
-            from estimate.light_paths import MAX_ROWS
+        # The light engine adds every vertex to every row of a window, at most MAX_ROWS of
+        # them: its tiers in blocks, each with its own paths (seed); the camera engine's whole.
+        from estimate.light_paths import MAX_ROWS
 
-            for j, b0 in enumerate(range(r0, r1, MAX_ROWS)):
-                b1 = min(r1, b0 + MAX_ROWS)
+        light = self.world.render.engine == "light"
+        for i, (r0, r1, spp) in enumerate(self.row_tiers()):
+            for j, b0 in enumerate(range(r0, r1, MAX_ROWS if light else r1 - r0)):
+                b1 = min(r1, b0 + MAX_ROWS) if light else r1
                 img[b0:b1] = model.render(params, [angle], columns=(0, cols_n), rows=(b0, b1), spp=spp,
                                           seed=self.image_seed(phys_deg, filter_name, i) + 7919 * j)[0]
         return img

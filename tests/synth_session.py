@@ -49,7 +49,9 @@ def beam_samples(beam_sigma_mm: float = 0.25, power: float = BEAM_POWER) -> tupl
     ym = -(y0 + jj + 0.5 - CENTER_PX[1]) * PITCH_MM
     samples = np.exp(-(xm ** 2 + ym ** 2) / (2 * beam_sigma_mm ** 2))
     samples *= power / samples.sum()
-    k = np.array([0.125, 0.75, 0.125])
+    from estimate.beam import _PIXEL_OF_BILINEAR  # the kernel map_from_pixel_image takes out
+
+    k = np.array(_PIXEL_OF_BILINEAR)
     frame = np.apply_along_axis(lambda r: np.convolve(r, k, mode="same"), 1, samples)
     frame = np.apply_along_axis(lambda c: np.convolve(c, k, mode="same"), 0, frame)
     return samples, frame * (power / frame.sum())

@@ -53,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="full Gauss-Newton steps at the final spp after the iterations (4, up to twice that while the "
                         "last ones still walk; the result averages the last three points); 0: none, fewer for a "
                         "quicker look")
-    p.add_argument("--engine", choices=("light", "camera"), default=None,
+    p.add_argument("--engine", choices=("light", "camera"), default="light",
                    help="how the forward model renders the slab: light paths from the beam connected to the "
                         "camera (light, default; about ten times faster and less noisy on the profile row) or "
                         "Mitsuba's prbvolpath from the camera (camera)")
@@ -112,8 +112,7 @@ def run(args: argparse.Namespace) -> int:
     from estimate.mitsuba_env import default_variant
 
     variant = default_variant()
-    engine = args.engine or "light"
-    settings = FitSettings.for_variant(variant, seed=args.seed, scale=args.scale, engine=engine)
+    settings = FitSettings.for_variant(variant, seed=args.seed, scale=args.scale, engine=args.engine)
     if args.max_iterations is not None:
         settings.max_iterations = args.max_iterations
         settings.iterations_before_polish = args.max_iterations
