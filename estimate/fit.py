@@ -142,7 +142,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from estimate.errors import ModelParameterError
 from estimate.evaluation import evaluate, solve_additive
-from estimate.forward import ForwardModel, check_engine
+from estimate.forward import ENGINES, ForwardModel, check_engine
 from estimate.gauss_newton import (
     gn_inverse,
     gn_jacobian,
@@ -341,6 +341,9 @@ class FitSettings:
                 if not (_finite_number(v) and v > 0):
                     raise bad("a positive number")
                 v = float(v)
+            elif f.name == "engine":
+                if v not in ENGINES:
+                    raise bad(f"a render engine ({' or '.join(ENGINES)})")
             elif isinstance(default, str) and not isinstance(v, str):
                 raise bad("a word")
             out[f.name] = v

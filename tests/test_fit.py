@@ -522,6 +522,14 @@ def test_iterations_before_polish_setting_is_checked():
         FitSettings.from_dict({"iterations_before_polish": 0}, where="results.yaml")
 
 
+def test_engine_setting_is_checked():
+    """A results.yaml whose engine was edited is refused when read, before a diagnosis runs."""
+    assert FitSettings.from_dict({"engine": "camera"}).engine == "camera"
+    assert FitSettings().engine == "light"
+    with pytest.raises(ModelParameterError, match="settings.fit: fit setting engine = 'photons'"):
+        FitSettings.from_dict({"engine": "photons"}, where="settings.fit")
+
+
 def _toy_problem(x, meas):
     return Problem(np.array([0.0]), x, meas, np.ones_like(meas), np.ones_like(meas, bool), None, "t", None)  # type: ignore[arg-type]
 
