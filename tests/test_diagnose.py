@@ -2058,6 +2058,28 @@ def test_a_first_round_that_confirms_nothing_tries_the_closest_candidate_in_a_pa
     assert "refit with angle_offset and thickness_error together" in text
 
 
+@pytest.mark.parametrize("change, leads", [
+    ({}, False),                                              # confirmed alone: no pair round
+    ({"delta_bic": 6.0}, True),                                # short of the BIC bar only
+    ({"heldout_ok": False}, True),                             # fails the held-out angles only
+    ({"delta_bic": 6.0, "heldout_ok": False}, False),          # short of the bar and fails held-out
+    ({"heldout_ok": False, "no_harm": False}, False),          # does harm too
+    ({"heldout_ok": False, "magnitude_sigma": 1.0}, False),    # cannot be told from absent
+    ({"delta_bic": -4.0}, False),                              # no gain at all
+    ({"heldout_ok": False, "effects": ["a", "b"]}, False),     # a pair leads no pair
+])
+def test_a_pair_is_led_by_a_refit_that_failed_one_test_a_partner_would_explain(change, leads):
+    """`try_pair`'s lead: a single refit that passed everything but the BIC bar, or
+    everything but the held-out angles (on the 40-px light-engine angle offset + thickness
+    session the offset alone gained dBIC 33 and worsened the held-out chi^2 86.6 -> 100.9;
+    the pair it led was named, 1.42 -> 0.95)."""
+    import estimate.diagnose as dg
+
+    entry = {"delta_bic": dg.BIC_STRONG + 20.0, "magnitude_sigma": dg.MAGNITUDE_SIGMA + 2.0, "no_harm": True,
+             "heldout_ok": True, **change}
+    assert dg._pair_lead(entry) is leads
+
+
 def test_a_close_call_is_decided_again_at_more_samples_per_pixel(monkeypatch):
     """An angle offset (3 deg) diagnosed at 64 spp: its refit gains dBIC 23 on weights that
     hold the 64-spp renders' noise, its independently rendered training chi^2 gains 330.
