@@ -2211,7 +2211,8 @@ def _screen(problem: Any, current: Evaluation, exts: Sequence[str], make_model: 
     # The residual and the weights are those of `independent_residuals`: the evaluation's
     # own residual is divided by the variance of the very renders it subtracts, which
     # biases it wherever the render noise dominates.
-    r_adj, sigma = independent_residuals(problem, current, m0, spp=spp, repeats=repeats, seed=seed + INDEPENDENT_SEED)
+    r_adj, sigma, modes = independent_residuals(problem, current, m0, spp=spp, repeats=repeats,
+                                                seed=seed + INDEPENDENT_SEED)
     # Image-space columns are built on an independent render: built on the evaluation's
     # mean render, a blur's column (blur(model) - model) would carry minus that render's
     # Monte-Carlo noise, which is also in the residual, and favour blur everywhere.
@@ -2254,7 +2255,10 @@ def _screen(problem: Any, current: Evaluation, exts: Sequence[str], make_model: 
     # left-out physics (a clean simulated-bench fit, 256 spp x 6: variance ratio at 16 px
     # 1.40 as fitted and 1.05 beyond the fit; at the world's true parameters 1.45 and 1.09).
     xcols = np.stack([np.ravel(c / sigma) for c in base_cols], axis=1)
-    tests, p_beyond, sig_beyond = smooth_structure(project_out(r_adj, xcols))
+    # The render noise's modes take the same projection as the residual they are in.
+    beyond_modes = np.stack([np.nan_to_num(project_out(np.where(np.isfinite(r_adj), mk, np.nan), xcols))
+                             for mk in modes]) if len(modes) else None
+    tests, p_beyond, sig_beyond = smooth_structure(project_out(r_adj, xcols), noise_modes=beyond_modes)
     current.residuals.extra["beyond_fit"] = {"smooth": tests, "p_value_smooth": p_beyond,
                                              "significant": sig_beyond}
     finite = np.isfinite(r_adj)
@@ -2263,12 +2267,12 @@ def _screen(problem: Any, current: Evaluation, exts: Sequence[str], make_model: 
     # varies along the profile would otherwise pass for a candidate's signature.
     nvar = local_noise_variance(r_adj)
     r = np.nan_to_num(r_adj, nan=0.0)
-    scores = screen(r, sigma, base_cols, current.scale, cols, excess, noise_var=nvar)
+    scores = screen(r, sigma, base_cols, current.scale, cols, excess, noise_var=nvar, noise_modes=modes)
     # How much of the residual lies along the fitted parameters themselves: a large share
     # means the fit stopped short of its optimum (not a left-out effect).
     # (xcols: the fitted parameters' whitened columns, then the scale's, as base_cols.)
     own = score_test(np.ravel(r), xcols[:, -1:], xcols[:, :-1], excess, "fitted parameters",
-                     np.ravel(nvar)) if len(base_cols) > 1 else None
+                     np.ravel(nvar), modes) if len(base_cols) > 1 else None
     if own is not None:
         current.residuals.extra["own_directions"] = own
     return scores

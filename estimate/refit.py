@@ -32,6 +32,7 @@ from estimate.residuals import (
     fit_significance,
     noise_floor,
     normalised_residuals,
+    render_noise_modes,
 )
 from estimate.uncertainties import UNCERTAINTY_CROSS_FLOOR
 
@@ -174,22 +175,26 @@ def evaluate(model: ProfileModel, params: Mapping[str, float], problem: ProfileR
     mvar = smoothed_variance(renders) / repeats if repeats > 1 else np.zeros_like(mean)
     meas = np.asarray(problem.measured, dtype=np.float64)[idx]
     var = recording_variance(problem)[idx]
+    # The smooth test's null holds the mean render's correlated noise (the light engine's:
+    # one path adds to several columns), estimated from the same renders.
     if noise_variance is None:
         s = best_scale(meas, var, mean, mvar) if scale is None else float(scale)
         r = normalised_residuals(meas, var, mean, s, mvar)
         r = np.where(np.isfinite(var), r, np.nan)
-        res = fit_significance(r, n_params)
+        modes = render_noise_modes(renders, s, np.sqrt(var + s ** 2 * mvar), repeats)
+        res = fit_significance(r, n_params, noise_modes=modes)
     else:
         nv = np.asarray(noise_variance, dtype=np.float64)[idx]
         s = best_scale(meas, nv, mean, mvar) if scale is None else float(scale)
         r = normalised_residuals(meas, nv, mean, s, mvar)
         r = np.where(np.isfinite(nv), r, np.nan)
-        res = fit_significance(r, n_params, noise_scale=np.ones(len(idx)))
+        modes = render_noise_modes(renders, s, np.sqrt(nv + s ** 2 * mvar), repeats)
+        res = fit_significance(r, n_params, noise_scale=np.ones(len(idx)), noise_modes=modes)
     return Evaluation(dict(model.validate(params)), list(model.extensions), s, mean, mvar, res, n_params)
 
 
 def independent_residuals(problem: ProfileRecording, ev: Evaluation, model: ProfileModel, *, spp: int, repeats: int,
-                          seed: int) -> tuple[np.ndarray, np.ndarray]:
+                          seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The residuals of `ev` weighed by a Monte-Carlo variance independent of its mean render.
 
     `evaluate` divides each pixel by the variance of the very renders whose mean it
@@ -206,9 +211,12 @@ def independent_residuals(problem: ProfileRecording, ev: Evaluation, model: Prof
 
     `model` and `ev` must be the same model at the same parameters, `ev` the mean of
     `repeats` renders at `spp` (as `evaluate` makes it). Renders `repeats` more at seeds
-    seed + 7 k. Returns (r / f, sigma f): the residuals in units of their own noise floor f
-    (`estimate.residuals.noise_floor`, per angle) and the per-pixel noise standard
-    deviation they were divided by (measured units), both (angles, pixels).
+    seed + 7 k. Returns (r / f, sigma f, modes): the residuals in units of their own noise
+    floor f (`estimate.residuals.noise_floor`, per angle), the per-pixel noise standard
+    deviation they were divided by (measured units), both (angles, pixels), and the modes
+    of the correlated noise that `ev`'s mean render puts into r / f
+    (`estimate.residuals.render_noise_modes`, from the independent renders: the same
+    model, spp and count).
     """
     renders = render_stack(model, ev.parameters, problem, spp=spp, seed=seed, repeats=max(repeats, 2))
     mvar = smoothed_variance(renders) / repeats
@@ -217,7 +225,7 @@ def independent_residuals(problem: ProfileRecording, ev: Evaluation, model: Prof
     r = np.where(np.isfinite(var), r, np.nan)
     f, _ = noise_floor(r)
     sigma = np.sqrt(var + ev.scale ** 2 * mvar) * f[:, None]
-    return r / f[:, None], sigma
+    return r / f[:, None], sigma, render_noise_modes(renders, ev.scale, sigma, repeats)
 
 
 def render_stack(model: ProfileModel, params: Mapping[str, float], problem: ProfileRecording, *, spp: int = 256,

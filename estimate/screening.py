@@ -41,6 +41,7 @@ exposure per angle).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -97,18 +98,28 @@ class CandidateScore:
 
 
 def score_test(r: np.ndarray, X: np.ndarray, Z: np.ndarray, excess: float | None = None,
-               name: str = "", noise_var: np.ndarray | None = None) -> CandidateScore:
+               name: str = "", noise_var: np.ndarray | None = None,
+               noise_modes: np.ndarray | None = None) -> CandidateScore:
     """LM test of columns Z (n, k) given residual r (n,) and base columns X (n, p), all whitened.
 
     `noise_var` (n,): each pixel's noise variance in the whitened units (None: 1, the
     classical test); with it the projections' variance is the sandwich U^T diag(v) U.
+    `noise_modes` (K, n): the model's correlated render noise in the units of r
+    (`estimate.residuals.render_noise_modes`); its covariance between pixels (the modes'
+    products less their diagonal, which `noise_var` already holds) joins the sandwich. The
+    light engine's render noise is correlated along the row, and a smooth candidate column
+    sums it coherently: without it, a clean demo session's beam halo scored 16 on 2 dof.
     """
     r = np.asarray(r, dtype=np.float64).ravel()
     X = np.asarray(X, dtype=np.float64).reshape(r.size, -1)
     Z = np.asarray(Z, dtype=np.float64).reshape(r.size, -1)
     v = np.ones(r.size) if noise_var is None else np.asarray(noise_var, dtype=np.float64).ravel()
+    modes = None if noise_modes is None or not np.size(noise_modes) else \
+        np.asarray(noise_modes, dtype=np.float64).reshape(-1, r.size)
     ok = np.isfinite(r) & np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(Z), axis=1) & np.isfinite(v)
     r, X, Z, v = r[ok], X[ok], Z[ok], v[ok]
+    if modes is not None:
+        modes = np.nan_to_num(modes[:, ok])
     q, _ = np.linalg.qr(X / np.maximum(np.linalg.norm(X, axis=0), 1e-300))
     zp = Z - q @ (q.T @ Z)
     norms = np.linalg.norm(zp, axis=0)
@@ -119,14 +130,34 @@ def score_test(r: np.ndarray, X: np.ndarray, Z: np.ndarray, excess: float | None
     u, s, vt = np.linalg.svd(zp / norms[keep], full_matrices=False)
     rank = int(np.sum(s > 1e-6 * s[0]))
     proj = u[:, :rank].T @ r
-    if noise_var is None:
+    # Degrees of freedom of the sandwich's estimate (Satterthwaite): infinite where it is
+    # known, K - 1 over the square of the render noise's share where that share comes from
+    # K renders (then lm / rank follows an F law rather than chi^2 / rank).
+    nu = math.inf
+    if noise_var is None and modes is None:
         lm = float(proj @ proj)
     else:
-        cov = u[:, :rank].T @ (v[:, None] * u[:, :rank])
+        ur = u[:, :rank]
+        cov = ur.T @ (v[:, None] * ur)
+        if modes is not None:
+            w = ur.T @ modes.T
+            cross = w @ w.T - ur.T @ (np.sum(modes ** 2, axis=0)[:, None] * ur)
+            # An estimate from a few renders, only its positive part: where the render noise
+            # is white (the camera engine) its true value is 0, and a negative estimate
+            # would shrink the sandwich and raise the statistic (a clean 128-spp recording
+            # tested significant through the stray light's score that way).
+            ev, evec = np.linalg.eigh(cross)
+            cov = cov + (evec * np.maximum(ev, 0.0)) @ evec.T
+            share = float(np.sum(np.maximum(ev, 0.0))) / max(float(np.trace(cov)), 1e-300)
+            if share > 0.0:
+                nu = max(1.0, (modes.shape[0] - 1)) / share ** 2
         lm = float(proj @ np.linalg.solve(cov, proj))
     coef = np.zeros(Z.shape[1])
     coef[keep] = (vt[:rank].T @ (proj / s[:rank])) / norms[keep]
-    logsf = float(stats.chi2.logsf(lm, rank)) / np.log(10.0)
+    if math.isfinite(nu):
+        logsf = float(stats.f.logsf(lm / rank, rank, nu)) / np.log(10.0)
+    else:
+        logsf = float(stats.chi2.logsf(lm, rank)) / np.log(10.0)
     exc = excess if excess is not None else max(float(r @ r) - r.size, 1.0)
     return CandidateScore(name, lm, rank, float(10 ** logsf), logsf, lm / max(exc, 1.0), coef.tolist())
 
@@ -187,7 +218,7 @@ def candidate_columns(model: ForwardModel, params: Mapping[str, float], angles_d
 
 def screen(r: np.ndarray, sigma: np.ndarray, base_columns: Sequence[np.ndarray], scale: float,
            candidates: Mapping[str, Sequence[np.ndarray]], excess: float,
-           noise_var: np.ndarray | None = None) -> list[CandidateScore]:
+           noise_var: np.ndarray | None = None, noise_modes: np.ndarray | None = None) -> list[CandidateScore]:
     """Rank candidates by their score test (smallest p-value first).
 
     Args:
@@ -200,12 +231,14 @@ def screen(r: np.ndarray, sigma: np.ndarray, base_columns: Sequence[np.ndarray],
         excess: chi2 - dof of the base fit (the adjusted chi2).
         noise_var: local noise variance of each pixel in units of the floor (N, W), for the
             robust statistic (`score_test`); None: the classical one.
+        noise_modes: the model's correlated render noise (K, N, W) in the units of r
+            (`score_test`).
     """
     X = np.stack([np.ravel(c / sigma) for c in base_columns], axis=1)
     out = []
     for name, cols in candidates.items():
         Z = np.stack([np.ravel(scale * c / sigma) for c in cols], axis=1)
         out.append(score_test(np.ravel(r), X, Z, excess, name,
-                              None if noise_var is None else np.ravel(noise_var)))
+                              None if noise_var is None else np.ravel(noise_var), noise_modes))
     out.sort(key=lambda c: (c.log10_p, -c.statistic))
     return out

@@ -258,6 +258,60 @@ def test_robust_score_test_holds_its_level_where_the_noise_is_heavy_tailed_and_u
     assert score_test(r, X, Z, noise_var=local_noise_variance(r)).log10_p < -6
 
 
+def _light_like_render_noise(rng: np.random.Generator, n_ang: int, width: int, reach: int = 6) -> np.ndarray:
+    """Render noise correlated along the row like the light engine's (one path adds to the
+    columns its vertices land in, a few pixels apart): white noise smoothed by a
+    `reach`-pixel kernel, unit variance per pixel."""
+    k = np.exp(-0.5 * (np.arange(-3 * reach, 3 * reach + 1) / reach) ** 2)
+    k /= np.sqrt(np.sum(k ** 2))
+    e = rng.normal(size=(n_ang, width + 6 * reach))
+    return np.stack([np.convolve(row, k, mode="valid") for row in e])[:, :width]
+
+
+def test_correlated_render_noise_joins_the_null_of_the_smooth_and_score_tests():
+    """Residuals = sensor noise + the mean render's noise correlated along the row (2x the
+    sensor's variance, the light engine's at the diagnosis' spp). Without the render
+    noise's cross terms the smooth test calls most correct fits wrong and a smooth
+    candidate's score test is far above chi^2(1); with the modes from independent renders
+    (`render_noise_modes`) both hold their level, and a real smooth mismatch is still found."""
+    from estimate.residuals import render_noise_modes
+
+    rng = np.random.default_rng(31)
+    n_ang, width, repeats = 8, 256, 6
+    x = np.linspace(-1, 1, width)
+    X = np.ones((n_ang * width, 1))
+    Z = np.tile(np.exp(-(x / 0.3) ** 2), n_ang)[:, None]
+    sigma = np.ones((n_ang, width))
+    plain_sig = with_sig = 0
+    plain_p, with_p = [], []
+    for _ in range(60):
+        # `repeats` renders, each with noise of variance 2 * repeats (their mean: 2)
+        renders = np.stack([math.sqrt(2 * repeats) * _light_like_render_noise(rng, n_ang, width)
+                            for _ in range(repeats)])
+        r = rng.normal(size=(n_ang, width)) + renders.mean(axis=0)
+        r = r / math.sqrt(3.0)
+        # modes from another set of renders of the same model (as `independent_residuals`)
+        other = np.stack([math.sqrt(2 * repeats) * _light_like_render_noise(rng, n_ang, width)
+                          for _ in range(repeats)])
+        modes = render_noise_modes(other, 1.0, sigma * math.sqrt(3.0), repeats)
+        plain_sig += fit_significance(r, 1).significant
+        with_sig += fit_significance(r, 1, noise_modes=modes).significant
+        v = np.ones(r.size)
+        plain_p.append(score_test(r.ravel(), X, Z, noise_var=v).log10_p)
+        with_p.append(score_test(r.ravel(), X, Z, noise_var=v, noise_modes=modes).log10_p)
+    assert plain_sig > 30 and with_sig <= 1
+    # p < 0.01 in 1 % of correct fits (with the modes' own uncertainty: an F law)
+    assert np.mean(np.array(plain_p) < -2) > 0.3 and np.mean(np.array(with_p) < -2) <= 0.05
+    # a smooth mismatch of 1.5 sigma over the profile's middle (as strong as the correlated noise at
+    # those scales) is still seen
+    renders = np.stack([math.sqrt(2 * repeats) * _light_like_render_noise(rng, n_ang, width) for _ in range(repeats)])
+    r = (rng.normal(size=(n_ang, width)) + renders.mean(axis=0)) / math.sqrt(3.0) + 1.5 * Z[:, 0].reshape(n_ang, width)
+    other = np.stack([math.sqrt(2 * repeats) * _light_like_render_noise(rng, n_ang, width) for _ in range(repeats)])
+    modes = render_noise_modes(other, 1.0, sigma * math.sqrt(3.0), repeats)
+    assert fit_significance(r, 1, noise_modes=modes).significant
+    assert score_test(r.ravel(), X, Z, noise_var=np.ones(r.size), noise_modes=modes).log10_p < -3
+
+
 def test_local_noise_variance_follows_the_level_and_ignores_a_smooth_mismatch():
     rng = np.random.default_rng(8)
     w = 400
@@ -1903,7 +1957,7 @@ def test_residuals_weighed_by_independent_renders_have_no_render_noise_bias(seed
     toy, rec = _firefly_recording(seed)
     th = {"toy.w": 1.0}
     ev = evaluate(toy, th, rec, 1, spp=256, seed=7 + 1000 * seed, repeats=6, scale=1e4)
-    r_ind, sigma = independent_residuals(rec, ev, toy, spp=256, repeats=6, seed=90_000 + seed)
+    r_ind, sigma, _ = independent_residuals(rec, ev, toy, spp=256, repeats=6, seed=90_000 + seed)
     assert np.mean(ev.residuals.r_adjusted) > 0.1
     assert abs(float(np.mean(r_ind))) < 0.05
     assert not smooth_structure(r_ind)[2]
