@@ -79,6 +79,10 @@ render: {{mie_degree: 8{render_extra}}}
 #: of the default carry no spp in their names (as before `--truth-spp`).
 DEFAULT_TRUTH_SPP = 1024
 TRUTH_SPP = DEFAULT_TRUTH_SPP
+#: The simulated camera's render engine (`--truth-engine`; the world's `render.engine`): the
+#: camera engine's recordings carry white but skewed frozen noise, the light engine's far
+#: less of it, correlated along the row. Worlds and caches of the light engine are kept apart.
+TRUTH_ENGINE = "camera"
 
 
 def case_name(d: float, s: float) -> str:
@@ -87,7 +91,8 @@ def case_name(d: float, s: float) -> str:
 
 def case_key(d: float, s: float) -> str:
     """The case's world and cache name: `case_name`, and the truth's spp where not the default."""
-    return case_name(d, s) + ("" if TRUTH_SPP == DEFAULT_TRUTH_SPP else f"_spp{TRUTH_SPP}")
+    return (case_name(d, s) + ("" if TRUTH_SPP == DEFAULT_TRUTH_SPP else f"_spp{TRUTH_SPP}")
+            + ("" if TRUTH_ENGINE == "camera" else f"_{TRUTH_ENGINE}"))
 
 
 def world_file(d: float, s: float) -> Path:
@@ -95,6 +100,7 @@ def world_file(d: float, s: float) -> Path:
     p = WORLDS / f"paper_{case_key(d, s)}.yaml"
     if not p.exists():
         extra = "" if TRUTH_SPP == DEFAULT_TRUTH_SPP else f", spp_profile: {TRUTH_SPP}"
+        extra += "" if TRUTH_ENGINE == "camera" else f", engine: {TRUTH_ENGINE}"
         p.write_text(WORLD_TEMPLATE.format(d=d, s=s, a=ALBEDO, render_extra=extra), encoding="utf-8")
     return p
 
@@ -179,7 +185,7 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
         wall = time.monotonic() - t0
         floor = loss_at(pb, mat.model, truth, spp=st.final_spp,
                         fixed_scale=r.scale if SCALE == "calibrated" else None)["loss"]
-        row = {"case": name, "truth_spp": TRUTH_SPP, "diameter_um": d, "sigma_t_true": s, "albedo_true": ALBEDO,
+        row = {"case": name, "truth_spp": TRUTH_SPP, "truth_engine": TRUTH_ENGINE, "diameter_um": d, "sigma_t_true": s, "albedo_true": ALBEDO,
                "model": r.model,
                "sigma_t": r.parameters["sigma_t"], "albedo": r.parameters["albedo"],
                "sigma_t_rel_error": abs(r.parameters["sigma_t"] / s - 1), "albedo_abs_error": abs(r.parameters["albedo"] - ALBEDO),
@@ -322,6 +328,9 @@ def main() -> int:
     ap.add_argument("--truth-spp", type=int, default=DEFAULT_TRUTH_SPP,
                     help="samples per pixel of the simulated camera's profile rows (the recording's frozen render "
                          "noise; worlds and caches of other values are kept apart)")
+    ap.add_argument("--truth-engine", choices=("camera", "light"), default="camera",
+                    help="the simulated camera's render engine (the world's render.engine; worlds and caches of "
+                         "the light engine are kept apart)")
     ap.add_argument("--setting", action="append", default=[], metavar="KEY=VALUE",
                     help="a FitSettings field to change for the fits, e.g. final_spp=8192 (JSON values; "
                          "repeatable; such fits are cached apart)")
@@ -330,9 +339,10 @@ def main() -> int:
     args = ap.parse_args()
     if args.truth_spp < 1:
         ap.error(f"--truth-spp {args.truth_spp}: samples per pixel must be at least 1")
-    global SCALE, TRUTH_SPP, OVERRIDES
+    global SCALE, TRUTH_SPP, TRUTH_ENGINE, OVERRIDES
     SCALE = args.scale
     TRUTH_SPP = args.truth_spp
+    TRUTH_ENGINE = args.truth_engine
     from fit_overrides import parse_overrides, settings_with
 
     from estimate.errors import ModelParameterError

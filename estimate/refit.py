@@ -194,7 +194,7 @@ def evaluate(model: ProfileModel, params: Mapping[str, float], problem: ProfileR
 
 
 def independent_residuals(problem: ProfileRecording, ev: Evaluation, model: ProfileModel, *, spp: int, repeats: int,
-                          seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                          seed: int, renders: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The residuals of `ev` weighed by a Monte-Carlo variance independent of its mean render.
 
     `evaluate` divides each pixel by the variance of the very renders whose mean it
@@ -211,21 +211,22 @@ def independent_residuals(problem: ProfileRecording, ev: Evaluation, model: Prof
 
     `model` and `ev` must be the same model at the same parameters, `ev` the mean of
     `repeats` renders at `spp` (as `evaluate` makes it). Renders `repeats` more at seeds
-    seed + 7 k. Returns (r / f, sigma f, modes): the residuals in units of their own noise
+    seed + 7 k (`renders` more where given and larger: a better estimate of the variance
+    and of the modes, whose count sets the score tests' degrees of freedom). Returns (r / f, sigma f, modes): the residuals in units of their own noise
     floor f (`estimate.residuals.noise_floor`, per angle), the per-pixel noise standard
     deviation they were divided by (measured units), both (angles, pixels), and the modes
     of the correlated noise that `ev`'s mean render puts into r / f
     (`estimate.residuals.render_noise_modes`, from the independent renders: the same
     model, spp and count).
     """
-    renders = render_stack(model, ev.parameters, problem, spp=spp, seed=seed, repeats=max(repeats, 2))
-    mvar = smoothed_variance(renders) / repeats
+    stack = render_stack(model, ev.parameters, problem, spp=spp, seed=seed, repeats=max(repeats, 2, renders or 0))
+    mvar = smoothed_variance(stack) / repeats
     var = recording_variance(problem)
     r = normalised_residuals(np.asarray(problem.measured, dtype=np.float64), var, ev.model, ev.scale, mvar)
     r = np.where(np.isfinite(var), r, np.nan)
     f, _ = noise_floor(r)
     sigma = np.sqrt(var + ev.scale ** 2 * mvar) * f[:, None]
-    return r / f[:, None], sigma, render_noise_modes(renders, ev.scale, sigma, repeats)
+    return r / f[:, None], sigma, render_noise_modes(stack, ev.scale, sigma, repeats)
 
 
 def render_stack(model: ProfileModel, params: Mapping[str, float], problem: ProfileRecording, *, spp: int = 256,

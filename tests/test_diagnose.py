@@ -1957,11 +1957,18 @@ def test_residuals_weighed_by_independent_renders_have_no_render_noise_bias(seed
     toy, rec = _firefly_recording(seed)
     th = {"toy.w": 1.0}
     ev = evaluate(toy, th, rec, 1, spp=256, seed=7 + 1000 * seed, repeats=6, scale=1e4)
-    r_ind, sigma, _ = independent_residuals(rec, ev, toy, spp=256, repeats=6, seed=90_000 + seed)
+    r_ind, sigma, modes = independent_residuals(rec, ev, toy, spp=256, repeats=6, seed=90_000 + seed)
     assert np.mean(ev.residuals.r_adjusted) > 0.1
     assert abs(float(np.mean(r_ind))) < 0.05
     assert not smooth_structure(r_ind)[2]
+    assert not smooth_structure(r_ind, noise_modes=modes)[2]
     assert sigma.shape == rec.measured.shape and np.all(sigma > 0)
+    # the modes of the mean of 6 renders, from 6 or (`renders`) 24 independent ones; white
+    # render noise (the toy's pixels are independent) adds nothing to the null either way
+    r24, _, more = independent_residuals(rec, ev, toy, spp=256, repeats=6, seed=90_000 + seed, renders=24)
+    assert modes.shape == (6, *rec.measured.shape) and more.shape == (24, *rec.measured.shape)
+    assert not smooth_structure(r24, noise_modes=more)[2]
+    assert all(t["cross"] < 0.05 for t in smooth_structure(r24, noise_modes=more)[0])
 
 
 def test_scale_weighs_the_renders_own_noise():
