@@ -858,10 +858,13 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
 
 def loss_at(problem: Problem, model: str, params: Mapping[str, float], *, extensions: Sequence[str] = (),
             spp: int = 1024, seed: int = 12_345, delta_range: tuple[float, float] = DEFAULT_DELTA_RANGE,
-            forward: ForwardModel | None = None, fixed_scale: float | None = None) -> dict[str, Any]:
+            forward: ForwardModel | None = None, fixed_scale: float | None = None,
+            engine: str | None = None) -> dict[str, Any]:
     """Loss / chi^2 of given parameters (e.g. the true ones: the noise floor), scale profiled
-    unless `fixed_scale`."""
+    unless `fixed_scale`. Rendered with `engine` (default: the fit's, `FitSettings.engine`),
+    so that a fit's loss and the floor carry the same engine's render noise (up to session
+    61 the floor took the camera engine's while the fits rendered with the light engine)."""
     fm = forward or ForwardModel(problem.geometry, problem.beam, phase=model_phase(model), extensions=extensions,
-                                 profile_y_shape=problem.y_shapes())
+                                 profile_y_shape=problem.y_shapes(), engine=engine or FitSettings().engine)
     return evaluate(fm, problem, params, spp=spp, seed=seed, delta_rel=reference_delta(delta_range),
                     fixed_scale=fixed_scale)
