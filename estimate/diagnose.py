@@ -219,14 +219,25 @@ CPU_DIAGNOSE_SPP = 256
 #: 41; singles 15/16, pairs 3/4, clean 3/3, sessions 42-44), at 13-381 s a case on an H100
 #: (the 2 cores take 3-66 min).
 GPU_DIAGNOSE_SPP = 2048
+#: `rig diagnose --engine light`'s samples per pixel, on the CPU and a GPU alike. The light
+#: engine's render noise is correlated along the row, and a fixed-seed refit with a smooth
+#: extension fits its own render's noise: at 256 spp the bench's thickness-error (6 %) and
+#: halo (3 %) sessions had the right effect's refit turned down by the held-out angles (chi^2
+#: 2328 -> 2571, 740 -> 1358) and an angle offset named for the thickness error; at 2048 both
+#: were named (e 0.0587, halo 2.8 % at 0.99 mm; reduced chi^2 at the floor after 1.18, 1.15)
+#: in 208-232 s a channel on 2 cores (session 62).
+LIGHT_DIAGNOSE_SPP = 2048
 
 
-def default_diagnose_spp(variant: str | None = None) -> int:
+def default_diagnose_spp(variant: str | None = None, engine: str = "camera") -> int:
     """`rig diagnose`'s samples per pixel for a Mitsuba variant (None: the one
-    `estimate.mitsuba_env.default_variant()` says `init_mitsuba` will pick):
-    `GPU_DIAGNOSE_SPP` on a `cuda_*` variant, `CPU_DIAGNOSE_SPP` otherwise."""
+    `estimate.mitsuba_env.default_variant()` says `init_mitsuba` will pick) and render engine:
+    `LIGHT_DIAGNOSE_SPP` with the light engine; with the camera engine `GPU_DIAGNOSE_SPP` on a
+    `cuda_*` variant, `CPU_DIAGNOSE_SPP` otherwise."""
     from estimate.mitsuba_env import renders_on_gpu
 
+    if engine == "light":
+        return LIGHT_DIAGNOSE_SPP
     return GPU_DIAGNOSE_SPP if renders_on_gpu(variant) else CPU_DIAGNOSE_SPP
 
 
@@ -2440,7 +2451,8 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
     is confirmed, the refit as a new estimate run. With `refine` (default) the final model
     of a channel with confirmed effects is fitted by the estimator with the run's own
     settings (`refine_channel`); without, the Levenberg-Marquardt refit is the final one.
-    `spp` None takes `default_diagnose_spp()` (256 on the CPU, 2048 on a GPU). `engine`: the
+    `spp` None takes `default_diagnose_spp()` (256 on the CPU, 2048 on a GPU; 2048 with the
+    light engine). `engine`: the
     forward model's render engine for every model of the diagnosis (`estimate.forward.ENGINES`;
     its bars were set on the camera engine's renders, docs/diagnosis-log.md).
     Returns the diagnosis document (`channels.<f>` = `ChannelDiagnosis.as_dict()`, plus
@@ -2469,7 +2481,7 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
     from estimate.forward import check_engine
     check_engine(engine)
     if spp is None:
-        spp = default_diagnose_spp()
+        spp = default_diagnose_spp(engine=engine)
     session = Path(session_dir)
     run_dir = _resolve_fit(session, fit_run)
     doc = read_run(run_dir)

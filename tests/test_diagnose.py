@@ -761,15 +761,19 @@ def test_cli_unknown_effect_and_unknown_run(tmp_path, capsys):
 def test_the_diagnosis_spp_follows_the_renderer(monkeypatch):
     """`rig diagnose` renders at 2048 spp on a GPU (the suite's reference on the 256-px
     window, minutes there) and 256 on the CPU; without a variant it asks the one
-    `init_mitsuba` would pick."""
+    `init_mitsuba` would pick. With the light engine 2048 on both (its fixed-seed refits
+    fit their own correlated render noise at 256; minutes a channel on the CPU)."""
     import estimate.mitsuba_env as env
     from estimate.diagnose import (
         CPU_DIAGNOSE_SPP,
         GPU_DIAGNOSE_SPP,
+        LIGHT_DIAGNOSE_SPP,
         default_diagnose_spp,
     )
 
-    assert (CPU_DIAGNOSE_SPP, GPU_DIAGNOSE_SPP) == (256, 2048)
+    assert (CPU_DIAGNOSE_SPP, GPU_DIAGNOSE_SPP, LIGHT_DIAGNOSE_SPP) == (256, 2048, 2048)
+    assert default_diagnose_spp("llvm_ad_mono", engine="light") == LIGHT_DIAGNOSE_SPP
+    assert default_diagnose_spp("cuda_ad_mono", engine="light") == LIGHT_DIAGNOSE_SPP
     assert default_diagnose_spp("cuda_ad_mono") == GPU_DIAGNOSE_SPP
     assert default_diagnose_spp("llvm_ad_mono") == CPU_DIAGNOSE_SPP
     monkeypatch.setattr(env, "default_variant", lambda: "cuda_ad_mono")

@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
         if e not in EXTENSIONS:
             raise UsageError(f"--effects: unknown effect {e!r}; known: {', '.join(sorted(EXTENSIONS))}")
     if args.spp is not None and args.spp < 16:
-        raise UsageError(f"--spp {args.spp}: use at least 16 samples per pixel (default 256 on the CPU, 2048 on a GPU)")
+        raise UsageError(f"--spp {args.spp}: use at least 16 samples per pixel (default 256 on the CPU, 2048 on a GPU; 2048 with --engine light)")
     log = None if args.json else (lambda s: print(s, file=sys.stderr))
     with FitProgress(enabled=not (args.json or args.no_progress)) as live:
         doc = run_diagnosis(session, args.fit, effects=effects, channels=_list(args.channels, True), spp=args.spp,
