@@ -802,13 +802,14 @@ def main() -> int:
         ap.error("--no-final-fit is for --source bench: the synthetic suite's final model is always the "
                  "Levenberg-Marquardt refit")
     os.environ.setdefault("DRJIT_LIBLLVM_PATH", "/usr/lib/x86_64-linux-gnu/libLLVM-19.so")
+    from estimate.diagnose import CPU_DIAGNOSE_SPP, default_diagnose_spp
+
     if args.spp is None:
         # At 128 spp the refits fitted their own render's Monte-Carlo noise: with the data's
         # noise as reported (--excess 0) angle_offset and thickness_error were screened first
         # but not confirmed; at 512 both were confirmed (chi^2 at the floor 1.75 -> 1.03).
-        # The bench: rig diagnose's own default for the engine (`default_diagnose_spp` on the
-        # CPU: 256 with the camera engine, 2048 with the light engine).
-        args.spp = 512 if args.source == "synthetic" else (2048 if args.engine == "light" else 256)
+        # The bench: rig diagnose's own default for the engine on the CPU.
+        args.spp = 512 if args.source == "synthetic" else default_diagnose_spp("llvm_ad_mono", engine=args.engine)
     if args.base_spp < 2:
         ap.error(f"--base-spp {args.base_spp}: must be at least 2")
     if not 2 <= args.columns <= 512:
@@ -860,7 +861,7 @@ def main() -> int:
     # The captured session (cache / id) is shared; the results of `rig diagnose --quick` and
     # of `--refits decorrelated` are kept apart.
     bench_tag = "" if args.source != "bench" else ("_quick" if quick_rig else "") + (
-        "_dec" if args.refits != "fixed-seed" else "") + ("" if args.spp == 256 else f"_spp{args.spp}")
+        "_dec" if args.refits != "fixed-seed" else "") + ("" if args.spp == CPU_DIAGNOSE_SPP else f"_spp{args.spp}")
     for case in plan:
         f = cache / f"{case['id']}{bench_tag}.json"
         if f.is_file() and not args.fresh:

@@ -185,7 +185,8 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
         wall = time.monotonic() - t0
         floor = loss_at(pb, mat.model, truth, spp=st.final_spp,
                         fixed_scale=r.scale if SCALE == "calibrated" else None)["loss"]
-        row = {"case": name, "truth_spp": TRUTH_SPP, "truth_engine": TRUTH_ENGINE, "diameter_um": d, "sigma_t_true": s, "albedo_true": ALBEDO,
+        row = {"case": name, "truth_spp": TRUTH_SPP, "truth_engine": TRUTH_ENGINE, "diameter_um": d,
+               "sigma_t_true": s, "albedo_true": ALBEDO,
                "model": r.model,
                "sigma_t": r.parameters["sigma_t"], "albedo": r.parameters["albedo"],
                "sigma_t_rel_error": abs(r.parameters["sigma_t"] / s - 1), "albedo_abs_error": abs(r.parameters["albedo"] - ALBEDO),

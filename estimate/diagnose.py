@@ -29,8 +29,8 @@
    After one confirmed effect the fit is tested again; a remaining significant mismatch is
    screened at the new fit for a second effect (pairs). A first round that confirms no
    single candidate tries pairs: the candidate that passed every test but the BIC bar, or
-   every test but the held-out one (`_pair_lead`), is refitted together with each candidate the screening flags at its refit (`try_pair`),
-   both effects priced. With two, each is put back to
+   every test but the held-out one (`_pair_lead`), is refitted together with each candidate
+   the screening flags at its refit (`try_pair`), both effects priced. With two, each is put back to
    absent in the joint model and stays named only while that raises chi^2 by more than its
    BIC price k ln n, times the joint model's reduced chi^2 where that exceeds 1 (the
    quasi-likelihood dispersion; `_prune`, and `_prune_final` at the estimator's final fit):
@@ -1606,16 +1606,20 @@ def _passes(entry: Mapping[str, Any], checks_decide: bool = True) -> bool:
 def _short_of_the_bar(entry: Mapping[str, Any]) -> bool:
     """A single candidate's refit that passed every test but the BIC bar: 0 < dBIC <=
     `BIC_STRONG`, the magnitude beyond `MAGNITUDE_SIGMA`, no harm, the held-out test."""
-    return (0.0 < entry["delta_bic"] <= BIC_STRONG and entry["magnitude_sigma"] > MAGNITUDE_SIGMA
-            and entry["no_harm"] and entry.get("heldout_ok", True) and "effects" not in entry)
+    return 0.0 < entry["delta_bic"] <= BIC_STRONG and entry.get("heldout_ok", True) and _single_real(entry)
+
+
+def _single_real(entry: Mapping[str, Any]) -> bool:
+    """A single candidate's refit (not a pair's) whose magnitude is beyond `MAGNITUDE_SIGMA`
+    and that does no harm: what `_short_of_the_bar` and `_held_out_only` both ask."""
+    return bool(entry["magnitude_sigma"] > MAGNITUDE_SIGMA and entry["no_harm"] and "effects" not in entry)
 
 
 def _held_out_only(entry: Mapping[str, Any]) -> bool:
     """A single candidate's refit that passed every test but the held-out one: the BIC bar,
     the magnitude, no harm. What a partner effect left out does to the refit of the other
     (`try_pair`): it explains the training angles in part with the wrong signature."""
-    return (entry["delta_bic"] > BIC_STRONG and entry["magnitude_sigma"] > MAGNITUDE_SIGMA
-            and entry["no_harm"] and not entry.get("heldout_ok", True) and "effects" not in entry)
+    return entry["delta_bic"] > BIC_STRONG and not entry.get("heldout_ok", True) and _single_real(entry)
 
 
 def _pair_lead(entry: Mapping[str, Any]) -> bool:

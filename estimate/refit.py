@@ -175,21 +175,17 @@ def evaluate(model: ProfileModel, params: Mapping[str, float], problem: ProfileR
     mvar = smoothed_variance(renders) / repeats if repeats > 1 else np.zeros_like(mean)
     meas = np.asarray(problem.measured, dtype=np.float64)[idx]
     var = recording_variance(problem)[idx]
+    # The data's noise: the HDR variance with the floor estimated from the residuals, or the
+    # given one (the floor included, held at 1).
+    nv = var if noise_variance is None else np.asarray(noise_variance, dtype=np.float64)[idx]
+    s = best_scale(meas, nv, mean, mvar) if scale is None else float(scale)
+    r = normalised_residuals(meas, nv, mean, s, mvar)
+    r = np.where(np.isfinite(nv), r, np.nan)
     # The smooth test's null holds the mean render's correlated noise (the light engine's:
     # one path adds to several columns), estimated from the same renders.
-    if noise_variance is None:
-        s = best_scale(meas, var, mean, mvar) if scale is None else float(scale)
-        r = normalised_residuals(meas, var, mean, s, mvar)
-        r = np.where(np.isfinite(var), r, np.nan)
-        modes = render_noise_modes(renders, s, np.sqrt(var + s ** 2 * mvar), repeats)
-        res = fit_significance(r, n_params, noise_modes=modes)
-    else:
-        nv = np.asarray(noise_variance, dtype=np.float64)[idx]
-        s = best_scale(meas, nv, mean, mvar) if scale is None else float(scale)
-        r = normalised_residuals(meas, nv, mean, s, mvar)
-        r = np.where(np.isfinite(nv), r, np.nan)
-        modes = render_noise_modes(renders, s, np.sqrt(nv + s ** 2 * mvar), repeats)
-        res = fit_significance(r, n_params, noise_scale=np.ones(len(idx)), noise_modes=modes)
+    modes = render_noise_modes(renders, s, np.sqrt(nv + s ** 2 * mvar), repeats)
+    res = fit_significance(r, n_params, noise_modes=modes,
+                           noise_scale=None if noise_variance is None else np.ones(len(idx)))
     return Evaluation(dict(model.validate(params)), list(model.extensions), s, mean, mvar, res, n_params)
 
 
