@@ -96,7 +96,14 @@ def test_lens_blur_profile_with_the_recorded_y_shape_matches_the_2d_blur() -> No
     shaped = ext.apply(row, values, pixel_mm=0.04, profile_only=True, y_shape=h)[:, 0, :]
     # The LSF treats the spot as constant along y: too bright wherever the blur mixes rows.
     assert np.max(np.abs(lsf / truth - 1)) > 0.05
-    assert np.max(np.abs(shaped / truth - 1)) < 2e-3
+    # Exact: the core is separable, and the tail's line spread is the marginal of the very
+    # truncated 2D kernel (the untruncated Lorentzian was up to 0.2 % off here, and 1-7 % in
+    # the shoulders of the bench's profiles).
+    assert np.max(np.abs(shaped / truth - 1)) < 1e-10
+    # An image constant along y: the 2D blur's row is the LSF's, exactly.
+    flat_scene = np.broadcast_to(a[None, None, :], (1, 129, a.size))
+    assert np.allclose(ext.apply(flat_scene, values, pixel_mm=0.04, profile_only=False)[:, 64, :], lsf,
+                       rtol=1e-10, atol=0)
     # A recording without y structure (h = 1) is exactly the LSF.
     flat = ext.apply(row, values, pixel_mm=0.04, profile_only=True, y_shape=np.ones((1, 129, a.size)))
     assert np.allclose(flat[:, 0, :], lsf, rtol=1e-12, atol=1e-15)
@@ -297,11 +304,13 @@ def test_deblurring_a_map_imaged_through_the_lens_restores_the_beam() -> None:
     assert frame.rms_width_mm() > 1.1 * true.rms_width_mm()  # the calibration frame reads wider
     back = frame.deblurred(psf_2d(blur))
     assert not back.through_lens and back.shape == frame.shape
-    assert np.all(back.irradiance >= 0) and back.power() == pytest.approx(frame.power(), rel=1e-12)
+    assert np.all(back.irradiance >= 0)
+    # the crop lost the glare that fell outside it (1.2 % here); the beam it came from is restored
+    assert frame.power() < 0.99 * true.power() and back.power() == pytest.approx(true.power(), rel=2e-3)
     assert back.rms_width_mm() == pytest.approx(true.rms_width_mm(), rel=0.02)
     peak = np.unravel_index(np.argmax(true.irradiance), true.shape)
-    assert back.irradiance[peak] == pytest.approx(true.irradiance[peak] * frame.power() / true.power(), rel=0.03)
-    # no blur: the map itself (Wiener's 1 / (1 + lambda) is undone by keeping the power)
+    assert back.irradiance[peak] == pytest.approx(true.irradiance[peak], rel=0.03)
+    # no blur: the map itself
     delta = psf_2d({"core_sigma_px": 0.0, "tail_fraction": 0.0, "tail_scale_px": 20.0})
     assert np.allclose(frame.deblurred(delta).irradiance, frame.irradiance, rtol=1e-9, atol=1e-12)
     with pytest.raises(ModelParameterError, match="odd square"):
