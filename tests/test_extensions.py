@@ -317,6 +317,38 @@ def test_deblurring_a_map_imaged_through_the_lens_restores_the_beam() -> None:
         frame.deblurred(np.ones((4, 4)) / 16)
 
 
+def test_deblurring_a_noisy_cropped_map_adds_no_halo() -> None:
+    """The glare beyond the calibration crop and the map's pixel noise: neither may come
+    back as light around the beam (a halo the diagnosis would then have to explain)."""
+    from scipy import signal
+
+    from estimate.extensions.lens_blur import psf_2d
+
+    blur = {"core_sigma_px": 1.5, "tail_fraction": 0.02, "tail_scale_px": 20.0}
+    pitch, n, crop = 0.0666667, 241, 50
+    x = (np.arange(n) - n // 2) * pitch
+    xx, yy = np.meshgrid(x, x)
+    beam = np.exp(-0.5 * (xx ** 2 + yy ** 2) / 0.25 ** 2)
+    c, h = n // 2, crop // 2
+    inner = (slice(c - h, c + h), slice(c - h, c + h))
+    blurred = signal.fftconvolve(beam, psf_2d(blur), mode="same")[inner]
+    noisy = blurred + np.random.default_rng(3).normal(0.0, 5e-5 * blurred.max(), blurred.shape)
+    r = np.hypot(xx[inner], yy[inner])
+
+    def beyond_1mm(e: np.ndarray) -> float:
+        return float(e[r > 1.0].sum() / beam.sum())
+
+    true_share = beyond_1mm(beam[inner])                    # 0.04 %
+    assert beyond_1mm(blurred) > 15 * true_share               # the glare (0.7 %)
+    clean = BeamProfile(blurred, pitch, 0.0, 0.0, through_lens=True).deblurred(psf_2d(blur))
+    back = BeamProfile(np.clip(noisy, 0.0, None), pitch, 0.0, 0.0, through_lens=True).deblurred(psf_2d(blur))
+    assert beyond_1mm(clean.irradiance) < 1.1 * true_share
+    # Wiener with zero padding left 6x the truth here (0.23 %); a |b|^2 penalty 0.10 %.
+    assert beyond_1mm(back.irradiance) < 2.0 * true_share
+    assert clean.power() == pytest.approx(beam.sum() * pitch ** 2, rel=1e-3)
+    assert back.rms_width_mm() == pytest.approx(0.25, rel=5e-3)
+
+
 def test_a_model_with_lens_blur_lights_the_slab_with_the_map_deblurred() -> None:
     """A calibration frame images the beam through the same lens: a model that blurs the
     slab's image must not light it with the blurred map too, or the blur acts twice."""
