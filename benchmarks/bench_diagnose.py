@@ -434,10 +434,12 @@ def run_bench(case: dict[str, Any], work: Path, channel: str, angles: int, spp: 
 
 
 #: Concealed bench effects whose world parameters are the estimator's, in its units (the
-#: stray light after x the beam map's power, `truth_at_floor`). Sensor compression acts on
-#: raw counts in the bench and has no one full-well radiance in the estimator: left out.
+#: stray light after x the beam map's power, `truth_at_floor`). The sensor compression's
+#: `compression` is the raw frames' own since session 63 (the merge's fill from the
+#: recording's brackets, `estimate.problem.merge_fill_from_rows`; its full-well radiance then
+#: plays no part).
 TRUTH_COMPARABLE = ("refractive_boundary", "lens_blur", "stray_light", "angle_offset", "thickness_error",
-                    "beam_halo", "filter_bandwidth")
+                    "beam_halo", "filter_bandwidth", "sensor_nonlinearity")
 
 
 def truth_at_floor(work: Path, channel: str, spp: int, truth: dict[str, float]) -> float | None:
@@ -466,8 +468,10 @@ def truth_at_floor(work: Path, channel: str, spp: int, truth: dict[str, float]) 
             # The bench adds stray light to the radiance of a unit-power beam; the estimator
             # renders with the measured beam map, whose total is pb.beam.power().
             params[f"{e}.{k}"] = float(v) * (pb.beam.power() if e == "stray_light" else 1.0)
+    if "sensor_nonlinearity" in effects and pb.merge_fill is None:
+        return None   # a recording without its brackets: the full-well form has no true W
     fm = ForwardModel(pb.geometry, pb.beam, phase="exp3", extensions=list(effects), profile_y_shape=pb.y_shapes(),
-                      engine=ENGINE)
+                      engine=ENGINE, profile_merge_fill=pb.merge_fills())
     ev = evaluate(fm, params, pb, len(fm.parameter_names) + 1, spp=spp, seed=DEFAULT_SEED, repeats=DEFAULT_REPEATS)
     return float(ev.residuals.reduced_chi2_adjusted)
 

@@ -524,7 +524,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     phase = model_phase(model)
     check_engine(st.engine)   # a hand-edited results.yaml's too, before any work
     fm = forward or ForwardModel(problem.geometry, problem.beam, phase=phase, extensions=extensions,
-                                 profile_y_shape=problem.y_shapes(), engine=st.engine)
+                                 profile_y_shape=problem.y_shapes(), engine=st.engine,
+                                 profile_merge_fill=problem.merge_fills())
     fixed = dict(fixed or {})
     fm.validate(fixed)
     if st.scale not in ("free", "calibrated"):
@@ -865,6 +866,7 @@ def loss_at(problem: Problem, model: str, params: Mapping[str, float], *, extens
     so that a fit's loss and the floor carry the same engine's render noise (up to session
     61 the floor took the camera engine's while the fits rendered with the light engine)."""
     fm = forward or ForwardModel(problem.geometry, problem.beam, phase=model_phase(model), extensions=extensions,
-                                 profile_y_shape=problem.y_shapes(), engine=engine or FitSettings().engine)
+                                 profile_y_shape=problem.y_shapes(), engine=engine or FitSettings().engine,
+                                 profile_merge_fill=problem.merge_fills())
     return evaluate(fm, problem, params, spp=spp, seed=seed, delta_rel=reference_delta(delta_range),
                     fixed_scale=fixed_scale)

@@ -39,7 +39,7 @@ import numpy.typing as npt
 from estimate.beam import BeamProfile
 from estimate.errors import ModelParameterError
 from estimate.extensions import EXTENSIONS, IMAGE_ORDER, check_value, get_extension
-from estimate.extensions.base import ImageExtension, ParameterSpec
+from estimate.extensions.base import ImageExtension, ParameterSpec, RowData
 from estimate.extensions.filter_bandwidth import band_nodes
 from estimate.extensions.lens_blur import TRUNCATION_PX as LENS_BLUR_RADIUS
 from estimate.extensions.lens_blur import psf_2d
@@ -170,6 +170,11 @@ class ForwardModel:
             `estimate.problem.Problem.y_shapes`), for the lens blur of profile renders
             (`estimate.extensions.lens_blur`); angles without one, other columns and None
             use the line-spread function.
+        profile_merge_fill: the HDR merge's mean squared fill of the well per profile pixel,
+            per stage angle (degrees -> array (W,), `estimate.problem.Problem.merge_fills`),
+            for the sensor compression of profile renders
+            (`estimate.extensions.sensor_nonlinearity`); without one for every angle the
+            compression takes its full-well form.
         engine: how the slab is rendered (`ENGINES`): "camera", Mitsuba's `prbvolpath`
             from the camera with next-event connections to the beam (derivatives by path
             replay); or "light", paths from the beam connected to the camera
@@ -181,11 +186,14 @@ class ForwardModel:
     def __init__(self, geometry: RigGeometry, beam: BeamProfile, *, phase: str = "exp3",
                  extensions: Iterable[str] = (), variant: str | None = None,
                  max_depth: int = 64, rr_depth: int = 16,
-                 profile_y_shape: Mapping[float, np.ndarray] | None = None, engine: str = CAMERA) -> None:
+                 profile_y_shape: Mapping[float, np.ndarray] | None = None, engine: str = CAMERA,
+                 profile_merge_fill: Mapping[float, np.ndarray] | None = None) -> None:
         self.engine = check_engine(engine)
         self.geometry = geometry
         self.profile_y_shape: dict[float, np.ndarray] = {
             _angle_key(a): np.asarray(h, dtype=np.float64) for a, h in (profile_y_shape or {}).items()}
+        self.profile_merge_fill: dict[float, np.ndarray] = {
+            _angle_key(a): np.asarray(g, dtype=np.float64) for a, g in (profile_merge_fill or {}).items()}
         self.beam_profile = beam
         self.phase = phase
         self.extensions: tuple[str, ...] = tuple(dict.fromkeys(extensions))
@@ -436,7 +444,7 @@ class ForwardModel:
         return rad, jac
 
     def _push_forward(self, radiance: np.ndarray, d_radiance: np.ndarray, values: Mapping[str, float],
-                      window: PixelWindow, y_shape: np.ndarray | None) -> np.ndarray:
+                      window: PixelWindow, row_data: RowData) -> np.ndarray:
         """A radiance derivative (N, H, W) through the image-space extensions (exact for
         the linear ones, a blur or stray light; linearised for a sensor compression)."""
         if not self._image_exts():
@@ -446,8 +454,8 @@ class ForwardModel:
         if top == 0.0:
             return np.zeros_like(d_radiance)
         eps = 1e-4 * max(float(np.max(np.abs(radiance))), 1e-30) / top
-        plus = self._post(radiance + eps * d_radiance, values, profile_only, y_shape)
-        minus = self._post(radiance - eps * d_radiance, values, profile_only, y_shape)
+        plus = self._post(radiance + eps * d_radiance, values, profile_only, row_data)
+        minus = self._post(radiance - eps * d_radiance, values, profile_only, row_data)
         return (plus - minus) / (2.0 * eps)
 
     def _radiances(self, jobs: Sequence[tuple[Mapping[str, float], int]], angles: Sequence[float],
@@ -472,11 +480,28 @@ class ForwardModel:
     def _image_exts(self) -> list[type[ImageExtension]]:
         return [EXTENSIONS[n] for n in IMAGE_ORDER if n in self.extensions]  # type: ignore[misc]
 
-    def _y_shape(self, angles: Sequence[float], window: PixelWindow) -> np.ndarray | None:
-        """`y_shape_for(angles)` when the lens blur acts on this window's profile rows."""
-        if "lens_blur" not in self.extensions or window != self.geometry.profile_window():
+    def _row_data(self, angles: Sequence[float], window: PixelWindow) -> RowData:
+        """What the image-space extensions take from the recording for these angles'
+        profile rows (`ImageExtension`): the y-shape when the lens blur acts on them
+        (`y_shape_for`), the merge's fill when the sensor compression does
+        (`merge_fill_for`); nothing for other windows."""
+        out: RowData = {"y_shape": None, "merge_fill": None}
+        if window != self.geometry.profile_window():
+            return out
+        if "lens_blur" in self.extensions:
+            out["y_shape"] = self.y_shape_for(angles)
+        if "sensor_nonlinearity" in self.extensions:
+            out["merge_fill"] = self.merge_fill_for(angles)
+        return out
+
+    def merge_fill_for(self, angles: Sequence[float]) -> np.ndarray | None:
+        """The merge's fill for these angles' profile rows (N, W); None unless every angle
+        has one over the profile's columns (the compression then takes its full-well form)."""
+        width = self.geometry.profile_window().width
+        fills = [self.profile_merge_fill.get(_angle_key(a)) for a in angles]
+        if not fills or any(g is None or g.shape != (width,) for g in fills):
             return None
-        return self.y_shape_for(angles)
+        return np.stack(fills)  # type: ignore[arg-type]
 
     def y_shape_for(self, angles: Sequence[float]) -> np.ndarray | None:
         """The recording's y-shape for these angles' profile rows (N, 2T + 1, W), h = 1 for
@@ -493,11 +518,11 @@ class ForwardModel:
         return np.stack(rows)
 
     def _post(self, radiance: np.ndarray, values: Mapping[str, float], profile_only: bool,
-              y_shape: np.ndarray | None = None) -> np.ndarray:
+              row_data: RowData | None = None) -> np.ndarray:
         img = radiance
         for ext in self._image_exts():
             img = ext.apply(img, ext.values(values), pixel_mm=self.geometry.pixel_mm, profile_only=profile_only,
-                            y_shape=y_shape)
+                            **(row_data or {"y_shape": None, "merge_fill": None}))
         return img
 
     def _check_call(self, angles: npt.ArrayLike, spp: int, seed: int) -> list[float]:
@@ -532,10 +557,10 @@ class ForwardModel:
         # The smallest seed is the one to refuse, if any is.
         angles = self._check_call(angles_deg, spp, min((seed for _, seed in checked), default=0))
         window = self.geometry.window(None, None)
-        y_shape = self._y_shape(angles, window)
+        row_data = self._row_data(angles, window)
         with self._lock:
             rads = self._radiances(checked, angles, window, spp)
-        return [self._post(rad, values, profile_only=True, y_shape=y_shape)[:, 0, :]
+        return [self._post(rad, values, profile_only=True, row_data=row_data)[:, 0, :]
                 for rad, (values, _) in zip(rads, checked)]
 
     def render(self, params: Mapping[str, float], angles_deg: npt.ArrayLike, *,
@@ -552,7 +577,7 @@ class ForwardModel:
         window = self.geometry.window(columns, rows)
         with self._lock:
             rad = self._render_radiance(values, angles, window, spp, seed)
-        return self._post(rad, values, profile_only=window.height == 1, y_shape=self._y_shape(angles, window))
+        return self._post(rad, values, profile_only=window.height == 1, row_data=self._row_data(angles, window))
 
     # ------------------------------------------------------------------ derivatives
     def linearize(self, params: Mapping[str, float], angles_deg: npt.ArrayLike, *, spp: int = 128,
@@ -576,7 +601,7 @@ class ForwardModel:
             with self._lock:
                 rad, jac = self._light_scores(values, angles, window, spp, seed, ad_names)
             profiles = self._post(rad, values, profile_only=window.height == 1,
-                                  y_shape=self._y_shape(angles, window))[:, 0, :]
+                                  row_data=self._row_data(angles, window))[:, 0, :]
             return Linearization(self, values, angles, window, int(spp), int(seed), columns, rad, profiles, [],
                                  light_jacobian=jac)
         groups, passes = self._groups(len(angles), window, spp)
@@ -606,8 +631,8 @@ class ForwardModel:
                 kept.append(group)
             dr.eval()
             rad = _gather_radiance(pending, len(angles), window)
-        y_shape = self._y_shape(angles, window)
-        profiles = self._post(rad, values, profile_only=window.height == 1, y_shape=y_shape)[:, 0, :]
+        row_data = self._row_data(angles, window)
+        profiles = self._post(rad, values, profile_only=window.height == 1, row_data=row_data)[:, 0, :]
         return Linearization(self, values, angles, window, int(spp), int(seed), columns, rad, profiles, kept)
 
     def vjp(self, params: Mapping[str, float], angles_deg: npt.ArrayLike, cotangent: np.ndarray, *,
@@ -633,8 +658,9 @@ class ForwardModel:
         return lin.vjp(cotangent, fd_parameters=fd_parameters, base_profiles=base_profiles)
 
     def _pullback(self, radiance: np.ndarray, cot_out: np.ndarray, values: Mapping[str, float],
-                  window: PixelWindow, y_shape: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, float]]:
+                  window: PixelWindow, row_data: RowData | None = None) -> tuple[np.ndarray, dict[str, float]]:
         """Cotangent on the scene radiance, and image-parameter gradients."""
+        rd: RowData = row_data or {"y_shape": None, "merge_fill": None}
         exts = self._image_exts()
         pm = self.geometry.pixel_mm
         profile_only = window.height == 1
@@ -642,15 +668,15 @@ class ForwardModel:
         img = radiance
         for ext in exts:
             inputs.append(img)
-            img = ext.apply(img, ext.values(values), pixel_mm=pm, profile_only=profile_only, y_shape=y_shape)
+            img = ext.apply(img, ext.values(values), pixel_mm=pm, profile_only=profile_only, **rd)
         grads: dict[str, float] = {}
         cot = cot_out
         for ext, inp in zip(reversed(exts), reversed(inputs)):
             v = ext.values(values)
             for short, dimg in ext.param_derivatives(inp, v, pixel_mm=pm, profile_only=profile_only,
-                                                     y_shape=y_shape).items():
+                                                     **rd).items():
                 grads[f"{ext.name}.{short}"] = float(np.sum(dimg * cot))
-            cot = ext.vjp_input(inp, cot, v, pixel_mm=pm, profile_only=profile_only, y_shape=y_shape)
+            cot = ext.vjp_input(inp, cot, v, pixel_mm=pm, profile_only=profile_only, **rd)
         return cot, grads
 
     def value_and_grad(self, params: Mapping[str, float], angles_deg: npt.ArrayLike,
@@ -686,7 +712,7 @@ class ForwardModel:
         angles = self._check_call(angles_deg, spp, seed)
         window = self.geometry.window(columns, None)
         out: dict[str, np.ndarray] = {}
-        y_shape = self._y_shape(angles, window)
+        row_data = self._row_data(angles, window)
         profile_only = window.height == 1
         #: exact through the image-space function, from one render at `values`
         image_names = [name for name in names if self._spec(name).derivative == "image"]
@@ -698,7 +724,7 @@ class ForwardModel:
             with self._lock:
                 base_rad, jac_rad = self._light_scores(values, angles, window, spp, seed, score_names)
             for name in score_names:
-                out[name] = self._push_forward(base_rad, jac_rad[name], values, window, y_shape)[:, 0, :]
+                out[name] = self._push_forward(base_rad, jac_rad[name], values, window, row_data)[:, 0, :]
         #: per difference: name, the two ends' values (None: the base profiles), the step
         diffs: list[tuple[str, dict[str, float] | None, dict[str, float] | None, float]] = []
         for name in names:
@@ -742,12 +768,12 @@ class ForwardModel:
             if base_rad is None:
                 base_rad = next(rads)
             for name in image_names:
-                out[name] = self._image_param_derivative(base_rad, values, name, window, y_shape)
+                out[name] = self._image_param_derivative(base_rad, values, name, window, row_data)
 
         def end(v: dict[str, float] | None) -> np.ndarray:
             if v is None:  # only one-sided differences leave an end unrendered
                 return np.asarray(base_profiles, dtype=np.float64)[:, None, :]
-            return self._post(next(rads), v, profile_only, y_shape)
+            return self._post(next(rads), v, profile_only, row_data)
 
         for name, v_lo, v_hi, step in diffs:
             r_lo = end(v_lo)
@@ -781,8 +807,9 @@ class ForwardModel:
         return {n: self._image_param_derivative(zero, values, n, window) for n in names}
 
     def _image_param_derivative(self, radiance: np.ndarray, values: Mapping[str, float], name: str,
-                                window: PixelWindow, y_shape: np.ndarray | None = None) -> np.ndarray:
+                                window: PixelWindow, row_data: RowData | None = None) -> np.ndarray:
         """Exact derivative of the image chain output w.r.t. one image parameter."""
+        rd: RowData = row_data or {"y_shape": None, "merge_fill": None}
         ext_name, short = name.split(".", 1)
         pm = self.geometry.pixel_mm
         profile_only = window.height == 1
@@ -791,18 +818,18 @@ class ForwardModel:
         for i, ext in enumerate(exts):
             v = ext.values(values)
             if ext.name == ext_name:
-                d = ext.param_derivatives(img, v, pixel_mm=pm, profile_only=profile_only, y_shape=y_shape)[short]
-                out = ext.apply(img, v, pixel_mm=pm, profile_only=profile_only, y_shape=y_shape)
+                d = ext.param_derivatives(img, v, pixel_mm=pm, profile_only=profile_only, **rd)[short]
+                out = ext.apply(img, v, pixel_mm=pm, profile_only=profile_only, **rd)
                 # Push the derivative through the rest of the chain (linearised).
                 for later in exts[i + 1:]:
                     lv = later.values(values)
                     eps = 1e-4 * max(1e-30, float(np.max(np.abs(d))) or 1.0)
-                    plus = later.apply(out + eps * d, lv, pixel_mm=pm, profile_only=profile_only, y_shape=y_shape)
-                    minus = later.apply(out - eps * d, lv, pixel_mm=pm, profile_only=profile_only, y_shape=y_shape)
-                    out = later.apply(out, lv, pixel_mm=pm, profile_only=profile_only, y_shape=y_shape)
+                    plus = later.apply(out + eps * d, lv, pixel_mm=pm, profile_only=profile_only, **rd)
+                    minus = later.apply(out - eps * d, lv, pixel_mm=pm, profile_only=profile_only, **rd)
+                    out = later.apply(out, lv, pixel_mm=pm, profile_only=profile_only, **rd)
                     d = (plus - minus) / (2 * eps)
                 return d[:, 0, :]
-            img = ext.apply(img, v, pixel_mm=pm, profile_only=profile_only, y_shape=y_shape)
+            img = ext.apply(img, v, pixel_mm=pm, profile_only=profile_only, **rd)
         raise ModelParameterError(f"{name!r} is not an image-space parameter of this model")
 
 
@@ -880,7 +907,7 @@ class Linearization:
             # The light engine's score images: the product needs no second pass.
             if image_exts:
                 cot_rad, ext_grads = m._pullback(self.radiance, cot, self.values, window,
-                                                 m._y_shape(self.angles, window))
+                                                 m._row_data(self.angles, window))
                 grads.update(ext_grads)
             else:
                 cot_rad = cot
@@ -893,7 +920,7 @@ class Linearization:
                 cot_g = cot[grp.start:grp.stop]
                 if image_exts:
                     cot_rad, ext_grads = m._pullback(self.radiance[grp.start:grp.stop], cot_g, self.values, window,
-                                                     m._y_shape(ang, window))
+                                                     m._row_data(ang, window))
                     for name, gv in ext_grads.items():
                         grads[name] += gv
                 else:

@@ -33,8 +33,8 @@ from estimate.errors import DataError
 from estimate.extensions.lens_blur import TRUNCATION_PX as LENS_BLUR_RADIUS
 from estimate.geometry import RigGeometry
 
-__all__ = ["DEFAULT_COLUMNS", "Y_SHAPE_MAX", "Y_SHAPE_SMOOTH_PX", "Problem", "load_problem", "session_channels",
-           "y_shape_from_rows"]
+__all__ = ["DEFAULT_COLUMNS", "Y_SHAPE_MAX", "Y_SHAPE_SMOOTH_PX", "Problem", "load_problem", "merge_fill_from_rows",
+           "session_channels", "y_shape_from_rows"]
 
 #: Default width of the profile window (pixels of the ROI, i.e. binned pixels).
 DEFAULT_COLUMNS = 256
@@ -88,6 +88,51 @@ def y_shape_from_rows(rows: np.ndarray, usable: np.ndarray, j: int, columns: tup
     return out
 
 
+def merge_fill_from_rows(rows: np.ndarray, j: int, columns: tuple[int, int], exposures_s: Sequence[float],
+                         noise: Any, full_well_e: float, *, bin_px: int = 1, bloom_rows: int = 2,
+                         bloom_cols: int = 0) -> np.ndarray:
+    """g(x): the HDR merge's mean squared fill of the well at each profile pixel of one stack.
+
+    The merge (`capture.hdr.merge_hdr`) keeps the exposures whose raw value stays below the
+    saturation level and outside a bloom's reach, and averages them with inverse-variance
+    weights w_i = t_i^2 / var_i. A response that compresses the charge x by c (x / FW)^2
+    then leaves the merged radiance at L (1 - c g), g = sum_i w_i (L t_i / FW)^2 / sum_i w_i
+    (`estimate.extensions.sensor_nonlinearity`). The merge's choices are replayed here from
+    the merged radiance itself, which stands in for the true one (off by the compression,
+    a few percent, and the noise).
+
+    Args:
+        rows: the stack's radiance (rows, columns of the ROI), e-/s per (binned) pixel.
+        j: the profile row's index in `rows`.
+        columns: [c0, c1) of the profile window in `rows`.
+        exposures_s: the bracket's exposure times (s).
+        noise: the session's `capture.hdr.NoiseModel` (gain, bias, read noise, dark
+            current, saturation level).
+        full_well_e: the sensor's full well (electrons per unbinned pixel).
+        bin_px: unbinned pixels per binned pixel (the charge is taken as even over them).
+        bloom_rows, bloom_cols: the merge's bloom reach (`capture.hdr.MergeOptions`).
+
+    Returns g over the profile columns, shape (c1 - c0,); 0 where no exposure was kept.
+    """
+    from capture.hdr import saturation_mask
+
+    c0, c1 = columns
+    lum = np.clip(np.nan_to_num(np.asarray(rows, dtype=np.float64), nan=0.0, posinf=0.0), 0.0, None)
+    t = np.asarray(exposures_s, dtype=np.float64)
+    gain = float(noise.gain_e_per_adu)
+    dark = float(noise.dark_current_e_per_s) * bin_px
+    # The raw level each exposure would read (uncompressed: the compression is a few percent).
+    raw = (lum[None] * t[:, None, None] + dark * t[:, None, None]) / gain + float(noise.bias_adu)
+    kept = ~saturation_mask(raw, float(noise.saturation_adu), bloom_rows=bloom_rows, bloom_cols=bloom_cols)
+    kept = kept[:, j, c0:c1]
+    lj = lum[j, c0:c1]
+    var = (lj[None] + dark) * t[:, None] + float(noise.read_noise_e) ** 2 + gain * gain / 12.0
+    w = np.where(kept, t[:, None] ** 2 / var, 0.0)
+    fill = (lj[None] * t[:, None] / (bin_px * float(full_well_e))) ** 2
+    den = w.sum(axis=0)
+    return np.where(den > 0, (w * fill).sum(axis=0) / np.where(den > 0, den, 1.0), 0.0)
+
+
 @dataclass
 class Problem:
     """Measured profiles of one channel and the rig model to explain them.
@@ -113,6 +158,9 @@ class Problem:
             (N, 2 TRUNCATION_PX + 1, W): h(x, dy) = I(x, row + dy) / I(x, row) at
             dy = -TRUNCATION_PX..TRUNCATION_PX (`y_shape_from_rows`), for the lens blur of
             profile renders (`estimate.extensions.lens_blur`); None = unknown (h = 1).
+        merge_fill: the HDR merge's mean squared fill of the well per profile pixel, shape
+            (N, W) (`merge_fill_from_rows`), for the sensor compression of profile renders;
+            None = unknown (a stack without its bracket or the sensor's full well).
     """
 
     angles_deg: np.ndarray
@@ -129,6 +177,7 @@ class Problem:
     missing: list[str] = field(default_factory=list)
     angle_correction_deg: float = 0.0
     y_shape: np.ndarray | None = None
+    merge_fill: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.valid is None:
@@ -140,6 +189,13 @@ class Problem:
         if self.y_shape is None:
             return {}
         return {float(a): self.y_shape[i] for i, a in enumerate(self.angles_deg)}
+
+    def merge_fills(self) -> dict[float, np.ndarray]:
+        """`merge_fill` per angle (degrees -> (W,)); empty when unknown. What
+        `estimate.forward.ForwardModel(profile_merge_fill=...)` takes."""
+        if self.merge_fill is None:
+            return {}
+        return {float(a): self.merge_fill[i] for i, a in enumerate(self.angles_deg)}
 
     @property
     def n_angles(self) -> int:
@@ -156,7 +212,26 @@ class Problem:
                        self.geometry, self.beam, self.channel, self.wavelength_nm,
                        self.valid[idx], [self.stack_ids[i] for i in idx], self.session_path,
                        list(self.missing), self.angle_correction_deg,
-                       None if self.y_shape is None else self.y_shape[idx])
+                       None if self.y_shape is None else self.y_shape[idx],
+                       None if self.merge_fill is None else self.merge_fill[idx])
+
+
+def _merge_fills(session: Any, sensor: Any, bands: Sequence[tuple[np.ndarray, np.ndarray, int]],
+                 brackets: Sequence[Any], merges: Sequence[dict[str, Any]], columns: tuple[int, int],
+                 bin_px: int) -> np.ndarray | None:
+    """`merge_fill_from_rows` of every stack, (N, W); None when the session lacks what it
+    needs (a bracket record, the noise model, the sensor's full well)."""
+    noise = session.noise_model()
+    full_well = getattr(sensor, "full_well_e", None)
+    if noise is None or not full_well or any(not b for b in brackets):
+        return None
+    try:
+        return np.stack([merge_fill_from_rows(rad, j, columns, [float(t) for t in b], noise, float(full_well),
+                                              bin_px=bin_px, bloom_rows=int(m.get("bloom_rows", 2)),
+                                              bloom_cols=int(m.get("bloom_cols", 0)))
+                         for (rad, _, j), b, m in zip(bands, brackets, merges)])
+    except (TypeError, ValueError):
+        return None   # a malformed bracket record: the compression takes its full-well form
 
 
 def session_channels(session_dir: str | os.PathLike[str]) -> list[str]:
@@ -305,6 +380,8 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
     var_rows: list[np.ndarray] = []
     mask_rows: list[np.ndarray] = []
     bands: list[tuple[np.ndarray, np.ndarray, int]] = []   # (radiance, usable, profile row index)
+    brackets: list[Any] = []                                # exposure times of each stack's bracket
+    merges: list[dict[str, Any]] = []                       # each stack's merge options
     ids: list[str] = []
     roi0: dict[str, int] | None = None
     for r in usable:
@@ -335,6 +412,8 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
         var_rows.append(var[j])
         mask_rows.append(mask[j])
         bands.append((rad, np.isfinite(var) & (var > 0) & (mask > 0.5), j))
+        brackets.append((r.info.get("bracket") or {}).get("exposures_s"))
+        merges.append(dict(r.info.get("merge") or {}))
         ids.append(r.id)
     if len(ids) < 2 or roi0 is None:
         raise DataError(f"channel {channel!r}: only {len(ids)} readable stack(s); need at least 2")
@@ -373,6 +452,7 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
         raise DataError(f"stack {ids[i]}: variance NaN or negative at column {roi0['x'] + (c0 + k) * bx}")
     valid = np.isfinite(variance) & (mask > 0.5) & (variance > 0)
     y_shape = np.stack([y_shape_from_rows(b_rad, b_ok, b_j, (c0, c1)) for b_rad, b_ok, b_j in bands])
+    merge_fill = _merge_fills(s, sensor, bands, brackets, merges, (c0, c1), roi0["bin_x"] * roi0["bin_y"])
 
     # Geometry in the stacks' pixel grid: a binned pixel is one bigger pixel; the ROI
     # origin shifts the continuous centre coordinate.
@@ -404,4 +484,5 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
         variance=variance[order], geometry=geometry, beam=beam, channel=channel, wavelength_nm=wl,
         valid=valid[order], stack_ids=[ids[i] for i in order], session_path=str(s.path), missing=missing,
         angle_correction_deg=correction, y_shape=y_shape[order],
+        merge_fill=None if merge_fill is None else merge_fill[order],
     )

@@ -33,10 +33,11 @@ physical. Their columns are therefore secants to a small, realistic probe magnit
 (`PROBES`): the direction in which the profiles move when the effect appears. The test
 statistic does not depend on the columns' scale.
 
-`sensor_nonlinearity` acts on raw frames; at profile level the HDR merge reads bright
-pixels from the shortest exposure, so its columns are -I (I / W)^2 with the well filled
-either at the brightest pixel of the channel or of each angle (the bracket picks a short
-exposure per angle).
+`sensor_nonlinearity` acts on raw frames. With the recording's brackets its one column is
+-I g, g the merge's mean squared fill of the well per pixel (`estimate.problem.
+merge_fill_from_rows`: exact, the model's own form). Without them the columns of the
+full-well form: -I (I / W)^2 with the well filled either at the brightest pixel of the
+channel or of each angle (the bracket picks a short exposure per angle).
 """
 
 from __future__ import annotations
@@ -163,9 +164,10 @@ def score_test(r: np.ndarray, X: np.ndarray, Z: np.ndarray, excess: float | None
 
 
 def image_columns(name: str, base: np.ndarray, pixel_mm: float,
-                  y_shape: np.ndarray | None = None) -> list[np.ndarray]:
+                  y_shape: np.ndarray | None = None, merge_fill: np.ndarray | None = None) -> list[np.ndarray]:
     """Columns of an image-space extension from the base-fit render (unscaled), each (N, W).
-    `y_shape`: the recording's shape across rows for the lens blur (`ForwardModel.y_shape_for`)."""
+    `y_shape`: the recording's shape across rows for the lens blur (`ForwardModel.y_shape_for`);
+    `merge_fill`: the merge's fill for the sensor compression (`ForwardModel.merge_fill_for`)."""
     base = np.asarray(base, dtype=np.float64)
     if name == "stray_light":
         w = base.shape[-1]
@@ -181,6 +183,8 @@ def image_columns(name: str, base: np.ndarray, pixel_mm: float,
                 for v in (core, tail)]
     if name == "sensor_nonlinearity":
         pos = np.clip(base, 0, None)
+        if merge_fill is not None:
+            return [-pos * np.asarray(merge_fill, dtype=np.float64).reshape(pos.shape)]
         w_all = max(float(pos.max()), 1e-300)
         w_ang = np.maximum(pos.max(axis=1, keepdims=True), 1e-300)
         return [-pos * (pos / w_all) ** 2, -pos * (pos / w_ang) ** 2]
@@ -204,7 +208,9 @@ def candidate_columns(model: ForwardModel, params: Mapping[str, float], angles_d
     pm = model.geometry.pixel_mm
     for name in names:
         if EXTENSIONS[name].kind == "image" and not (name == "lens_blur" and getattr(model, "deblurs_beam", False)):
-            out[name] = image_columns(name, base, pm, model.y_shape_for(angles_deg) if name == "lens_blur" else None)
+            out[name] = image_columns(name, base, pm, model.y_shape_for(angles_deg) if name == "lens_blur" else None,
+                                      getattr(model, "merge_fill_for", lambda a: None)(angles_deg)
+                                      if name == "sensor_nonlinearity" else None)
             continue
         cols = []
         for probe in PROBES[name]:

@@ -279,6 +279,31 @@ def test_forward_model_blurs_profiles_with_the_recorded_y_shape() -> None:
         assert grads[name] == pytest.approx(float((j * cot).sum()), rel=1e-3, abs=1e-9), name
 
 
+def test_forward_model_compresses_profiles_with_the_merge_fill() -> None:
+    angles = [40.0, 140.0]
+    rng = np.random.default_rng(10)
+    fill = {a: rng.uniform(0.0, 0.9, N_PIX) for a in angles}
+    exts = ["stray_light", "sensor_nonlinearity"]
+    filled = ForwardModel(GEOM, BEAM, phase="exp1", extensions=exts, profile_merge_fill=fill)
+    p = {**BASE, "phase.b1": 1.0, "stray_light.offset": 0.001, "sensor_nonlinearity.compression": 0.04}
+    material = {k: v for k, v in p.items() if not k.startswith(("stray_light.", "sensor_nonlinearity."))}
+    plain = ForwardModel(GEOM, BEAM, phase="exp1").render_profiles(material, angles, spp=64, seed=2)
+    g = np.stack([fill[a] for a in angles])
+    got = filled.render_profiles(p, angles, spp=64, seed=2)
+    assert np.allclose(got, (plain + 0.001) * (1.0 - 0.04 * g), rtol=1e-9, atol=1e-15)
+    # an angle without a fill: every angle takes the full-well form
+    full_well = ForwardModel(GEOM, BEAM, phase="exp1", extensions=exts)
+    assert np.allclose(filled.render_profiles(p, [40.0, 75.0], spp=64, seed=2),
+                       full_well.render_profiles(p, [40.0, 75.0], spp=64, seed=2), rtol=1e-12, atol=1e-15)
+    # the compression's gradient agrees with the model's Jacobian and with -I g
+    cot = rng.random((2, N_PIX))
+    grads = filled.vjp(p, angles, cot, spp=64, seed=2, fd_parameters=False)
+    jac = filled.jacobian(p, angles, ["sensor_nonlinearity.compression", "stray_light.offset"], spp=64, seed=2)
+    assert np.allclose(jac["sensor_nonlinearity.compression"], -(plain + 0.001) * g, rtol=1e-5, atol=1e-12)
+    for name, j in jac.items():
+        assert grads[name] == pytest.approx(float((j * cot).sum()), rel=1e-5, abs=1e-12), name
+
+
 def _camera_map(blur: dict[str, float] | None) -> tuple[BeamProfile, BeamProfile]:
     """A Gaussian beam (sigma 0.15 mm) sampled at GEOM's pixels, and the map a calibration
     frame gives of it: blurred by the lens's PSF, marked as imaged through the lens."""
@@ -474,3 +499,40 @@ def test_additive_parameters_and_their_columns() -> None:
     assert bent.additive_parameters() == []
     with pytest.raises(ModelParameterError, match="not an additive parameter"):
         bent.additive_columns(p, 2, ["stray_light.offset"])
+
+
+def test_the_merge_fill_reproduces_the_merge_of_a_compressed_bracket() -> None:
+    """A compressing sensor read through a bracket and the HDR merge: the merged radiance is
+    L (1 - c g) with g the merge's mean squared fill (`merge_fill_from_rows`, computed from
+    the merged image itself), a sawtooth along the profile that no function of L alone
+    (the full-well form) follows."""
+    from fakes import TEST_SENSOR
+
+    from capture.hdr import MatchedDarks, NoiseModel, merge_hdr
+    from drivers.interfaces import ROI, Frame
+    from estimate.problem import merge_fill_from_rows
+
+    s = TEST_SENSOR
+    noise = NoiseModel.from_sensor(s)
+    c, fw = 0.03, s.full_well_e
+    times = [0.001 * 4 ** k for k in range(7)]
+    x = np.arange(300)
+    lum = 5e3 + 2e7 * np.exp(-0.5 * ((x - 150) / 20.0) ** 2)     # e-/s, 3.6 decades
+    truth = np.tile(lum, (9, 1))                                  # uniform along the column
+
+    def frame(t: float, lit: bool) -> np.ndarray:
+        q = np.clip(truth * t, 0.0, fw) if lit else np.zeros_like(truth)
+        e = apply_raw(q, c, fw) + s.dark_current_e_per_s * t
+        return np.clip(np.rint(e / s.gain_e_per_adu + s.bias_adu), 0, s.adc_max).astype(np.uint16)
+
+    darks = MatchedDarks.from_frames([Frame(frame(t, False), t, True, -20.0, 0, t, ROI()) for t in times
+                                      for _ in range(2)], noise)
+    merged = merge_hdr(np.stack([frame(t, True) for t in times]), times, darks, noise).radiance.astype(np.float64)
+    g = merge_fill_from_rows(merged, 4, (0, x.size), times, noise, fw)
+    ratio = merged[4] / lum
+    assert np.max(np.abs(ratio / (1.0 - c * g) - 1.0)) < 1e-3
+    assert 0.0 < g.min() and g.max() < 1.0
+    # Not a function of L: a brighter pixel can be less compressed than a dimmer one.
+    order = np.argsort(lum)
+    loss = (1.0 - ratio)[order]
+    assert np.max(np.maximum.accumulate(loss) - loss) > 0.3 * c

@@ -20,13 +20,13 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, TypedDict
 
 import numpy as np
 
 from estimate.errors import ModelParameterError
 
-__all__ = ["Extension", "ImageExtension", "ParameterSpec", "check_value"]
+__all__ = ["Extension", "ImageExtension", "ParameterSpec", "RowData", "check_value"]
 
 
 @dataclass(frozen=True)
@@ -114,6 +114,14 @@ class Extension:
         return out
 
 
+class RowData(TypedDict):
+    """What image-space extensions take from the recording about the profile rows (the
+    keyword arguments `y_shape` and `merge_fill` of `ImageExtension` methods)."""
+
+    y_shape: np.ndarray | None
+    merge_fill: np.ndarray | None
+
+
 class ImageExtension(Extension):
     """An image-space effect on radiance arrays shaped (..., H, W).
 
@@ -121,24 +129,31 @@ class ImageExtension(Extension):
     around the profile row, per image row, shaped (N, 2 TRUNCATION_PX + 1, W) with N the
     leading size of `image` (`estimate.problem.Problem.y_shape`). Only effects that mix
     rows (the lens blur) use it; the others ignore it.
+
+    `merge_fill` (profile renders only, else None): per profile pixel, the HDR merge's mean
+    (fill of the well)^2 over the exposures it read, shaped (N, W)
+    (`estimate.problem.merge_fill_from_rows`). Only the sensor's compression uses it.
     """
 
     kind = "image"
 
     @classmethod
     def apply(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
-              profile_only: bool, y_shape: np.ndarray | None = None) -> np.ndarray:
+              profile_only: bool, y_shape: np.ndarray | None = None,
+              merge_fill: np.ndarray | None = None) -> np.ndarray:
         raise NotImplementedError
 
     @classmethod
     def vjp_input(cls, image: np.ndarray, cotangent: np.ndarray, values: Mapping[str, float], *,
-                  pixel_mm: float, profile_only: bool, y_shape: np.ndarray | None = None) -> np.ndarray:
+                  pixel_mm: float, profile_only: bool, y_shape: np.ndarray | None = None,
+              merge_fill: np.ndarray | None = None) -> np.ndarray:
         """Cotangent w.r.t. the input image given one w.r.t. the output."""
         raise NotImplementedError
 
     @classmethod
     def param_derivatives(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
-                          profile_only: bool, y_shape: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                          profile_only: bool, y_shape: np.ndarray | None = None,
+              merge_fill: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """d output / d parameter for each parameter (central differences of this exact,
         deterministic image function with a small relative step; no rendering noise)."""
         out = {}
@@ -151,7 +166,9 @@ class ImageExtension(Extension):
             b = min(p.upper, base + h)
             lo[p.name] = a
             hi[p.name] = b
-            out[p.name] = (cls.apply(image, hi, pixel_mm=pixel_mm, profile_only=profile_only, y_shape=y_shape)
-                           - cls.apply(image, lo, pixel_mm=pixel_mm, profile_only=profile_only, y_shape=y_shape)
+            out[p.name] = (cls.apply(image, hi, pixel_mm=pixel_mm, profile_only=profile_only, y_shape=y_shape,
+                                     merge_fill=merge_fill)
+                           - cls.apply(image, lo, pixel_mm=pixel_mm, profile_only=profile_only, y_shape=y_shape,
+                                       merge_fill=merge_fill)
                            ) / (b - a)
         return out

@@ -162,7 +162,8 @@ class LensBlur(ImageExtension):
 
     @classmethod
     def apply(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
-              profile_only: bool, y_shape: np.ndarray | None = None) -> np.ndarray:
+              profile_only: bool, y_shape: np.ndarray | None = None,
+              merge_fill: np.ndarray | None = None) -> np.ndarray:
         img = np.asarray(image, dtype=np.float64)
         if values["core_sigma_px"] == 0 and values["tail_fraction"] == 0:
             return img.copy()
@@ -177,7 +178,8 @@ class LensBlur(ImageExtension):
 
     @classmethod
     def vjp_input(cls, image: np.ndarray, cotangent: np.ndarray, values: Mapping[str, float], *,
-                  pixel_mm: float, profile_only: bool, y_shape: np.ndarray | None = None) -> np.ndarray:
+                  pixel_mm: float, profile_only: bool, y_shape: np.ndarray | None = None,
+              merge_fill: np.ndarray | None = None) -> np.ndarray:
         cot = np.asarray(cotangent, dtype=np.float64)
         if (y_shape is not None and (profile_only or cot.shape[-2] == 1)
                 and not (values["core_sigma_px"] == 0 and values["tail_fraction"] == 0)):

@@ -3,13 +3,24 @@
 Raw frames (simulated camera): electrons x -> x * (1 - c * (x / full_well)^2), monotone
 for c < 1/3; c = `compression` = relative loss at full well (`apply_raw`).
 
-Effect on a merged HDR profile (for the model): the merge reads the brightest pixels from
-the shortest exposure, where they are compressed most; dimmer pixels come from longer
-exposures at levels the bracket keeps below full well. Modelled as
-I -> I * (1 - c * min(I / W, 1)^2) with W = `full_well_radiance`, the HDR radiance that
-fills the well in the shortest exposure (profile units). This assumes each pixel is
-read from the shortest exposure, an upper bound on the compression of dim pixels.
-Derivative: exact.
+Effect on a merged HDR profile. Each exposure of a bracket reads the pixel's charge
+L t_i, compressed by c (L t_i / FW)^2, and the merge (`capture.hdr.merge_hdr`) averages the
+exposures it keeps (unsaturated, not in a bloom's reach) with inverse-variance weights
+w_i. So the merged radiance is L (1 - c g) with
+
+    g = sum_i w_i (L t_i / FW)^2 / sum_i w_i
+
+the mean squared fill of the well over the exposures read: the longest one kept dominates,
+filled to between a quarter and nearly all of the well by a bracket of factor-4 steps,
+so g is a sawtooth along the profile, not a function of L alone. With the recording's
+brackets (`merge_fill`, from `estimate.problem.merge_fill_from_rows`) the model is exactly
+that: I -> I (1 - c g), one parameter, linear in it. Without them (a session without its
+bracket records, or synthetic sessions made by this model) the older form
+I -> I (1 - c min(I / W, 1)^2), W = `full_well_radiance` the HDR radiance that fills the
+well in the shortest exposure (profile units): each pixel read from the shortest exposure,
+an upper bound on the compression of dim pixels. Up to session 62 that was the only form,
+and the light bench's compressed sessions were out of its reach (sensor_nonlinearity-2:
+named, but 18.5 -> 10.4 at the floor). Derivative: exact.
 """
 
 from __future__ import annotations
@@ -45,15 +56,29 @@ class SensorNonlinearity(ImageExtension):
 
     @classmethod
     def apply(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
-              profile_only: bool, y_shape: np.ndarray | None = None) -> np.ndarray:
+              profile_only: bool, y_shape: np.ndarray | None = None,
+              merge_fill: np.ndarray | None = None) -> np.ndarray:
         img = np.asarray(image, dtype=np.float64)
+        if merge_fill is not None:
+            return img * (1.0 - values["compression"] * cls._fill(img, merge_fill))
         r = np.clip(img / values["full_well_radiance"], 0.0, 1.0)
         return img * (1.0 - values["compression"] * r ** 2)
 
+    @staticmethod
+    def _fill(img: np.ndarray, merge_fill: np.ndarray) -> np.ndarray:
+        """The merge's fill g, (N, W), shaped to broadcast against `img` (N, W) or (N, 1, W)."""
+        g = np.asarray(merge_fill, dtype=np.float64)
+        if g.size != img.size:
+            raise ValueError(f"merge_fill has {g.size} values for an image of {img.size} pixels")
+        return g.reshape(img.shape)
+
     @classmethod
     def vjp_input(cls, image: np.ndarray, cotangent: np.ndarray, values: Mapping[str, float], *,
-                  pixel_mm: float, profile_only: bool, y_shape: np.ndarray | None = None) -> np.ndarray:
+                  pixel_mm: float, profile_only: bool, y_shape: np.ndarray | None = None,
+              merge_fill: np.ndarray | None = None) -> np.ndarray:
         img = np.asarray(image, dtype=np.float64)
+        if merge_fill is not None:
+            return np.asarray(cotangent) * (1.0 - values["compression"] * cls._fill(img, merge_fill))
         w = values["full_well_radiance"]
         r = img / w
         below = (r >= 0) & (r <= 1)
