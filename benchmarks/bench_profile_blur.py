@@ -15,7 +15,8 @@ noise and from the material:
 Each is divided by the bench's 2D blur (plus the world's stray light) in 16-pixel bins of
 the central 128 pixels around the spot; the table gives the largest |ratio - 1| per angle.
 Needs the bench case captured by `bench_diagnose.py --source bench` (default
-`stray_light+lens_blur`). Writes benchmarks/results/bench_profile_blur.json.
+`stray_light+lens_blur`; `--cache bench-light` for the light-engine bench's cases). Writes
+benchmarks/results/bench_profile_blur.json (`_<cache>_<case>` appended for other caches).
 
     .venv/bin/python benchmarks/bench_profile_blur.py [--case stray_light+lens_blur]
 """
@@ -43,6 +44,7 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--case", default="stray_light+lens_blur")
     ap.add_argument("--channel", default="g")
+    ap.add_argument("--cache", default="bench", help="diagnose_cases sub-folder: bench (camera engine) or bench-light")
     args = ap.parse_args()
     os.environ.setdefault("DRJIT_LIBLLVM_PATH", "/usr/lib/x86_64-linux-gnu/libLLVM-19.so")
     from estimate.extensions.lens_blur import LensBlur
@@ -51,7 +53,7 @@ def main() -> int:
     from sim_devices.rendered_scene import RenderedScene
     from sim_devices.world import load_world
 
-    work = ROOT / "benchmarks" / "results" / "diagnose_cases" / "bench" / args.case
+    work = ROOT / "benchmarks" / "results" / "diagnose_cases" / args.cache / args.case
     if not (work / "session" / "session.yaml").is_file():
         print(f"{work}: no captured session; run benchmarks/bench_diagnose.py --source bench --only {args.case}",
               file=sys.stderr)
@@ -93,7 +95,8 @@ def main() -> int:
         print(f"{r['angle_deg']:6.0f} {r['lsf']['max_abs_error']:8.3f} {r['recorded']['max_abs_error']:9.3f} "
               f"{r['unblurred']['max_abs_error']:10.3f}")
     print(f"{'all':>6} {summary['lsf']:8.3f} {summary['recorded']:9.3f} {summary['unblurred']:10.3f}")
-    out = ROOT / "benchmarks" / "results" / "bench_profile_blur.json"
+    suffix = "" if args.cache == "bench" else f"_{args.cache}_{args.case}"
+    out = ROOT / "benchmarks" / "results" / f"bench_profile_blur{suffix}.json"
     out.write_text(json.dumps({"case": args.case, "channel": args.channel, "blur": blur, "angles": rows,
                                "max_abs_error": summary, "wall_s": wall, "bin_px": BIN_PX,
                                "central_px": list(CENTRAL)}, indent=1))
