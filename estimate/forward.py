@@ -39,7 +39,7 @@ import numpy.typing as npt
 from estimate.beam import BeamProfile
 from estimate.errors import ModelParameterError
 from estimate.extensions import EXTENSIONS, IMAGE_ORDER, check_value, get_extension
-from estimate.extensions.base import ImageExtension, ParameterSpec, RowData
+from estimate.extensions.base import ImageExtension, ParameterSpec, RowData, no_row_data
 from estimate.extensions.filter_bandwidth import band_nodes
 from estimate.extensions.lens_blur import TRUNCATION_PX as LENS_BLUR_RADIUS
 from estimate.extensions.lens_blur import psf_2d
@@ -485,7 +485,7 @@ class ForwardModel:
         profile rows (`ImageExtension`): the y-shape when the lens blur acts on them
         (`y_shape_for`), the merge's fill when the sensor compression does
         (`merge_fill_for`); nothing for other windows."""
-        out: RowData = {"y_shape": None, "merge_fill": None}
+        out = no_row_data()
         if window != self.geometry.profile_window():
             return out
         if "lens_blur" in self.extensions:
@@ -522,7 +522,7 @@ class ForwardModel:
         img = radiance
         for ext in self._image_exts():
             img = ext.apply(img, ext.values(values), pixel_mm=self.geometry.pixel_mm, profile_only=profile_only,
-                            **(row_data or {"y_shape": None, "merge_fill": None}))
+                            **(row_data or no_row_data()))
         return img
 
     def _check_call(self, angles: npt.ArrayLike, spp: int, seed: int) -> list[float]:
@@ -660,7 +660,7 @@ class ForwardModel:
     def _pullback(self, radiance: np.ndarray, cot_out: np.ndarray, values: Mapping[str, float],
                   window: PixelWindow, row_data: RowData | None = None) -> tuple[np.ndarray, dict[str, float]]:
         """Cotangent on the scene radiance, and image-parameter gradients."""
-        rd: RowData = row_data or {"y_shape": None, "merge_fill": None}
+        rd: RowData = row_data or no_row_data()
         exts = self._image_exts()
         pm = self.geometry.pixel_mm
         profile_only = window.height == 1
@@ -809,7 +809,7 @@ class ForwardModel:
     def _image_param_derivative(self, radiance: np.ndarray, values: Mapping[str, float], name: str,
                                 window: PixelWindow, row_data: RowData | None = None) -> np.ndarray:
         """Exact derivative of the image chain output w.r.t. one image parameter."""
-        rd: RowData = row_data or {"y_shape": None, "merge_fill": None}
+        rd: RowData = row_data or no_row_data()
         ext_name, short = name.split(".", 1)
         pm = self.geometry.pixel_mm
         profile_only = window.height == 1

@@ -26,7 +26,7 @@ import numpy as np
 
 from estimate.errors import ModelParameterError
 
-__all__ = ["Extension", "ImageExtension", "ParameterSpec", "RowData", "check_value"]
+__all__ = ["Extension", "ImageExtension", "ParameterSpec", "RowData", "check_value", "no_row_data"]
 
 
 @dataclass(frozen=True)
@@ -120,6 +120,11 @@ class RowData(TypedDict):
 
     y_shape: np.ndarray | None
     merge_fill: np.ndarray | None
+
+
+def no_row_data() -> RowData:
+    """Nothing from the recording (full frames, other windows, a model without a problem)."""
+    return {"y_shape": None, "merge_fill": None}
 
 
 class ImageExtension(Extension):

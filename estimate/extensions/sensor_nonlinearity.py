@@ -18,9 +18,11 @@ that: I -> I (1 - c g), one parameter, linear in it. Without them (a session wit
 bracket records, or synthetic sessions made by this model) the older form
 I -> I (1 - c min(I / W, 1)^2), W = `full_well_radiance` the HDR radiance that fills the
 well in the shortest exposure (profile units): each pixel read from the shortest exposure,
-an upper bound on the compression of dim pixels. Up to session 62 that was the only form,
-and the light bench's compressed sessions were out of its reach (sensor_nonlinearity-2:
-named, but 18.5 -> 10.4 at the floor). Derivative: exact.
+an upper bound on the compression of dim pixels. Up to session 62 that was the only form;
+on the light bench's 6 % session the merged form's fit reaches the true model's own reduced
+chi^2 at the noise floor (1.25 against 1.26). A compression above 1 - saturation / full well
+is beyond both: a full well then reads below the capture's saturation level, and the merge
+keeps clipped samples (`docs/diagnosis-log.md`, session 63). Derivative: exact.
 """
 
 from __future__ import annotations
