@@ -214,6 +214,8 @@ OPTIMUM_FIT_SPP = 4096
 REFIT_ITERATIONS = 8
 #: The forward model's render engine of the recordings and the diagnosis (`--engine`).
 ENGINE = "camera"
+#: The bench world's `render.spp_profile` (--profile-spp); None keeps the default world's.
+PROFILE_SPP: int | None = None
 
 
 def _check_recording(cached: Path, prior: dict[str, Any], excess: float, columns: int) -> None:
@@ -405,6 +407,9 @@ def run_bench(case: dict[str, Any], work: Path, channel: str, angles: int, spp: 
     # The bench renders with the diagnosis' engine (--engine; the camera engine by default).
     if ENGINE != "camera":
         world["render"]["engine"] = ENGINE
+    if PROFILE_SPP:
+        # --profile-spp: the profile rows' samples (the recording's frozen render noise).
+        world["render"]["spp_profile"] = int(PROFILE_SPP)
     wpath = work / "world.yaml"
     wpath.write_text(yaml.safe_dump(world, sort_keys=False))
     cal = work / "cal"
@@ -756,6 +761,9 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="one magnitude per effect, two pairs, two clean cases")
     ap.add_argument("--only", default=None, help="comma-separated case ids, run in this order")
     ap.add_argument("--fresh", action="store_true", help="ignore cached case results")
+    ap.add_argument("--profile-spp", type=int, default=None,
+                    help="bench: samples per pixel of the recording's profile rows (the world's render.spp_profile, "
+                         "1024 by default: the frozen render noise); cases kept apart (<cache>-prof<N>)")
     ap.add_argument("--limits", action="store_true",
                     help="run the detection-limit series (stronger magnitudes of the effects the suite missed) "
                          "instead of the suite; reported apart, in bench_diagnose_<source>_limits.md")
@@ -827,8 +835,11 @@ def main() -> int:
         variant_tag += f"-it{args.refit_iterations}"
     if args.refits != "fixed-seed" and args.source == "synthetic":
         variant_tag += "-dec"
-    global ENGINE
+    global ENGINE, PROFILE_SPP
     ENGINE = args.engine
+    if args.profile_spp is not None and (args.source != "bench" or args.profile_spp < 1):
+        ap.error("--profile-spp is a positive number of samples for --source bench")
+    PROFILE_SPP = args.profile_spp
     if args.engine != "camera":
         variant_tag += f"-{args.engine}"
     base_from = None
@@ -843,6 +854,7 @@ def main() -> int:
                      f"{RESULTS / 'diagnose_cases'})")
     # The bench cache keeps the captured sessions (expensive): one spp per cache, --fresh to redo.
     cache = RESULTS / "diagnose_cases" / (args.source + ("" if args.engine == "camera" else f"-{args.engine}")
+                                          + (f"-prof{args.profile_spp}" if args.profile_spp else "")
                                           if args.source == "bench"
                                           else f"synthetic-{SYNTHETIC_VERSION}-excess{args.excess:g}-spp{args.spp}{variant_tag}")
     if args.outside and (args.source != "synthetic" or args.limits):
