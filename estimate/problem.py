@@ -126,7 +126,7 @@ def merge_fill_from_rows(rows: np.ndarray, j: int, columns: tuple[int, int], exp
     kept = ~saturation_mask(raw, float(noise.saturation_adu), bloom_rows=bloom_rows, bloom_cols=bloom_cols)
     kept = kept[:, j, c0:c1]
     lj = lum[j, c0:c1]
-    var = (lj[None] + dark) * t[:, None] + float(noise.read_noise_e) ** 2 + gain * gain / 12.0
+    var = noise.frame_variance_e2(lj[None] * t[:, None], t[:, None])   # the merge's own variance model
     w = np.where(kept, t[:, None] ** 2 / var, 0.0)
     fill = (lj[None] * t[:, None] / (bin_px * float(full_well_e))) ** 2
     den = w.sum(axis=0)
