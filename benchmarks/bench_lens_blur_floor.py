@@ -9,7 +9,9 @@ time:
 * `model`: as the diagnosis evaluates it (the calibrated beam map deblurred by the true PSF,
   the recording's y-shape);
 * `bench beam`: the bench's own beam map in place of the deblurred calibration map;
-* `bench rows`: the y-shape of the bench's own unblurred rows in place of the recording's;
+* `bench rows`: the y-shape of the bench's own rows, blurred by the world's image effects but
+  without the render noise, in place of the recording's (the lens blur deblurs either along
+  y: `estimate.extensions.lens_blur.unblurred_y_shape`);
 
 and measures the bench recording's frozen render noise: the profile tier rendered twice more
 at the bench's own spp with other seeds, the mean square of their difference over the HDR
@@ -43,6 +45,8 @@ def main() -> int:
     ap.add_argument("--case", default="lens_blur-1")
     ap.add_argument("--cache", default="bench-light", help="diagnose_cases sub-folder of the bench's cases")
     ap.add_argument("--spp", type=int, default=2048, help="the evaluation's spp (the diagnosis')")
+    ap.add_argument("--no-frozen-noise", action="store_true",
+                    help="skip the measurement of the recording's frozen render noise (two renders)")
     args = ap.parse_args()
     os.environ.setdefault("DRJIT_LIBLLVM_PATH", "/usr/lib/x86_64-linux-gnu/libLLVM-19.so")
     import yaml
@@ -81,7 +85,8 @@ def main() -> int:
     # The bench's radiance at the session's angles: its calibration put the stage's zero
     # right, so the physical angles are the planned ones (the cache is keyed by them).
     rads = {float(a): scene.radiance(float(a), channel) for a in pb.angles_deg}
-    bench_rows = {a: y_shape_from_rows(r, np.ones(r.shape, bool), row, (c0, c1)) for a, r in rads.items()}
+    bench_rows = {a: y_shape_from_rows(scene._image_effects(r, direct=False), np.ones(r.shape, bool), row, (c0, c1))
+                  for a, r in rads.items()}
     bench_beam = BeamProfile.centered(scene._beam_map, scene._beam_pitch, world.beam.offset_mm)
 
     def floor(beam: BeamProfile, shapes: dict[float, np.ndarray]) -> float:
@@ -99,10 +104,12 @@ def main() -> int:
         "bench beam and rows": floor(bench_beam, bench_rows),
     }
     # The recording's frozen render noise: two more renders of the profile tier at the bench's spp.
+    ratios: dict[str, list[float]] = {"unblurred": [], "blurred": []}
+    if args.no_frozen_noise:
+        return _report(args, out, effects, len(pb.angles_deg), ratios, 0, t0)
     model, mparams = scene._model(channel), scene._params(channel)
     p0, p1, spp = scene.row_tiers()[0]
     cols = scene.sensor_px[0]
-    ratios: dict[str, list[float]] = {"unblurred": [], "blurred": []}
     for i, a in enumerate(pb.angles_deg):
         pair = []
         for k in range(2):
@@ -120,15 +127,22 @@ def main() -> int:
     out["frozen_noise_variance_over_sensor"] = {k: {"per_angle": v, "mean": float(np.mean(v))}
                                                for k, v in ratios.items()}
     out["profile_tier"] = {"rows": [p0, p1], "spp": spp}
+    return _report(args, out, effects, len(pb.angles_deg), ratios, spp, t0)
+
+
+def _report(args: argparse.Namespace, out: dict[str, object], effects: dict, n_angles: int,
+            ratios: dict[str, list[float]], spp: int, t0: float) -> int:
     out["wall_s"] = time.perf_counter() - t0
-    print(f"case {args.case}, blur {effects['lens_blur']}, {len(pb.angles_deg)} angles, {out['wall_s']:.0f} s")
+    print(f"case {args.case}, blur {effects['lens_blur']}, {n_angles} angles, {out['wall_s']:.0f} s")
     print("the true model's reduced chi^2 at the noise floor:")
     for k, v in out["floor_chi2"].items():  # type: ignore[union-attr]
         print(f"  {k:22s} {v:6.2f}")
-    print(f"the recording's frozen render noise (profile tier, {spp} spp), variance / the sensor's:")
-    for k, v in ratios.items():
+    if spp:
+        print(f"the recording's frozen render noise (profile tier, {spp} spp), variance / the sensor's:")
+    for k, v in ratios.items() if spp else ():
         print(f"  {k:10s} mean {np.mean(v):6.2f}  per angle " + " ".join(f"{x:5.1f}" for x in v))
-    dest = ROOT / "benchmarks" / "results" / f"bench_lens_blur_floor_{args.case}.json"
+    tag = "" if args.cache == "bench-light" else f"_{args.cache}"
+    dest = ROOT / "benchmarks" / "results" / f"bench_lens_blur_floor_{args.case}{tag}.json"
     dest.write_text(json.dumps(out, indent=1))
     print(f"wrote {dest}")
     return 0

@@ -24,9 +24,19 @@ with G, L the core's and the tail's LSF (as `line_spread`), E_G the mean over dy
 core's normalised Gaussian and E_T|dx the mean under the tail kernel's conditional
 distribution of dy at offset dx. The image is taken as I(x', y0) h(x', dy) near the
 profile row, i.e. its y-shape is the recording's. h = 1 everywhere gives the LSF exactly.
-On the bench this leaves 1.4-5.3 % (0.4-1.7 % with the unblurred rows' own shape). The
-recorded shape is that of the blurred image, stray light included: a spot sigma_y wide
-reads as sqrt(sigma_y^2 + sigma_core^2) wide. Zero padding outside the rendered window. The PSF is
+On the bench this leaves 1.4-5.3 % (0.4-1.7 % with the unblurred rows' own shape).
+
+The recorded shape is that of the blurred image, stray light included: a spot sigma_y wide
+reads as sqrt(sigma_y^2 + sigma_core^2) wide, and its E_G[h] overstates the light the blur
+keeps in the profile row (a 3.75 px beam under a 2.5 px core: 0.88 instead of 0.83). So the
+recorded shape is first deblurred along y by the PSF being applied (`unblurred_y_shape`):
+per column, the regularised least-squares u of K u = h_rec, K the PSF's line spread along y,
+u free beyond the recorded +-radius rows (the light from there is unknown, not zero) and a
+curvature penalty `Y_DEBLUR_REGULARISATION` against the amplified noise; then u / u(0).
+Exact for an image a(x) b(y) under the separable core, the tail to first order. A column
+whose deblurred centre is not clearly positive keeps its recorded shape. The deblurring is
+a fixed linear map for given blur values (cached), so derivatives by the parameters stay
+those of a deterministic image function. Zero padding outside the rendered window. The PSF is
 symmetric, so the full-frame and LSF operators are self-adjoint; the weighted profile
 operator is not (`vjp_input` applies its transpose). Derivative: exact through this image
 function.
@@ -34,6 +44,7 @@ function.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 
 import numpy as np
@@ -41,9 +52,21 @@ from scipy import ndimage, signal
 
 from estimate.extensions.base import ImageExtension, ParameterSpec
 
-__all__ = ["TRUNCATION_PX", "LensBlur", "line_spread", "profile_weights", "psf_2d"]
+__all__ = ["TRUNCATION_PX", "Y_DEBLUR_REGULARISATION", "LensBlur", "line_spread", "profile_weights", "psf_2d",
+           "unblurred_y_shape"]
 
 TRUNCATION_PX = 64
+#: Weight of the curvature penalty in the y-shape's deblurring (`unblurred_y_shape`), in
+#: units of h^2 per px^4 (h ~ 1): it passes the beam's spatial frequencies (below ~0.1 per
+#: pixel for a 3.75 px sigma) and damps those a 2.5 px core has all but erased, where
+#: deblurring would only amplify the recording's noise. Chosen on the light bench's
+#: lens_blur-2 (2.5 px + 5 %, profile rows at 8192 spp, the band at 32): the true model's
+#: reduced chi^2 at the noise floor is 5.03 with the recorded shape as it is, 4.53 / 4.00 /
+#: 3.57 / 3.64 deblurred with 1e-3 / 1e-2 / 0.1 / 1 (`benchmarks/bench_lens_blur_floor.py`).
+Y_DEBLUR_REGULARISATION = 0.1
+#: A column whose deblurred centre u(0) falls below this (h_rec(0) = 1) keeps its recorded
+#: shape: its profile row is not a maximum the blur has lowered, and u / u(0) would blow up.
+_Y_DEBLUR_MIN_CENTRE = 0.5
 
 
 def _gauss(x: np.ndarray, s: float) -> np.ndarray:
@@ -78,14 +101,53 @@ def line_spread(values: Mapping[str, float], radius: int = TRUNCATION_PX) -> np.
     return (1.0 - f) * core + f * tail
 
 
-def profile_weights(values: Mapping[str, float], y_shape: np.ndarray, radius: int = TRUNCATION_PX) -> np.ndarray:
+@functools.lru_cache(maxsize=64)
+def _y_deblur_matrix(core_sigma_px: float, tail_fraction: float, tail_scale_px: float, radius: int) -> np.ndarray:
+    """M (2 radius + 1 square): u = M h_rec on dy = -radius..radius (module docstring)."""
+    k = line_spread({"core_sigma_px": core_sigma_px, "tail_fraction": tail_fraction,
+                     "tail_scale_px": tail_scale_px}, radius)
+    n_obs, n_u = 2 * radius + 1, 4 * radius + 1
+    # Observation dy_i = i - radius sees unknown dy_j = j - 2 radius with weight k[dy_i - dy_j + radius].
+    off = (np.arange(n_obs)[:, None] - radius) - (np.arange(n_u)[None, :] - 2 * radius)
+    a = np.where(np.abs(off) <= radius, k[np.clip(off + radius, 0, 2 * radius)], 0.0)
+    d2 = np.zeros((n_u - 2, n_u))
+    idx = np.arange(n_u - 2)
+    d2[idx, idx], d2[idx, idx + 1], d2[idx, idx + 2] = 1.0, -2.0, 1.0
+    m = np.linalg.solve(a.T @ a + Y_DEBLUR_REGULARISATION * d2.T @ d2, a.T)
+    out: np.ndarray = m[radius:radius + n_obs]
+    out.setflags(write=False)
+    return out
+
+
+def unblurred_y_shape(values: Mapping[str, float], y_shape: np.ndarray, radius: int = TRUNCATION_PX) -> np.ndarray:
+    """The recorded y-shape h_rec (N, 2 radius + 1, W) deblurred along y by the PSF of
+    `values`: the shape of the unblurred image the profile blur needs (module docstring)."""
+    h = np.asarray(y_shape, dtype=np.float64)
+    if values["core_sigma_px"] == 0 and values["tail_fraction"] == 0:
+        return h
+    m = _y_deblur_matrix(float(values["core_sigma_px"]), float(values["tail_fraction"]),
+                         float(values["tail_scale_px"]), radius)
+    u = np.einsum("ij,njw->niw", m, h)
+    centre = u[:, radius:radius + 1, :]
+    ok = centre > _Y_DEBLUR_MIN_CENTRE
+    out = np.where(ok, u / np.where(ok, centre, 1.0), h)
+    # The deblurred shape may ring slightly negative beside a sharp edge; light is not negative.
+    return np.clip(out, 0.0, None)
+
+
+def profile_weights(values: Mapping[str, float], y_shape: np.ndarray, radius: int = TRUNCATION_PX, *,
+                    recorded: bool = True) -> np.ndarray:
     """Weights w[n, k, x'] of the profile blur: the light of source pixel x' of row n that
     lands at x' + (k - radius) (module docstring). `y_shape`: (N, 2 radius + 1, W), h at
-    dy = -radius..radius (row `radius` is dy = 0). Returns (N, 2 radius + 1, W).
+    dy = -radius..radius (row `radius` is dy = 0); `recorded`: it is the blurred recording's
+    shape (deblurred first by `unblurred_y_shape`), else the unblurred image's.
+    Returns (N, 2 radius + 1, W).
     """
     h = np.asarray(y_shape, dtype=np.float64)
     if h.ndim != 3 or h.shape[1] != 2 * radius + 1:
         raise ValueError(f"y_shape has shape {h.shape}; expected (N, {2 * radius + 1}, W)")
+    if recorded:
+        h = unblurred_y_shape(values, h, radius)
     x, core, tail = _line_spread_parts(values, radius)
     s = values["tail_scale_px"]
     f = values["tail_fraction"]
