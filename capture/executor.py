@@ -249,6 +249,7 @@ class Executor:
             bloom_rows=m.bloom_rows,
             bloom_cols=m.bloom_cols,
             iterations=m.iterations,
+            detect_plateau=m.detect_plateau,
         )
         temps = [f.ccd_temp_c for f in light + darks]
         info = {
@@ -262,7 +263,9 @@ class Executor:
             "started": light[0].start_time,
             "finished": darks[-1].end_time if darks else light[-1].end_time,
             "noise_model": self.noise.to_dict(),
-            "merge": m.to_dict(),
+            # the options, and the raw level the merge took as saturated (lower than the noise
+            # model's where the wells clipped below it: `capture.hdr.plateau_saturation_adu`)
+            "merge": {**m.to_dict(), "saturation_adu": hdr.saturation_adu},
             "pixels_unmeasured": int((~hdr.mask).sum()),
             "stage_angle_deg": float(stage_angle),
         }

@@ -31,7 +31,21 @@ less a headroom where the response bends) is saturated. A CCD without
 anti-blooming spills excess charge along its column (the vertical transfer
 direction), so the ``bloom_rows`` pixels above and below a saturated pixel in
 the same column are excluded from that exposure as well (``bloom_cols``
-widens the mask sideways if the optics smear). A pixel with no valid exposure
+widens the mask sideways if the optics smear).
+
+A well that clips *below* ``saturation_adu`` is found by its plateau
+(:func:`plateau_saturation_adu`): a sensor whose response compresses near full
+well (the simulated bench's 12 % compression reads a full well at 58 923 ADU,
+under the Alta's 62 271) would otherwise hand the merge clipped samples as
+measurements. Clipped wells all read the same charge, so they pile up within the
+read noise of one raw level, where unclipped bright pixels spread by their shot
+noise (hundreds of ADU); a pile of at least ``PLATEAU_MIN_SAMPLES`` samples within
+5 read-noise sigmas of the stack's top, the top above half the nominal range, is
+taken as the clipped level, and the merge saturates there instead. (A real
+KAF-0261E clips in its ADC first, at 65 535, which the nominal level catches; a
+well whose capacity varies from pixel to pixel by more than the read noise shows
+no single plateau, and needs a lower ``saturation_headroom``.) The level the merge
+used is ``HdrResult.saturation_adu``, kept in the stack's record. A pixel with no valid exposure
 keeps the shortest exposure's value as a lower bound, ``variance = inf`` and
 ``mask = False``.
 """
@@ -107,6 +121,7 @@ class MergeOptions:
     bloom_cols: int = 0
     iterations: int = 2
     saturation_headroom: float = 0.95
+    detect_plateau: bool = True
 
     def to_dict(self) -> dict[str, float]:
         return asdict(self)
@@ -242,16 +257,22 @@ class HdrResult:
         variance: float32, (e-/s)^2; ``inf`` where no exposure measured the pixel.
         mask: bool, True where at least one exposure measured the pixel.
         n_valid: uint8, number of exposures that measured the pixel.
+        saturation_adu: the raw level at or above which the merge took a sample as
+            saturated (the noise model's, or a lower clipped plateau's); None when not
+            known (a result not made by `merge_hdr`).
     """
 
     radiance: np.ndarray
     variance: np.ndarray
     mask: np.ndarray
     n_valid: np.ndarray
+    saturation_adu: float | None = None
 
     def channels(self) -> dict[str, np.ndarray]:
-        """The EXR channels: ``radiance``, ``variance``, ``mask`` (1.0/0.0)."""
-        return {"radiance": self.radiance, "variance": self.variance, "mask": self.mask.astype(np.float32)}
+        """The EXR channels: ``radiance``, ``variance``, ``mask`` (1.0/0.0), ``n_valid``
+        (the exposures the merge kept: the shortest ones, validity falling with exposure)."""
+        return {"radiance": self.radiance, "variance": self.variance, "mask": self.mask.astype(np.float32),
+                "n_valid": self.n_valid.astype(np.float32)}
 
 
 def saturation_mask(stack: np.ndarray, saturation_adu: float, *, bloom_rows: int = 2, bloom_cols: int = 0) -> np.ndarray:
@@ -276,6 +297,37 @@ def saturation_mask(stack: np.ndarray, saturation_adu: float, *, bloom_rows: int
     return out
 
 
+#: Fewest raw samples at one top level that are taken as clipped wells rather than the
+#: brightest pixels of a smooth spot (`plateau_saturation_adu`).
+PLATEAU_MIN_SAMPLES = 8
+#: The plateau's half-width in read-noise sigmas (plus one ADU of rounding).
+PLATEAU_WIDTH_SIGMA = 5.0
+
+
+def plateau_saturation_adu(stack: np.ndarray, noise: NoiseModel) -> float | None:
+    """The raw level (ADU) of wells that clip below `noise.saturation_adu`, or None.
+
+    Clipped wells hold the same charge, so their samples sit within the read noise of one
+    level; unclipped bright pixels spread by their shot noise. If at least
+    `PLATEAU_MIN_SAMPLES` samples of `stack` (raw frames, any shape) lie within
+    `PLATEAU_WIDTH_SIGMA` read-noise sigmas (+1 ADU) of its largest value, and that value
+    is below the nominal saturation level but above half the nominal range over bias,
+    samples from the bottom of that band up are saturated: the band's lower edge is returned.
+    """
+    a = np.asarray(stack)
+    if a.size == 0:
+        return None
+    top = float(a.max())
+    sat, bias = float(noise.saturation_adu), float(noise.bias_adu)
+    if top >= sat or top - bias < 0.5 * (sat - bias):
+        return None
+    width = math.ceil(PLATEAU_WIDTH_SIGMA * noise.read_noise_e / noise.gain_e_per_adu) + 1.0
+    level = top - width
+    if int(np.count_nonzero(a >= level)) < PLATEAU_MIN_SAMPLES:
+        return None
+    return level
+
+
 def merge_hdr(
     light: np.ndarray | Sequence[np.ndarray],
     exposures_s: Sequence[float],
@@ -285,6 +337,7 @@ def merge_hdr(
     bloom_rows: int = 2,
     bloom_cols: int = 0,
     iterations: int = 2,
+    detect_plateau: bool = True,
 ) -> HdrResult:
     """Merge raw light frames into radiance (e-/s) and its variance.
 
@@ -295,6 +348,8 @@ def merge_hdr(
         noise: the sensor noise model.
         bloom_rows, bloom_cols: bloom reach masked around saturated samples.
         iterations: refinements of the weights with the pooled estimate (>= 1).
+        detect_plateau: saturate at a clipped plateau below the noise model's level
+            (:func:`plateau_saturation_adu`).
     """
     stack = np.asarray(light) if not isinstance(light, np.ndarray) else light
     if stack.ndim == 2:
@@ -309,7 +364,9 @@ def merge_hdr(
         raise ValueError("exposure times must be > 0")
     g = noise.gain_e_per_adu
 
-    valid = ~saturation_mask(stack, noise.saturation_adu, bloom_rows=bloom_rows, bloom_cols=bloom_cols)
+    plateau = plateau_saturation_adu(stack, noise) if detect_plateau else None
+    sat_level = noise.saturation_adu if plateau is None else plateau
+    valid = ~saturation_mask(stack, sat_level, bloom_rows=bloom_rows, bloom_cols=bloom_cols)
     # electrons collected above the dark reference, per exposure
     e = stack.astype(np.float32)
     const: list[np.ndarray] = []  # variance terms that do not depend on L, e-^2 (scalar or per pixel)
@@ -348,7 +405,8 @@ def merge_hdr(
         shortest = int(np.argmin(t))
         est = np.where(mask, est, e[shortest] / np.float32(t[shortest]))
         var = np.where(mask, var, np.float32(np.inf))
-    return HdrResult(est.astype(np.float32, copy=False), var.astype(np.float32, copy=False), mask, n_valid)
+    return HdrResult(est.astype(np.float32, copy=False), var.astype(np.float32, copy=False), mask, n_valid,
+                     float(sat_level))
 
 
 def optimal_reference(

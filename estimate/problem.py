@@ -19,6 +19,7 @@ Shared by `rig estimate` and `rig diagnose`.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from collections.abc import Sequence
@@ -90,7 +91,7 @@ def y_shape_from_rows(rows: np.ndarray, usable: np.ndarray, j: int, columns: tup
 
 def merge_fill_from_rows(rows: np.ndarray, j: int, columns: tuple[int, int], exposures_s: Sequence[float],
                          noise: Any, full_well_e: float, *, bin_px: int = 1, bloom_rows: int = 2,
-                         bloom_cols: int = 0) -> np.ndarray:
+                         bloom_cols: int = 0, n_valid: np.ndarray | None = None) -> np.ndarray:
     """g(x): the HDR merge's mean squared fill of the well at each profile pixel of one stack.
 
     The merge (`capture.hdr.merge_hdr`) keeps the exposures whose raw value stays below the
@@ -98,8 +99,12 @@ def merge_fill_from_rows(rows: np.ndarray, j: int, columns: tuple[int, int], exp
     weights w_i = t_i^2 / var_i. A response that compresses the charge x by c (x / FW)^2
     then leaves the merged radiance at L (1 - c g), g = sum_i w_i (L t_i / FW)^2 / sum_i w_i
     (`estimate.extensions.sensor_nonlinearity`). The merge's choices are replayed here from
-    the merged radiance itself, which stands in for the true one (off by the compression,
-    a few percent, and the noise).
+    the merged radiance itself, which stands in for the true one (off by the compression and
+    the noise; the fill it gives is the merged radiance's, which the extension converts:
+    `estimate.extensions.sensor_nonlinearity.true_fill`), unless the stack records how many exposures the merge
+    kept (`n_valid`): those are its shortest, validity falling with the exposure time, and
+    that record is exact where the replay is not (a strongly compressed well reads below
+    the level its uncompressed prediction crosses).
 
     Args:
         rows: the stack's radiance (rows, columns of the ROI), e-/s per (binned) pixel.
@@ -111,6 +116,7 @@ def merge_fill_from_rows(rows: np.ndarray, j: int, columns: tuple[int, int], exp
         full_well_e: the sensor's full well (electrons per unbinned pixel).
         bin_px: unbinned pixels per binned pixel (the charge is taken as even over them).
         bloom_rows, bloom_cols: the merge's bloom reach (`capture.hdr.MergeOptions`).
+        n_valid: the stack's `n_valid` channel (same shape as `rows`), or None to replay.
 
     Returns g over the profile columns, shape (c1 - c0,); 0 where no exposure was kept.
     """
@@ -123,8 +129,12 @@ def merge_fill_from_rows(rows: np.ndarray, j: int, columns: tuple[int, int], exp
     dark = float(noise.dark_current_e_per_s) * bin_px
     # The raw level each exposure would read (uncompressed: the compression is a few percent).
     raw = (lum[None] * t[:, None, None] + dark * t[:, None, None]) / gain + float(noise.bias_adu)
-    kept = ~saturation_mask(raw, float(noise.saturation_adu), bloom_rows=bloom_rows, bloom_cols=bloom_cols)
-    kept = kept[:, j, c0:c1]
+    if n_valid is not None:
+        rank = np.argsort(np.argsort(t, kind="stable"), kind="stable")   # 0 = the shortest exposure
+        kept = rank[:, None] < np.rint(np.asarray(n_valid, dtype=np.float64)[j, c0:c1])[None, :]
+    else:
+        kept = ~saturation_mask(raw, float(noise.saturation_adu), bloom_rows=bloom_rows, bloom_cols=bloom_cols)
+        kept = kept[:, j, c0:c1]
     lj = lum[j, c0:c1]
     var = noise.frame_variance_e2(lj[None] * t[:, None], t[:, None])   # the merge's own variance model
     w = np.where(kept, t[:, None] ** 2 / var, 0.0)
@@ -217,7 +227,8 @@ class Problem:
 
 
 def _merge_fills(session: Any, sensor: Any, bands: Sequence[tuple[np.ndarray, np.ndarray, int]],
-                 brackets: Sequence[Any], merges: Sequence[dict[str, Any]], columns: tuple[int, int],
+                 brackets: Sequence[Any], merges: Sequence[dict[str, Any]],
+                 kept_counts: Sequence[np.ndarray | None], columns: tuple[int, int],
                  bin_px: int) -> np.ndarray | None:
     """`merge_fill_from_rows` of every stack, (N, W); None when the session lacks what it
     needs (a bracket record, the noise model, the sensor's full well)."""
@@ -225,11 +236,18 @@ def _merge_fills(session: Any, sensor: Any, bands: Sequence[tuple[np.ndarray, np
     full_well = getattr(sensor, "full_well_e", None)
     if noise is None or not full_well or any(not b for b in brackets):
         return None
+
+    def merged_with(m: dict[str, Any]) -> Any:
+        # The level the merge itself saturated at, where the stack records it (a well that
+        # clipped below the noise model's level: `capture.hdr.plateau_saturation_adu`).
+        level = m.get("saturation_adu")
+        return noise if level is None else dataclasses.replace(noise, saturation_adu=float(level))
+
     try:
-        return np.stack([merge_fill_from_rows(rad, j, columns, [float(t) for t in b], noise, float(full_well),
-                                              bin_px=bin_px, bloom_rows=int(m.get("bloom_rows", 2)),
-                                              bloom_cols=int(m.get("bloom_cols", 0)))
-                         for (rad, _, j), b, m in zip(bands, brackets, merges)])
+        return np.stack([merge_fill_from_rows(rad, j, columns, [float(t) for t in b], merged_with(m),
+                                              float(full_well), bin_px=bin_px, bloom_rows=int(m.get("bloom_rows", 2)),
+                                              bloom_cols=int(m.get("bloom_cols", 0)), n_valid=n)
+                         for (rad, _, j), b, m, n in zip(bands, brackets, merges, kept_counts)])
     except (TypeError, ValueError):
         return None   # a malformed bracket record: the compression takes its full-well form
 
@@ -382,6 +400,7 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
     bands: list[tuple[np.ndarray, np.ndarray, int]] = []   # (radiance, usable, profile row index)
     brackets: list[Any] = []                                # exposure times of each stack's bracket
     merges: list[dict[str, Any]] = []                       # each stack's merge options
+    kept_counts: list[np.ndarray | None] = []              # each stack's n_valid channel, if recorded
     ids: list[str] = []
     roi0: dict[str, int] | None = None
     for r in usable:
@@ -412,6 +431,7 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
         var_rows.append(var[j])
         mask_rows.append(mask[j])
         bands.append((rad, np.isfinite(var) & (var > 0) & (mask > 0.5), j))
+        kept_counts.append(img.channels.get("n_valid"))
         brackets.append((r.info.get("bracket") or {}).get("exposures_s"))
         merges.append(dict(r.info.get("merge") or {}))
         ids.append(r.id)
@@ -452,7 +472,8 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
         raise DataError(f"stack {ids[i]}: variance NaN or negative at column {roi0['x'] + (c0 + k) * bx}")
     valid = np.isfinite(variance) & (mask > 0.5) & (variance > 0)
     y_shape = np.stack([y_shape_from_rows(b_rad, b_ok, b_j, (c0, c1)) for b_rad, b_ok, b_j in bands])
-    merge_fill = _merge_fills(s, sensor, bands, brackets, merges, (c0, c1), roi0["bin_x"] * roi0["bin_y"])
+    merge_fill = _merge_fills(s, sensor, bands, brackets, merges, kept_counts, (c0, c1),
+                              roi0["bin_x"] * roi0["bin_y"])
 
     # Geometry in the stacks' pixel grid: a binned pixel is one bigger pixel; the ROI
     # origin shifts the continuous centre coordinate.

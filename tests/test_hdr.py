@@ -15,6 +15,7 @@ from capture.hdr import (
     NoiseModel,
     merge_hdr,
     optimal_reference,
+    plateau_saturation_adu,
     saturation_mask,
 )
 from drivers.interfaces import ROI, Frame
@@ -97,8 +98,69 @@ def test_saturated_samples_are_masked_and_bright_pixels_come_from_short_exposure
     assert np.all(res.n_valid[13:19, 13:19] <= 4)
     assert abs(float(np.mean((spot - 1.0e6) / sigma))) < 4 / np.sqrt(spot.size) * 3
     # treating clipped samples as valid underestimates the spot badly
-    unmasked = merge_hdr(light, EXPOSURES, darks, NoiseModel(**{**NOISE.to_dict(), "saturation_adu": 70000.0}))
+    unmasked = merge_hdr(light, EXPOSURES, darks, NoiseModel(**{**NOISE.to_dict(), "saturation_adu": 70000.0}),
+                         detect_plateau=False)
     assert np.mean(unmasked.radiance[13:19, 13:19]) < 0.5e6
+    # The ADC's clipped plateau (65 535) lies below 70 000: found by itself, it saves the merge.
+    found = merge_hdr(light, EXPOSURES, darks, NoiseModel(**{**NOISE.to_dict(), "saturation_adu": 70000.0}))
+    assert found.saturation_adu is not None and 65_500 < found.saturation_adu < 65_535
+    assert np.allclose(found.radiance[13:19, 13:19], spot, rtol=1e-6)
+
+
+def _compressed_stack(rng, truth, c, exposures=EXPOSURES):
+    """Raw frames of a sensor whose wells clip at full well and whose response then
+    compresses the charge q to q (1 - c (q / FW)^2): its clipped wells read below the
+    noise model's saturation level when c > 1 - 0.95 (the headroom)."""
+    fw = TEST_SENSOR.full_well_e
+    frames = []
+    for t in exposures:
+        q = np.minimum(rng.poisson(truth * t + TEST_SENSOR.dark_current_e_per_s * t).astype(np.float64), fw)
+        q = q * (1.0 - c * (q / fw) ** 2) + rng.normal(0.0, TEST_SENSOR.read_noise_e, q.shape)
+        frames.append(np.clip(np.rint(TEST_SENSOR.bias_adu + q / TEST_SENSOR.gain_e_per_adu), 0, 65535))
+    return np.stack(frames).astype(np.uint16)
+
+
+def test_wells_that_clip_below_the_saturation_level_are_found_by_their_plateau():
+    rng = np.random.default_rng(21)
+    yy, xx = np.mgrid[0:32, 0:32]
+    truth = 200.0 + 1.0e7 * np.exp(-((yy - 16.0) ** 2 + (xx - 16.0) ** 2) / (2 * 4.0 ** 2))
+    c = 0.12
+    light = _compressed_stack(rng, truth, c)
+    darks = _darks(rng, truth.shape)
+    clipped_adu = TEST_SENSOR.bias_adu + TEST_SENSOR.full_well_e * (1 - c) / TEST_SENSOR.gain_e_per_adu
+    assert clipped_adu < NOISE.saturation_adu, "the fake's clipped wells must hide under the nominal level"
+    level = plateau_saturation_adu(light, NOISE)
+    assert level is not None and clipped_adu - 60 < level < clipped_adu
+    res = merge_hdr(light, EXPOSURES, darks, NOISE)
+    assert res.saturation_adu == level
+    core = (slice(14, 19), slice(14, 19))
+    # What the merge keeps of the core is compressed by at most c (g < 1): within [1 - c, 1].
+    ratio = res.radiance[core] / truth[core]
+    assert np.all(ratio > 1 - c - 0.02) and np.all(ratio < 1.02), ratio
+    # Taking the clipped samples as measurements (the nominal level only) ruins the core.
+    blind = merge_hdr(light, EXPOSURES, darks, NOISE, detect_plateau=False)
+    assert blind.saturation_adu == NOISE.saturation_adu
+    assert np.max(blind.radiance[core] / truth[core]) < 0.6
+
+
+def test_no_plateau_where_nothing_clipped():
+    rng = np.random.default_rng(22)
+    # A large flat field at 90 % of the nominal range, in one frame: its top is the extreme of
+    # its shot noise (~170 ADU wide), not a pile-up within the read noise.
+    span = NOISE.saturation_adu - TEST_SENSOR.bias_adu
+    flat = np.full((256, 256), 0.9 * span * TEST_SENSOR.gain_e_per_adu / 0.1)
+    assert plateau_saturation_adu(simulate_frame(rng, flat, 0.1, TEST_SENSOR)[None], NOISE) is None
+    # A smooth spot whose longest exposure peaks at 90 %: its top is a handful of pixels.
+    yy, xx = np.mgrid[0:64, 0:64]
+    spot = 0.9 * span * TEST_SENSOR.gain_e_per_adu / EXPOSURES[-1] * np.exp(
+        -((yy - 32.0) ** 2 + (xx - 32.0) ** 2) / (2 * 5.0 ** 2))
+    light = _stack(rng, spot)
+    assert plateau_saturation_adu(light, NOISE) is None
+    assert merge_hdr(light, EXPOSURES, _darks(rng, spot.shape), NOISE).saturation_adu == NOISE.saturation_adu
+    # Dim frames (top below half the range) never make a plateau, however flat.
+    assert plateau_saturation_adu(np.full((2, 16, 16), 20_000, np.uint16), NOISE) is None
+    # The ADC's own clip sits above the nominal level: the nominal mask already has it.
+    assert plateau_saturation_adu(np.full((2, 16, 16), 65_535, np.uint16), NOISE) is None
 
 
 def test_bloom_along_columns_is_masked():

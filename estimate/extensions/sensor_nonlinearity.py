@@ -14,15 +14,22 @@ the mean squared fill of the well over the exposures read: the longest one kept 
 filled to between a quarter and nearly all of the well by a bracket of factor-4 steps,
 so g is a sawtooth along the profile, not a function of L alone. With the recording's
 brackets (`merge_fill`, from `estimate.problem.merge_fill_from_rows`) the model is exactly
-that: I -> I (1 - c g), one parameter, linear in it. Without them (a session without its
+that: I -> I (1 - c g), one parameter. The recording gives g_m, the fill of the merged
+radiance L_m = L (1 - c g) rather than of L: g_m = g (1 - c g)^2 (g is quadratic in the
+radiance), which `true_fill` solves for g at the compression being tried (24 % more fill than
+g_m at a full well compressed by 12 %; at c = 0 the two agree, so the screening's column is
+-I g_m). Without them (a session without its
 bracket records, or synthetic sessions made by this model) the older form
 I -> I (1 - c min(I / W, 1)^2), W = `full_well_radiance` the HDR radiance that fills the
 well in the shortest exposure (profile units): each pixel read from the shortest exposure,
 an upper bound on the compression of dim pixels. Up to session 62 that was the only form;
 on the light bench's 6 % session the merged form's fit reaches the true model's own reduced
 chi^2 at the noise floor (1.25 against 1.26). A compression above 1 - saturation / full well
-is beyond both: a full well then reads below the capture's saturation level, and the merge
-keeps clipped samples (`docs/diagnosis-log.md`, session 63). Derivative: exact.
+reads a full well below the noise model's saturation level; the merge finds those clipped
+wells by their plateau (`capture.hdr.plateau_saturation_adu`, since session 64; before, it
+kept them as measurements) and records how many exposures it kept per pixel, which
+`merge_fill_from_rows` reads. Derivative: exact in the image (linear in it); by c through
+`true_fill`'s fixed point (finite differences of a deterministic function).
 """
 
 from __future__ import annotations
@@ -34,7 +41,11 @@ import numpy as np
 from estimate.errors import ModelParameterError
 from estimate.extensions.base import ImageExtension, ParameterSpec
 
-__all__ = ["SensorNonlinearity", "apply_raw"]
+__all__ = ["SensorNonlinearity", "apply_raw", "true_fill"]
+
+#: Fixed-point iterations of `true_fill`: the map's contraction is 2 c g / (1 - c g)^3 <= 0.55
+#: (c < 1/3, g <= 1), so 40 leave well under 1e-10.
+_FILL_ITERATIONS = 40
 
 
 def apply_raw(frame_electrons: np.ndarray, compression: float, full_well_e: float) -> np.ndarray:
@@ -45,6 +56,19 @@ def apply_raw(frame_electrons: np.ndarray, compression: float, full_well_e: floa
         raise ModelParameterError(f"sensor full_well_e={full_well_e!r} must be > 0")
     x = np.clip(np.asarray(frame_electrons, dtype=np.float64), 0.0, full_well_e)
     return x * (1.0 - compression * (x / full_well_e) ** 2)
+
+
+def true_fill(compression: float, merged_fill: np.ndarray) -> np.ndarray:
+    """The well's mean squared fill g of the true radiance, from g_m of the merged radiance:
+    the solution of g (1 - c g)^2 = g_m (module docstring), g_m >= 0."""
+    gm = np.clip(np.asarray(merged_fill, dtype=np.float64), 0.0, None)
+    c = float(compression)
+    if c == 0.0:
+        return gm
+    g = gm.copy()
+    for _ in range(_FILL_ITERATIONS):
+        g = gm / (1.0 - c * g) ** 2
+    return g
 
 
 class SensorNonlinearity(ImageExtension):
@@ -62,7 +86,8 @@ class SensorNonlinearity(ImageExtension):
               merge_fill: np.ndarray | None = None) -> np.ndarray:
         img = np.asarray(image, dtype=np.float64)
         if merge_fill is not None:
-            return img * (1.0 - values["compression"] * cls._fill(img, merge_fill))
+            c = values["compression"]
+            return img * (1.0 - c * true_fill(c, cls._fill(img, merge_fill)))
         r = np.clip(img / values["full_well_radiance"], 0.0, 1.0)
         return img * (1.0 - values["compression"] * r ** 2)
 
@@ -80,7 +105,8 @@ class SensorNonlinearity(ImageExtension):
               merge_fill: np.ndarray | None = None) -> np.ndarray:
         img = np.asarray(image, dtype=np.float64)
         if merge_fill is not None:
-            return np.asarray(cotangent) * (1.0 - values["compression"] * cls._fill(img, merge_fill))
+            c = values["compression"]
+            return np.asarray(cotangent) * (1.0 - c * true_fill(c, cls._fill(img, merge_fill)))
         w = values["full_well_radiance"]
         r = img / w
         below = (r >= 0) & (r <= 1)
