@@ -2545,10 +2545,18 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
                     fr = fr2   # None: its final fit was not kept; the refit run takes its LM refit
             if fr is not None:
                 finals[ch] = fr
+        # Which form of the sensor compression the model used: through the merge (each
+        # pixel's kept exposures from the bracket records) or, without those records, the
+        # full-well form (every pixel as if read from the shortest exposure, an upper bound).
+        form = "merged" if pb.merge_fill is not None else "full_well"
+        if "sensor_nonlinearity" in d.confirmed and form == "full_well":
+            d.verdict += ("; the sensor compression is in its full-well form (the stacks carry no bracket "
+                          "records or noise model to replay the HDR merge), so its magnitude is a bound")
         diags[ch] = d
         problems[ch] = pb
         phases[ch] = phase
         out["channels"][ch] = d.as_dict()
+        out["channels"][ch]["sensor_compression_form"] = form
     diag_dir = new_run_dir(session, "diagnosis", kind="diagnoses")
     out["run_id"] = diag_dir.name
     refit_run = None

@@ -104,6 +104,12 @@ def test_capture_completes_and_records_what_estimation_needs(finished: Path) -> 
     assert s.plan.bracket.profile_row == 256 - g["camera_roi"]["y"]
     img = s.load_hdr("a00_r")
     assert img["radiance"].shape == (8, 512) and img["mask"].all()
+    # What the merge kept, for the model of a compressing sensor to replay: how many exposures
+    # per pixel (all of them dim, fewer at the spot), and the level it saturated at (the noise
+    # model's: nothing here clips below it).
+    rec = next(r for r in s.stacks() if r.id == "a00_r")
+    assert img["n_valid"].min() >= 1 and img["n_valid"].max() == len(rec.info["bracket"]["exposures_s"])
+    assert rec.info["merge"]["saturation_adu"] == rec.info["noise_model"]["saturation_adu"]
     assert "world" not in json.dumps(s.rig_config)  # the simulated truth stays out of sessions
 
 

@@ -799,6 +799,8 @@ def test_cli_end_to_end_writes_diagnosis_and_json(tmp_path, capsys):
     assert set(ch) >= {"significant", "localisation", "candidates", "confirmed_effects", "reduced_chi2_before",
                        "reduced_chi2_after", "material_before", "material_after"}
     assert [c["name"] for c in ch["candidates"]] in ([], ["stray_light"])
+    # The synthetic session has no bracket records: the compression would take its full-well form.
+    assert ch["sensor_compression_form"] == "full_well"
     written = yaml.safe_load((s / "diagnoses" / doc["run_id"] / "diagnosis.yaml").read_text())
     assert written["format"] == "rig-diagnosis/1" and written["channels"]["g"]["significant"] == ch["significant"]
     # The summary `rig diagnose` prints says where the file is from anywhere, not from the session.
