@@ -85,9 +85,9 @@ def main() -> int:
     # The bench's radiance at the session's angles: its calibration put the stage's zero
     # right, so the physical angles are the planned ones (the cache is keyed by them).
     rads = {float(a): scene.radiance(float(a), channel) for a in pb.angles_deg}
-    bench_rows = {a: y_shape_from_rows(scene._image_effects(r, direct=False), np.ones(r.shape, bool), row, (c0, c1))
+    bench_rows = {a: y_shape_from_rows(scene.image_effects(r, direct=False), np.ones(r.shape, bool), row, (c0, c1))
                   for a, r in rads.items()}
-    bench_beam = BeamProfile.centered(scene._beam_map, scene._beam_pitch, world.beam.offset_mm)
+    bench_beam = scene.beam_profile()
 
     def floor(beam: BeamProfile, shapes: dict[float, np.ndarray]) -> float:
         fm = ForwardModel(pb.geometry, beam, phase="exp3", extensions=list(effects), profile_y_shape=shapes,
@@ -107,7 +107,7 @@ def main() -> int:
     ratios: dict[str, list[float]] = {"unblurred": [], "blurred": []}
     if args.no_frozen_noise:
         return _report(args, out, effects, len(pb.angles_deg), ratios, 0, t0)
-    model, mparams = scene._model(channel), scene._params(channel)
+    model, mparams = scene.slab_model(channel)
     p0, p1, spp = scene.row_tiers()[0]
     cols = scene.sensor_px[0]
     for i, a in enumerate(pb.angles_deg):
@@ -117,11 +117,11 @@ def main() -> int:
             img[p0:p1] = model.render(mparams, [float(a)], columns=(0, cols), rows=(p0, p1), spp=spp,
                                       seed=90_001 + 31 * i + k)[0]
             pair.append(img)
-        k_e = pb.measured[i].sum() / scene._image_effects(rads[float(a)], direct=False)[row, c0:c1].sum()
+        k_e = pb.measured[i].sum() / scene.image_effects(rads[float(a)], direct=False)[row, c0:c1].sum()
         sd = np.sqrt(pb.variance[i])
         d_u = (pair[0][row, c0:c1] - pair[1][row, c0:c1]) * k_e / sd
-        d_b = (scene._image_effects(pair[0], direct=False)[row, c0:c1]
-               - scene._image_effects(pair[1], direct=False)[row, c0:c1]) * k_e / sd
+        d_b = (scene.image_effects(pair[0], direct=False)[row, c0:c1]
+               - scene.image_effects(pair[1], direct=False)[row, c0:c1]) * k_e / sd
         ratios["unblurred"].append(float(np.mean(d_u ** 2) / 2.0))
         ratios["blurred"].append(float(np.mean(d_b ** 2) / 2.0))
     out["frozen_noise_variance_over_sensor"] = {k: {"per_angle": v, "mean": float(np.mean(v))}

@@ -73,7 +73,7 @@ def main() -> int:
     rows = []
     for i, angle in enumerate(pb.angles_deg):
         rad = scene.radiance(float(angle), args.channel)
-        bench = scene._image_effects(rad, direct=False)[row, c0:c1]
+        bench = scene.image_effects(rad, direct=False)[row, c0:c1]
         prof = rad[row, c0:c1][None, None, :]
         shapes = {"lsf": None, "recorded": pb.y_shape[i:i + 1],
                   "unblurred": y_shape_from_rows(rad, np.ones(rad.shape, bool), row, (c0, c1))[None]}

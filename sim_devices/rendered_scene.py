@@ -129,7 +129,7 @@ class RenderedScene:
             accept = math.exp(-0.5 * (delta / o.acceptance_sigma_deg) ** 2)
             scale = self.world.beam.power_e_per_s[filter_name] * o.calibration_nd * accept * self.pixel_mm ** 2
             img = scale * self._beam_on_pixels(math.radians(delta))
-            img = self._image_effects(img, direct=True)
+            img = self.image_effects(img, direct=True)
         with self._lock:
             self._memory[key] = img
         return img
@@ -165,10 +165,20 @@ class RenderedScene:
         return out / 9.0
 
     # ------------------------------------------------------------------ the slab
+    def beam_profile(self) -> Any:
+        """The bench's own beam (an `estimate.beam.BeamProfile`, unit power), before any lens."""
+        from estimate.beam import BeamProfile
+
+        return BeamProfile.centered(self._beam_map, self._beam_pitch, self.world.beam.offset_mm)
+
+    def slab_model(self, filter_name: str) -> tuple[Any, dict[str, float]]:
+        """The forward model the bench renders the slab with, and its true parameters (the
+        image-space effects left out: `image_effects` applies them to whole frames)."""
+        return self._model(filter_name), self._params(filter_name)
+
     def _model(self, filter_name: str) -> Any:
         m = self._models.get(filter_name)
         if m is None:
-            from estimate.beam import BeamProfile
             from estimate.forward import ForwardModel
             from estimate.geometry import RigGeometry
 
@@ -176,7 +186,7 @@ class RenderedScene:
             geom = RigGeometry(thickness_mm=w.thickness_mm, half_width_mm=w.half_width_mm,
                                sensor_px=self.sensor_px, pixel_um=self.pixel_um,
                                magnification=self.magnification, image_center_px=self.axis_px)
-            beam = BeamProfile.centered(self._beam_map, self._beam_pitch, w.beam.offset_mm)
+            beam = self.beam_profile()
             exts = [e for e in w.effects if e not in ("lens_blur", "stray_light", "sensor_nonlinearity")]
             m = ForwardModel(geom, beam, phase=w.materials[filter_name].model, extensions=exts,
                              max_depth=w.render.max_depth, engine=w.render.engine)
@@ -281,14 +291,14 @@ class RenderedScene:
             hit = self._memory.get(key)
             if hit is not None:
                 return hit
-        rad = self._image_effects(self.radiance(phys_deg, filter_name), direct=False)
+        rad = self.image_effects(self.radiance(phys_deg, filter_name), direct=False)
         scale = self.world.beam.power_e_per_s[filter_name] * self.pixel_mm ** 2 * self.world.optics.collection_sr
         img = np.clip(rad, 0.0, None) * scale
         with self._lock:
             self._memory[key] = img
         return img
 
-    def _image_effects(self, img: np.ndarray, *, direct: bool) -> np.ndarray:
+    def image_effects(self, img: np.ndarray, *, direct: bool) -> np.ndarray:
         """Lens blur (everything the lens sees) and stray light (slab only), full frame."""
         eff = self.world.effects
         out = img
@@ -326,7 +336,7 @@ def _check_stray_light(world: World, cols: int, pixel_mm: float) -> None:
     sl = world.effects.get("stray_light")
     if not sl:
         return
-    # the background the bench adds (`_image_effects`), along one row of the frame
+    # the background the bench adds (`image_effects`), along one row of the frame
     low = float(StrayLight.apply(np.zeros(cols), sl, pixel_mm=pixel_mm, profile_only=True).min())
     half = 0.5 * (cols - 1) * pixel_mm  # the outermost pixel centres
     offset, slope = float(sl["offset"]), float(sl["slope_per_mm"])
