@@ -6,8 +6,10 @@ a bench session's world), so the comparison isolates the blur model from Monte C
 noise and from the material:
 
 * `lsf`: the line-spread function (the estimator before session 13);
-* `recorded`: weighted by the recording's y-shape (`Problem.y_shape`, what `rig estimate`
-  and `rig diagnose` use now);
+* `as recorded`: weighted by the recording's y-shape as it is (`Problem.y_shape`, what
+  `rig estimate` and `rig diagnose` used up to session 63);
+* `recorded`: that shape deblurred along y by the PSF first (`lens_blur.unblurred_y_shape`,
+  since session 64);
 * `unblurred`: weighted by the y-shape of the bench's own unblurred rows, the very rows (render
   noise included) that the 2D blur mixes in: what a shape estimated from the recording could
   reach at best.
@@ -47,7 +49,7 @@ def main() -> int:
     ap.add_argument("--cache", default="bench", help="diagnose_cases sub-folder: bench (camera engine) or bench-light")
     args = ap.parse_args()
     os.environ.setdefault("DRJIT_LIBLLVM_PATH", "/usr/lib/x86_64-linux-gnu/libLLVM-19.so")
-    from estimate.extensions.lens_blur import LensBlur
+    from estimate.extensions.lens_blur import LensBlur, _weighted_profile, profile_weights
     from estimate.extensions.stray_light import StrayLight
     from estimate.problem import load_problem, y_shape_from_rows
     from sim_devices.rendered_scene import RenderedScene
@@ -67,7 +69,7 @@ def main() -> int:
     scene = RenderedScene(world, magnification=pb.geometry.magnification)
     row = pb.geometry.row
     c0, c1 = pb.geometry.profile_columns or (0, pb.geometry.sensor_px[0])
-    blur = world.effects["lens_blur"]
+    blur = {**{p.name: p.neutral for p in LensBlur.parameters}, **world.effects["lens_blur"]}
     stray = world.effects.get("stray_light")
     t0 = time.perf_counter()
     rows = []
@@ -75,11 +77,16 @@ def main() -> int:
         rad = scene.radiance(float(angle), args.channel)
         bench = scene.image_effects(rad, direct=False)[row, c0:c1]
         prof = rad[row, c0:c1][None, None, :]
-        shapes = {"lsf": None, "recorded": pb.y_shape[i:i + 1],
-                  "unblurred": y_shape_from_rows(rad, np.ones(rad.shape, bool), row, (c0, c1))[None]}
+        # (shape, whether it is the blurred recording's, to be deblurred first)
+        shapes = {"lsf": (None, True), "as recorded": (pb.y_shape[i:i + 1], False),
+                  "recorded": (pb.y_shape[i:i + 1], True),
+                  "unblurred": (y_shape_from_rows(rad, np.ones(rad.shape, bool), row, (c0, c1))[None], False)}
         entry: dict[str, object] = {"angle_deg": float(angle)}
-        for name, h in shapes.items():
-            out = LensBlur.apply(prof, blur, pixel_mm=pb.geometry.pixel_mm, profile_only=True, y_shape=h)
+        for name, (h, recorded) in shapes.items():
+            if h is None or recorded:
+                out = LensBlur.apply(prof, blur, pixel_mm=pb.geometry.pixel_mm, profile_only=True, y_shape=h)
+            else:
+                out = _weighted_profile(prof[:, 0], profile_weights(blur, h, recorded=False), False)[:, None, :]
             if stray:
                 out = StrayLight.apply(out, stray, pixel_mm=pb.geometry.pixel_mm, profile_only=True)
             m = out[0, 0]
@@ -88,13 +95,13 @@ def main() -> int:
             entry[name] = {"bin_ratios": ratios, "max_abs_error": float(max(abs(r - 1.0) for r in ratios))}
         rows.append(entry)
     wall = time.perf_counter() - t0
-    summary = {name: float(max(r[name]["max_abs_error"] for r in rows)) for name in ("lsf", "recorded", "unblurred")}
+    names = ("lsf", "as recorded", "recorded", "unblurred")
+    summary = {name: float(max(r[name]["max_abs_error"] for r in rows)) for name in names}  # type: ignore[index]
     print(f"case {args.case}, blur {blur}, {len(rows)} angles, {wall:.1f} s")
-    print(f"{'angle':>6} {'lsf':>8} {'recorded':>9} {'unblurred':>10}   (largest |profile / 2D - 1| over 16-px bins)")
+    print(f"{'angle':>6} " + " ".join(f"{n:>11}" for n in names) + "   (largest |profile / 2D - 1| over 16-px bins)")
     for r in rows:
-        print(f"{r['angle_deg']:6.0f} {r['lsf']['max_abs_error']:8.3f} {r['recorded']['max_abs_error']:9.3f} "
-              f"{r['unblurred']['max_abs_error']:10.3f}")
-    print(f"{'all':>6} {summary['lsf']:8.3f} {summary['recorded']:9.3f} {summary['unblurred']:10.3f}")
+        print(f"{r['angle_deg']:6.0f} " + " ".join(f"{r[n]['max_abs_error']:11.3f}" for n in names))  # type: ignore[index]
+    print(f"{'all':>6} " + " ".join(f"{summary[n]:11.3f}" for n in names))
     suffix = "" if args.cache == "bench" else f"_{args.cache}_{args.case}"
     out = ROOT / "benchmarks" / "results" / f"bench_profile_blur{suffix}.json"
     out.write_text(json.dumps({"case": args.case, "channel": args.channel, "blur": blur, "angles": rows,

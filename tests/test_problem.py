@@ -78,8 +78,19 @@ def test_y_shape_from_the_recorded_rows():
     # inside the band: the spot's own shape (the slow x trend cancels in the ratio)
     for dy in (-8, -3, 1, 5, 11):
         assert np.allclose(h[64 + dy, 5:-5], g[j + dy], rtol=1e-3), dy
-    # beyond the band: its outermost row on that side
-    assert np.allclose(h[:64 - 8], h[64 - 8]) and np.allclose(h[64 + 12:], h[64 + 11])
+    # beyond the band: the decay of its outermost rows continued, never growing
+    below, beyond = h[:64 - 8, 5:-5][::-1], h[64 + 12:, 5:-5]
+    for side, edge in ((below, h[64 - 8, 5:-5]), (beyond, h[64 + 11, 5:-5])):
+        assert np.all(np.diff(side, axis=0) <= 0) and np.all(side[0] < edge)
+    # a side of fewer than 7 rows cannot say how fast it falls: its outermost row repeated
+    short = y_shape_from_rows(img[4:], ok[4:], j - 4, (10, 50), radius=64)
+    assert np.allclose(short[:64 - 4], short[64 - 4])
+    # ... at the rate of the band's edge: a Gaussian falls faster than that, so the continued
+    # decay lies between the spot's own shape and the outermost row
+    assert np.all(beyond[0] > g[j + 11] * np.exp(-0.5 * (2 * 12 - 1) / 9.0) * 0.5)
+    wide = np.exp(-0.5 * ((np.arange(40) - 20) / 6.0) ** 2)[:, None] * np.ones((1, 60))
+    hw = y_shape_from_rows(wide, np.ones(wide.shape, bool), 20, (10, 50), radius=64)
+    assert np.all(np.diff(hw[:64 - 20 + 1, 20], axis=0) >= 0) and hw[0, 20] < 1e-3
     # a single-row recording, or an unlit profile row, says nothing: h = 1 (the LSF)
     assert np.all(y_shape_from_rows(img[j:j + 1], ok[j:j + 1], 0, (10, 50)) == 1.0)
     dark = img.copy()

@@ -62,7 +62,9 @@ TRUNCATION_PX = 64
 #: deblurring would only amplify the recording's noise. Chosen on the light bench's
 #: lens_blur-2 (2.5 px + 5 %, profile rows at 8192 spp, the band at 32): the true model's
 #: reduced chi^2 at the noise floor is 5.03 with the recorded shape as it is, 4.53 / 4.00 /
-#: 3.57 / 3.64 deblurred with 1e-3 / 1e-2 / 0.1 / 1 (`benchmarks/bench_lens_blur_floor.py`).
+#: 3.57 / 3.64 deblurred with 1e-3 / 1e-2 / 0.1 / 1 (`benchmarks/bench_lens_blur_floor.py`),
+#: the recorded 32-row band's outermost row repeated beyond it; with its decay continued
+#: instead (`estimate.problem.y_shape_from_rows`, session 64) 2.54 / 2.40 / 2.69 at 1e-2 / 0.1 / 1.
 Y_DEBLUR_REGULARISATION = 0.1
 #: A column whose deblurred centre u(0) falls below this (h_rec(0) = 1) keeps its recorded
 #: shape: its profile row is not a maximum the blur has lowered, and u / u(0) would blow up.
