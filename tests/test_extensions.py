@@ -165,6 +165,15 @@ def test_lens_blur_with_y_shape_adjoint_and_derivatives() -> None:
         ext.apply(img, values, pixel_mm=0.04, profile_only=True, y_shape=h[:1])
 
 
+def test_the_true_fill_solves_the_merged_fill() -> None:
+    g = np.linspace(0.0, 1.0, 11)
+    for c in (0.0, 0.06, 0.12, 0.3):
+        gm = g * (1.0 - c * g) ** 2
+        assert np.allclose(true_fill(c, gm), g, atol=1e-9), c
+    # A merged fill no true fill <= 1 explains at this compression: capped, finite.
+    assert true_fill(0.3, np.array([0.9]))[0] == pytest.approx(1.0, abs=1e-12)
+
+
 def test_sensor_nonlinearity_raw_and_hdr() -> None:
     x = np.linspace(0, 100_000, 11)
     y = apply_raw(x, 0.2, 100_000.0)

@@ -29,7 +29,7 @@ reads a full well below the noise model's saturation level; the merge finds thos
 wells by their plateau (`capture.hdr.plateau_saturation_adu`, since session 64; before, it
 kept them as measurements) and records how many exposures it kept per pixel, which
 `merge_fill_from_rows` reads. Derivative: exact in the image (linear in it); by c through
-`true_fill`'s fixed point (finite differences of a deterministic function).
+`true_fill`'s root (finite differences of a deterministic function).
 """
 
 from __future__ import annotations
@@ -43,9 +43,8 @@ from estimate.extensions.base import ImageExtension, ParameterSpec
 
 __all__ = ["SensorNonlinearity", "apply_raw", "true_fill"]
 
-#: Fixed-point iterations of `true_fill`: the map's contraction is 2 c g / (1 - c g)^3 <= 0.55
-#: (c < 1/3, g <= 1), so 40 leave well under 1e-10.
-_FILL_ITERATIONS = 40
+#: Bisection steps of `true_fill` on [g_m, 1]: 2^-48 < 1e-14.
+_FILL_ITERATIONS = 48
 
 
 def apply_raw(frame_electrons: np.ndarray, compression: float, full_well_e: float) -> np.ndarray:
@@ -60,15 +59,21 @@ def apply_raw(frame_electrons: np.ndarray, compression: float, full_well_e: floa
 
 def true_fill(compression: float, merged_fill: np.ndarray) -> np.ndarray:
     """The well's mean squared fill g of the true radiance, from g_m of the merged radiance:
-    the solution of g (1 - c g)^2 = g_m (module docstring), g_m >= 0."""
+    the solution of g (1 - c g)^2 = g_m (module docstring), g_m >= 0, capped at 1 (the merge
+    keeps no sample beyond a full well; a g_m that no g <= 1 explains at this c means the c
+    is too large for the recording, and the cap keeps the model finite there)."""
     gm = np.clip(np.asarray(merged_fill, dtype=np.float64), 0.0, None)
     c = float(compression)
     if c == 0.0:
         return gm
-    g = gm.copy()
+    # g (1 - c g)^2 rises monotonically on [0, 1] for c < 1/3, from <= g_m at g = g_m:
+    # bisection on [g_m, 1] (where even g = 1 falls short, the cap).
+    lo, hi = np.minimum(gm, 1.0), np.ones_like(gm)
     for _ in range(_FILL_ITERATIONS):
-        g = gm / (1.0 - c * g) ** 2
-    return g
+        mid = 0.5 * (lo + hi)
+        below = mid * (1.0 - c * mid) ** 2 < gm
+        lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+    return 0.5 * (lo + hi)
 
 
 class SensorNonlinearity(ImageExtension):
