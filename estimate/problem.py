@@ -66,7 +66,8 @@ def y_shape_from_rows(rows: np.ndarray, usable: np.ndarray, j: int, columns: tup
     recording gives h = 1, the LSF). Repeating the outermost row, as before session 64,
     made the spot's halo as wide as the whole +-64 rows beyond a 32-row band: on the light
     bench's lens_blur-2 (2.5 px + 5 %) the true model's reduced chi^2 at the noise floor was
-    3.57 with it, 2.40 with the decay continued. Values are clipped to [0, `Y_SHAPE_MAX`]; h(x, 0) = 1.
+    3.57 with it, 2.40 with the decay continued. Values are clipped to [0, `Y_SHAPE_MAX`];
+    h(x, 0) = 1.
     """
     c0, c1 = columns
     n_rows = rows.shape[0]
@@ -115,7 +116,6 @@ def _beyond_the_band(h: np.ndarray, edge: int, inward: int, n: int) -> np.ndarra
     return h[edge][None] * ratio[None] ** np.arange(1, n + 1)[:, None]
 
 
-
 def merge_fill_from_rows(rows: np.ndarray, j: int, columns: tuple[int, int], exposures_s: Sequence[float],
                          noise: Any, full_well_e: float, *, bin_px: int = 1, bloom_rows: int = 2,
                          bloom_cols: int = 0, n_valid: np.ndarray | None = None) -> np.ndarray:
@@ -128,10 +128,10 @@ def merge_fill_from_rows(rows: np.ndarray, j: int, columns: tuple[int, int], exp
     (`estimate.extensions.sensor_nonlinearity`). The merge's choices are replayed here from
     the merged radiance itself, which stands in for the true one (off by the compression and
     the noise; the fill it gives is the merged radiance's, which the extension converts:
-    `estimate.extensions.sensor_nonlinearity.true_fill`), unless the stack records how many exposures the merge
-    kept (`n_valid`): those are its shortest, validity falling with the exposure time, and
-    that record is exact where the replay is not (a strongly compressed well reads below
-    the level its uncompressed prediction crosses).
+    `estimate.extensions.sensor_nonlinearity.true_fill`), unless the stack records how many
+    exposures the merge kept (`n_valid`): those are its shortest, validity falling with the
+    exposure time, and that record is exact where the replay is not (a strongly compressed
+    well reads below the level its uncompressed prediction crosses).
 
     Args:
         rows: the stack's radiance (rows, columns of the ROI), e-/s per (binned) pixel.
