@@ -236,6 +236,24 @@ def _render_noise(rng: np.random.Generator, shape: tuple[int, ...], samples: int
     return (x - mean) / math.sqrt(var / samples)
 
 
+def test_candidates_beyond_doubt_are_ranked_by_what_they_could_remove():
+    """The light bench's lens_blur-2: the blur's statistic was the largest, but its F law
+    (render noise from a few renders) kept a finite p while chi^2 tails underflowed to 0, and
+    four candidates that could remove far less ranked ahead of it."""
+    from estimate.screening import CandidateScore, ranked
+
+    def cand(name, stat, dof, log10_p):
+        return CandidateScore(name, stat, dof, 10 ** log10_p, log10_p, stat / 1.2e5, [0.0] * dof)
+
+    scores = [cand("beam_halo", 82948.0, 2, -math.inf), cand("sensor_nonlinearity", 9654.0, 1, -math.inf),
+              cand("lens_blur", 87222.0, 2, -304.4), cand("stray_light", 42.0, 2, -9.0),
+              cand("angle_offset", 30.0, 1, -7.4)]
+    assert [c.name for c in ranked(scores)] == ["lens_blur", "beam_halo", "sensor_nonlinearity", "stray_light",
+                                                "angle_offset"]
+    # Above the floor the p-value decides, whatever the statistic.
+    assert [c.name for c in ranked([cand("a", 40.0, 3, -6.0), cand("b", 30.0, 1, -7.0)])] == ["b", "a"]
+
+
 def test_robust_score_test_holds_its_level_where_the_noise_is_heavy_tailed_and_uneven():
     """Fireflies and a noise level 4x higher where the candidate's column lives: the
     classical LM (unit variance assumed) rejects far too often, the sandwich one does not,
