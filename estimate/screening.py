@@ -235,7 +235,8 @@ def candidate_columns(model: ForwardModel, params: Mapping[str, float], angles_d
 def screen(r: np.ndarray, sigma: np.ndarray, base_columns: Sequence[np.ndarray], scale: float,
            candidates: Mapping[str, Sequence[np.ndarray]], excess: float,
            noise_var: np.ndarray | None = None, noise_modes: np.ndarray | None = None) -> list[CandidateScore]:
-    """Rank candidates by their score test (smallest p-value first).
+    """Rank candidates by their score test (smallest p-value first; beyond doubt, largest
+    statistic first: `ranked`).
 
     Args:
         r: normalised residuals (N, W), in units of the noise floor (r / f).

@@ -33,7 +33,8 @@ recorded shape is first deblurred along y by the PSF being applied (`unblurred_y
 per column, the regularised least-squares u of K u = h_rec, K the PSF's line spread along y,
 u free beyond the recorded +-radius rows (the light from there is unknown, not zero) and a
 curvature penalty `Y_DEBLUR_REGULARISATION` against the amplified noise; then u / u(0).
-Exact for an image a(x) b(y) under the separable core, the tail to first order. A column
+For an image a(x) b(y) under the separable core this recovers b up to the regularisation's
+smoothing; the tail, not separable, to first order. A column
 whose deblurred centre is not clearly positive keeps its recorded shape. The deblurring is
 a fixed linear map for given blur values (cached), so derivatives by the parameters stay
 those of a deterministic image function. Zero padding outside the rendered window. The PSF is

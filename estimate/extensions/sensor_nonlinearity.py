@@ -16,8 +16,8 @@ so g is a sawtooth along the profile, not a function of L alone. With the record
 brackets (`merge_fill`, from `estimate.problem.merge_fill_from_rows`) the model is exactly
 that: I -> I (1 - c g), one parameter. The recording gives g_m, the fill of the merged
 radiance L_m = L (1 - c g) rather than of L: g_m = g (1 - c g)^2 (g is quadratic in the
-radiance), which `true_fill` solves for g at the compression being tried (24 % more fill than
-g_m at a full well compressed by 12 %; at c = 0 the two agree, so the screening's column is
+radiance), which `true_fill` solves for g at the compression being tried (29 % more fill than
+g_m at a full well compressed by 12 %: 1 / 0.88^2; at c = 0 the two agree, so the screening's column is
 -I g_m). Without them (a session without its
 bracket records, or synthetic sessions made by this model) the older form
 I -> I (1 - c min(I / W, 1)^2), W = `full_well_radiance` the HDR radiance that fills the
