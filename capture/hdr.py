@@ -44,10 +44,12 @@ noise (hundreds of ADU); a pile of at least ``PLATEAU_MIN_SAMPLES`` samples with
 taken as the clipped level, and the merge saturates there instead. (A real
 KAF-0261E clips in its ADC first, at 65 535, which the nominal level catches; a
 well whose capacity varies from pixel to pixel by more than the read noise shows
-no single plateau; only a lower ``MergeOptions.saturation_headroom`` would catch it.) The level the merge
-used is ``HdrResult.saturation_adu``, kept in the stack's record. A pixel with no valid exposure
-keeps the shortest exposure's value as a lower bound, ``variance = inf`` and
-``mask = False``.
+no single plateau; only a lower ``MergeOptions.saturation_headroom`` would catch
+it.) The level the merge used is ``HdrResult.saturation_adu``, kept in the
+stack's record.
+
+A pixel with no valid exposure keeps the shortest exposure's value as a lower
+bound, ``variance = inf`` and ``mask = False``.
 """
 
 from __future__ import annotations

@@ -154,12 +154,12 @@ def merge_fill_from_rows(rows: np.ndarray, j: int, columns: tuple[int, int], exp
     t = np.asarray(exposures_s, dtype=np.float64)
     gain = float(noise.gain_e_per_adu)
     dark = float(noise.dark_current_e_per_s) * bin_px
-    # The raw level each exposure would read (uncompressed: the compression is a few percent).
-    raw = (lum[None] * t[:, None, None] + dark * t[:, None, None]) / gain + float(noise.bias_adu)
     if n_valid is not None:
         rank = np.argsort(np.argsort(t, kind="stable"), kind="stable")   # 0 = the shortest exposure
         kept = rank[:, None] < np.rint(np.asarray(n_valid, dtype=np.float64)[j, c0:c1])[None, :]
     else:
+        # The raw level each exposure would read (uncompressed: the compression is a few percent).
+        raw = (lum[None] * t[:, None, None] + dark * t[:, None, None]) / gain + float(noise.bias_adu)
         kept = ~saturation_mask(raw, float(noise.saturation_adu), bloom_rows=bloom_rows, bloom_cols=bloom_cols)
         kept = kept[:, j, c0:c1]
     lj = lum[j, c0:c1]
@@ -275,8 +275,8 @@ def _merge_fills(session: Any, sensor: Any, bands: Sequence[tuple[np.ndarray, np
                                               float(full_well), bin_px=bin_px, bloom_rows=int(m.get("bloom_rows", 2)),
                                               bloom_cols=int(m.get("bloom_cols", 0)), n_valid=n)
                          for (rad, _, j), b, m, n in zip(bands, brackets, merges, kept_counts)])
-    except (TypeError, ValueError):
-        return None   # a malformed bracket record: the compression takes its full-well form
+    except (TypeError, ValueError, IndexError):
+        return None   # a malformed bracket record or n_valid channel: the full-well form
 
 
 def session_channels(session_dir: str | os.PathLike[str]) -> list[str]:

@@ -19,6 +19,7 @@ from capture.hdr import (
     saturation_mask,
 )
 from drivers.interfaces import ROI, Frame
+from estimate.extensions.sensor_nonlinearity import apply_raw
 
 NOISE = NoiseModel.from_sensor(TEST_SENSOR)
 EXPOSURES = [0.001 * 4**k for k in range(6)]
@@ -114,8 +115,8 @@ def _compressed_stack(rng, truth, c, exposures=EXPOSURES):
     fw = TEST_SENSOR.full_well_e
     frames = []
     for t in exposures:
-        q = np.minimum(rng.poisson(truth * t + TEST_SENSOR.dark_current_e_per_s * t).astype(np.float64), fw)
-        q = q * (1.0 - c * (q / fw) ** 2) + rng.normal(0.0, TEST_SENSOR.read_noise_e, q.shape)
+        q = rng.poisson(truth * t + TEST_SENSOR.dark_current_e_per_s * t).astype(np.float64)
+        q = apply_raw(q, c, fw) + rng.normal(0.0, TEST_SENSOR.read_noise_e, q.shape)
         frames.append(np.clip(np.rint(TEST_SENSOR.bias_adu + q / TEST_SENSOR.gain_e_per_adu), 0, 65535))
     return np.stack(frames).astype(np.uint16)
 
