@@ -806,6 +806,10 @@ def main() -> int:
     ap.add_argument("--engine", choices=("camera", "light"), default="camera",
                     help="the forward model's render engine, for the recordings (the synthetic truth; the bench's "
                          "render.engine) and the diagnosis alike; light is cached and reported apart")
+    ap.add_argument("--rediagnose", default=None, metavar="TAG",
+                    help="bench: diagnose the kept sessions again (their capture and estimate as they are) and "
+                         "keep each case's result apart, as <id>..._<TAG>.json, the earlier one untouched: a "
+                         "timing of the diagnosis alone on the cores, say, or a code change on the same recordings")
     ap.add_argument("--label", default=None,
                     help="suffix of the written table and JSON entry (a spot check of a few cases, say, "
                          "without overwriting the whole suite's table)")
@@ -878,8 +882,16 @@ def main() -> int:
     # of `--refits decorrelated` are kept apart.
     bench_tag = "" if args.source != "bench" else ("_quick" if quick_rig else "") + (
         "_dec" if args.refits != "fixed-seed" else "") + ("" if args.spp == CPU_DIAGNOSE_SPP else f"_spp{args.spp}")
+    if args.rediagnose is not None:
+        if args.source != "bench" or not args.rediagnose.replace("-", "").isalnum():
+            ap.error("--rediagnose TAG: a bench option; TAG letters, digits and '-'")
+        bench_tag += f"_{args.rediagnose}"
     for case in plan:
         f = cache / f"{case['id']}{bench_tag}.json"
+        if args.rediagnose is not None and not (cache / case["id"] / "session" / "estimates").is_dir():
+            print(f"{case['id']}: skipped (--rediagnose: no kept session with an estimate under {cache / case['id']})",
+                  flush=True)
+            continue
         if f.is_file() and not args.fresh:
             res = json.loads(f.read_text())
             if args.source == "synthetic" and args.detectability and "detectability" not in res:
