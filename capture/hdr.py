@@ -93,7 +93,7 @@ class NoiseModel:
         """
         if not 0.0 < headroom <= 1.0:
             raise ValueError(f"headroom must be in (0, 1], got {headroom}")
-        top = min(float(sensor.adc_max), sensor.bias_adu + sensor.full_well_e / sensor.gain_e_per_adu)
+        top = usable_top_adu(sensor)
         return cls(
             gain_e_per_adu=float(sensor.gain_e_per_adu),
             read_noise_e=float(sensor.read_noise_e),
@@ -113,6 +113,18 @@ class NoiseModel:
         """Variance (e-^2) of one raw exposure: shot + dark + read + quantisation."""
         g = self.gain_e_per_adu
         return np.maximum(signal_e, 0.0) + self.dark_current_e_per_s * exposure_s + self.read_noise_e**2 + g * g / 12.0
+
+
+def usable_top_adu(sensor: SensorInfo) -> float:
+    """The raw level of a full well: the lower of the ADC ceiling and bias + full_well / gain (ADU)."""
+    return min(float(sensor.adc_max), sensor.bias_adu + sensor.full_well_e / sensor.gain_e_per_adu)
+
+
+def headroom_of(noise: NoiseModel, sensor: SensorInfo) -> float:
+    """The headroom that `NoiseModel.from_sensor` turns into `noise`'s saturation level: the
+    share of the usable span above bias (`usable_top_adu`) below it."""
+    span = usable_top_adu(sensor) - sensor.bias_adu
+    return float((noise.saturation_adu - sensor.bias_adu) / span) if span > 0 else 1.0
 
 
 @dataclass(frozen=True)

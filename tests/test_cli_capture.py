@@ -231,6 +231,9 @@ def test_device_fault_stops_cleanly_and_resumes(tmp_path: Path, capsys: pytest.C
         (["--angles", "4"], {"allowed_range_deg": [40.0, 185.0]}, "outside the stage's allowed range"),
         (["--angles", "2", "--band-rows", "600"], {}, "exceeds the sensor"),
         (["--angles", "2", "--out", "/proc/rig-capture-test"], {}, "/proc"),
+        (["--angles", "2", "--saturation-headroom", "0"], {}, "--saturation-headroom must lie in (0, 1]"),
+        (["--angles", "2", "--saturation-headroom", "1.2"], {}, "--saturation-headroom must lie in (0, 1]"),
+        (["--angles", "2", "--saturation-headroom", "nan"], {}, "--saturation-headroom must lie in (0, 1]"),
     ],
 )
 def test_bad_input_is_one_line_exit_2_and_moves_nothing(argv: list[str], stage: dict, needle: str, tmp_path: Path,
@@ -283,6 +286,40 @@ def test_corrupt_manifest_on_resume_touches_nothing(finished: Path, tmp_path: Pa
 def test_resume_refuses_a_changed_plan(finished: Path, capsys: pytest.CaptureFixture) -> None:
     assert main(["capture", "--resume", str(finished), "--angles", "3"]) == 2
     assert "drop --angles" in capsys.readouterr().err
+
+
+def test_resume_keeps_the_sessions_saturation_level(finished: Path, capsys: pytest.CaptureFixture) -> None:
+    assert main(["capture", "--resume", str(finished), "--saturation-headroom", "0.5"]) == 2
+    assert "drop --saturation-headroom" in capsys.readouterr().err
+
+
+def test_a_lower_saturation_headroom_leaves_the_samples_above_it_out(tmp_path: Path) -> None:
+    """`--saturation-headroom 0.02`: the session's noise model saturates at bias + 0.02 of the
+    usable span, the stack's merge record says so, and no raw light sample above that level
+    is among the exposures the merge kept (a pixel keeps the shortest exposures, in order,
+    up to its first saturated one)."""
+    import numpy as np
+
+    from capture.hdr import headroom_of, usable_top_adu
+
+    out = tmp_path / "s"
+    assert main(["capture", "--angles", "1", "--filters", "g", "--out", str(out), "--config", str(_config(tmp_path)),
+                 "--sim", "--saturation-headroom", "0.02", *SMALL]) == 0
+    s = Session.open(out)
+    sensor, noise = s.sensor(), s.noise_model()
+    assert sensor is not None and noise is not None
+    level = sensor.bias_adu + 0.02 * (usable_top_adu(sensor) - sensor.bias_adu)
+    assert noise.saturation_adu == pytest.approx(level) and headroom_of(noise, sensor) == pytest.approx(0.02)
+    rec = s.stacks()[0]
+    assert rec.info["merge"]["saturation_headroom"] == 0.02
+    assert rec.info["merge"]["saturation_adu"] <= level + 1e-6
+    exposures = rec.info["bracket"]["exposures_s"]
+    frames = np.load(out / rec.files["raw"].file, allow_pickle=False)["frames"][:len(exposures)]
+    order = np.argsort(exposures)
+    n_valid = s.load_hdr(rec.id)["n_valid"]
+    kept = np.arange(len(exposures))[:, None, None] < n_valid[None]
+    assert (frames[order] > level).any(), "the test wants some samples above the lowered level"
+    assert not (kept & (frames[order] > level)).any()
 
 
 def test_out_dir_holding_a_session_points_at_resume(finished: Path, capsys: pytest.CaptureFixture) -> None:

@@ -53,6 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         DEFAULT_MAX_EXPOSURE_S,
         BracketPolicy,
     )
+    from capture.hdr import MergeOptions
     from capture.plan import AngleSpec
 
     plan, bracket = AngleSpec(), BracketPolicy()
@@ -81,6 +82,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--target-snr", type=float, metavar="SNR",
                    help=f"SNR the dim profile pixels should reach (default {bracket.target_snr:g})")
     b.add_argument("--darks", type=int, metavar="N", help=f"dark frames per exposure time (default {bracket.n_darks})")
+    b.add_argument("--saturation-headroom", type=float, metavar="F",
+                   help=f"share of the sensor's range above bias trusted as linear: raw samples above it count as "
+                        f"saturated and are left out of the merge (default {MergeOptions().saturation_headroom:g}); "
+                        f"lower it for a sensor whose response bends, or whose wells clip at uneven levels, "
+                        f"below that (docs/operator-guide.md)")
     r = p.add_argument_group("camera and geometry")
     r.add_argument("--calibration", metavar="CALDIR", help="beam calibration (rig calibrate-beam output); copied into the session")
     r.add_argument("--thickness-mm", type=float, metavar="MM", help=f"nominal slab thickness, mm (default {DEFAULT_THICKNESS_MM:g})")
@@ -119,6 +125,9 @@ class _Request:
     band_rows: int | None  # None: full frame
     sim: bool
     world: str | None
+    #: --saturation-headroom of a new session (None: MergeOptions' default; a resumed session
+    #: keeps the saturation level its noise model recorded)
+    saturation_headroom: float | None = None
 
 
 def _usage(msg: str) -> Exception:
@@ -201,6 +210,9 @@ def _check(args: argparse.Namespace) -> _Request:
         v = getattr(args, name)
         if v is not None and v < 1:
             raise _usage(f"--{name.replace('_', '-')} must be >= 1, got {v}")
+    h = args.saturation_headroom
+    if h is not None and not (math.isfinite(h) and 0.0 < h <= 1.0):
+        raise _usage(f"--saturation-headroom must lie in (0, 1] (a share of the sensor's range above bias), got {h:g}")
     if args.full_frame and args.band_rows is not None:
         raise _usage("--full-frame and --band-rows exclude each other")
     if args.log_io and not Path(args.log_io).parent.is_dir():
@@ -210,7 +222,8 @@ def _check(args: argparse.Namespace) -> _Request:
         if args.out:
             raise _usage("--out and --resume exclude each other (the session stays where it is)")
         plan_opts = ("angles", "filters", "front_angles", "front_range", "back_range", "cone", "first_exposure",
-                     "max_exposure", "max_exposures", "target_snr", "darks", "calibration", "thickness_mm", "band_rows")
+                     "max_exposure", "max_exposures", "target_snr", "darks", "calibration", "thickness_mm", "band_rows",
+                     "saturation_headroom")
         given = [o for o in plan_opts if getattr(args, o) is not None] + (["full_frame"] if args.full_frame else [])
         if given:
             raise _usage(f"--resume continues the session's own plan; drop --{given[0].replace('_', '-')}")
@@ -248,7 +261,7 @@ def _check(args: argparse.Namespace) -> _Request:
     _check_out_dir(out)
     thickness = args.thickness_mm if args.thickness_mm is not None else DEFAULT_THICKNESS_MM
     band = None if args.full_frame else (args.band_rows or DEFAULT_BAND_ROWS)
-    return _Request(cfg, spec, bracket, out, None, calibration, centre, offset, thickness, band, sim, world)
+    return _Request(cfg, spec, bracket, out, None, calibration, centre, offset, thickness, band, sim, world, h)
 
 
 # --------------------------------------------------------------------------- with the rig
@@ -384,7 +397,7 @@ def _raise_interrupt(signum: int, frame: Any) -> None:
 def _run_checked(args: argparse.Namespace, req: _Request) -> int:
     from capture.errors import CaptureError
     from capture.executor import run_capture
-    from capture.hdr import MergeOptions, NoiseModel
+    from capture.hdr import MergeOptions, NoiseModel, headroom_of
     from capture.plan import make_plan
     from capture.session import Session
     from drivers.errors import DeviceError
@@ -404,7 +417,8 @@ def _run_checked(args: argparse.Namespace, req: _Request) -> int:
         cam, stage, changer = rig.camera, rig.stage, rig.changer
         sensor = cam.sensor
         devices = {"stage": stage.identity(), "camera": cam.identity(), "filter": changer.identity()}
-        merge = MergeOptions()
+        merge = MergeOptions() if req.saturation_headroom is None else MergeOptions(
+            saturation_headroom=req.saturation_headroom)
         if req.resume is None:
             row, row_source = _profile_row(req, sensor)
             roi = _band_roi(row, req.band_rows, sensor)
@@ -444,6 +458,10 @@ def _run_checked(args: argparse.Namespace, req: _Request) -> int:
             cam.set_roi(roi)
             session = Session.resume(req.out, devices=devices)
             noise = None  # the session's own
+            # The merge records the headroom its saturation level stands for: the session's.
+            sess_noise, sess_sensor = session.noise_model(), session.sensor()
+            if sess_noise is not None and sess_sensor is not None:
+                merge = replace(merge, saturation_headroom=headroom_of(sess_noise, sess_sensor))
             for kind, ident in devices.items():
                 was = session.devices.get(kind)
                 if was is not None and was != ident:
