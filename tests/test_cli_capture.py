@@ -144,7 +144,7 @@ def test_interrupted_capture_resumes_without_touching_completed_stacks(tmp_path:
     cfg = _config(tmp_path, time_scale=100.0)
     # long enough exposures (>= 0.2 s real per stack) that the run is still going when the first stack is saved
     cmd = [sys.executable, "-m", "rig.cli", "capture", "--angles", "2", "--filters", "rgb", "--out", str(out),
-           "--config", str(cfg), "--sim", "--first-exposure", "0.5", *SMALL]
+           "--config", str(cfg), "--sim", "--first-exposure", "0.5", "--saturation-headroom", "0.5", *SMALL]
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 30
     while time.monotonic() < deadline and proc.poll() is None:
@@ -168,6 +168,8 @@ def test_interrupted_capture_resumes_without_touching_completed_stacks(tmp_path:
     now = _snapshot(out)
     assert all(now[p] == v for p, v in files.items() if p.split("/")[1].split(".")[0] in done)
     assert len(s.manifest["resumed"]) == 1
+    # The resumed stacks merged at the session's saturation level, and say so (not the default 0.95).
+    assert [r.info["merge"]["saturation_headroom"] for r in s.stacks()] == [pytest.approx(0.5)] * 6
 
 
 def test_a_handled_interrupt_inside_exec_code_still_exits_130(tmp_path: Path) -> None:
