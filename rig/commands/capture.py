@@ -84,7 +84,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--darks", type=int, metavar="N", help=f"dark frames per exposure time (default {bracket.n_darks})")
     b.add_argument("--saturation-headroom", type=float, metavar="F",
                    help=f"share of the sensor's range above bias trusted as linear: raw samples above it count as "
-                        f"saturated and are left out of the merge (default {MergeOptions().saturation_headroom:g}); "
+                        f"saturated and are left out of the merge (default {MergeOptions.saturation_headroom:g}); "
                         f"lower it for a sensor whose response bends, or whose wells clip at uneven levels, "
                         f"below that (docs/operator-guide.md)")
     r = p.add_argument_group("camera and geometry")
@@ -125,9 +125,9 @@ class _Request:
     band_rows: int | None  # None: full frame
     sim: bool
     world: str | None
-    #: --saturation-headroom of a new session (None: MergeOptions' default; a resumed session
-    #: keeps the saturation level its noise model recorded)
-    saturation_headroom: float | None = None
+    #: MergeOptions.saturation_headroom: --saturation-headroom (or the default) for a new
+    #: session; a resumed one's is that of the saturation level its noise model recorded
+    saturation_headroom: float
 
 
 def _usage(msg: str) -> Exception:
@@ -196,6 +196,7 @@ def _check_out_dir(out: Path) -> None:
 
 def _check(args: argparse.Namespace) -> _Request:
     from capture.bracket import DEFAULT_FIRST_EXPOSURE_S, BracketPolicy
+    from capture.hdr import MergeOptions, headroom_of
     from capture.plan import AngleSpec, make_plan, parse_filters
     from capture.session import Session
     from drivers.interfaces import AngleRange
@@ -238,7 +239,12 @@ def _check(args: argparse.Namespace) -> _Request:
         unknown = [f for f in session.plan.filters if f not in cfg.filter.positions]
         if unknown:
             raise _usage(f"filter {unknown[0]!r} of {args.resume} is not configured in {cfg.path}")
-        return _Request(cfg, None, None, session.path, session, None, None, sp.stage_offset_deg, 0.0, None, sim, world)
+        # The merge records the headroom its saturation level stands for: the session's.
+        sess_noise, sess_sensor = session.noise_model(), session.sensor()
+        kept = (headroom_of(sess_noise, sess_sensor) if sess_noise is not None and sess_sensor is not None
+                else MergeOptions.saturation_headroom)
+        return _Request(cfg, None, None, session.path, session, None, None, sp.stage_offset_deg, 0.0, None, sim, world,
+                        kept)
 
     defaults = AngleSpec()
     spec = AngleSpec(
@@ -261,7 +267,8 @@ def _check(args: argparse.Namespace) -> _Request:
     _check_out_dir(out)
     thickness = args.thickness_mm if args.thickness_mm is not None else DEFAULT_THICKNESS_MM
     band = None if args.full_frame else (args.band_rows or DEFAULT_BAND_ROWS)
-    return _Request(cfg, spec, bracket, out, None, calibration, centre, offset, thickness, band, sim, world, h)
+    return _Request(cfg, spec, bracket, out, None, calibration, centre, offset, thickness, band, sim, world,
+                    MergeOptions.saturation_headroom if h is None else h)
 
 
 # --------------------------------------------------------------------------- with the rig
@@ -397,7 +404,7 @@ def _raise_interrupt(signum: int, frame: Any) -> None:
 def _run_checked(args: argparse.Namespace, req: _Request) -> int:
     from capture.errors import CaptureError
     from capture.executor import run_capture
-    from capture.hdr import MergeOptions, NoiseModel, headroom_of
+    from capture.hdr import MergeOptions, NoiseModel
     from capture.plan import make_plan
     from capture.session import Session
     from drivers.errors import DeviceError
@@ -417,8 +424,7 @@ def _run_checked(args: argparse.Namespace, req: _Request) -> int:
         cam, stage, changer = rig.camera, rig.stage, rig.changer
         sensor = cam.sensor
         devices = {"stage": stage.identity(), "camera": cam.identity(), "filter": changer.identity()}
-        merge = MergeOptions() if req.saturation_headroom is None else MergeOptions(
-            saturation_headroom=req.saturation_headroom)
+        merge = MergeOptions(saturation_headroom=req.saturation_headroom)
         if req.resume is None:
             row, row_source = _profile_row(req, sensor)
             roi = _band_roi(row, req.band_rows, sensor)
@@ -458,10 +464,6 @@ def _run_checked(args: argparse.Namespace, req: _Request) -> int:
             cam.set_roi(roi)
             session = Session.resume(req.out, devices=devices)
             noise = None  # the session's own
-            # The merge records the headroom its saturation level stands for: the session's.
-            sess_noise, sess_sensor = session.noise_model(), session.sensor()
-            if sess_noise is not None and sess_sensor is not None:
-                merge = replace(merge, saturation_headroom=headroom_of(sess_noise, sess_sensor))
             for kind, ident in devices.items():
                 was = session.devices.get(kind)
                 if was is not None and was != ident:
