@@ -2222,3 +2222,40 @@ def test_a_mismatch_outside_the_catalogue_names_no_cause():
     assert d.confirmations, "the candidates were refitted"
     assert d.confirmed == [] and not any(e["confirmed"] for e in d.confirmations)
     assert "no candidate in the catalogue explains it" in d.verdict and "no cause is named" in d.verdict
+
+
+@pytest.mark.parametrize("bar, rounds", [(None, 1), (0.0, 2)])
+def test_no_second_effect_is_looked_for_once_the_first_explains_the_mismatch(monkeypatch, bar, rounds):
+    """A strong stray light, alone: its model fits at the noise floor, so no second round
+    screens at it (`EXPLAINED_REDUCED_CHI2`), and the record and the summary say why. With the
+    bar at 0 the second round screens the remaining candidate at the new fit."""
+    import estimate.diagnose as dg
+    from estimate.diagnose import EXPLAINED_REDUCED_CHI2, summary_text
+
+    if bar is not None:
+        monkeypatch.setattr(dg, "EXPLAINED_REDUCED_CHI2", bar)
+    screened: list[list[str]] = []
+    real_screen = dg._screen
+
+    def counting_screen(problem, ev, exts, make, cands, **kw):
+        screened.append([c for c in cands])
+        return real_screen(problem, ev, exts, make, cands, **kw)
+
+    monkeypatch.setattr(dg, "_screen", counting_screen)
+    rec = record({"stray_light.offset": 0.01})
+    pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
+    d = diagnose_channel(pb, BaseFit(dict(TRUE), 1e4, "hg"), make_model, candidates=["stray_light", "angle_offset"],
+                         spp=128, repeats=3, iterations=8, final_fit_follows=False)
+    assert d.confirmed_order[0] == "stray_light"
+    assert len(screened) == rounds, screened
+    doc = d.as_dict()
+    text = summary_text({"channels": {"g": doc}, "run_id": "x", "refit_run": None})
+    if bar is None:
+        end = doc["rounds_end"]
+        assert end["after"] == ["stray_light"] and end["bar"] == EXPLAINED_REDUCED_CHI2
+        assert end["reduced_chi2_adjusted"] <= EXPLAINED_REDUCED_CHI2
+        assert not any(e["round"] == 2 for e in d.confirmations)
+        assert "explained, no second effect looked for" in text
+    else:
+        assert screened[1] == ["angle_offset"] and doc["rounds_end"] is None
+        assert "no second effect looked for" not in text
