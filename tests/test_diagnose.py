@@ -2226,9 +2226,10 @@ def test_a_mismatch_outside_the_catalogue_names_no_cause():
 
 @pytest.mark.parametrize("bar, rounds", [(None, 1), (0.0, 2)])
 def test_no_second_effect_is_looked_for_once_the_first_explains_the_mismatch(monkeypatch, bar, rounds):
-    """A strong stray light, alone: its model fits at the noise floor, so no second round
-    screens at it (`EXPLAINED_REDUCED_CHI2`), and the record and the summary say why. With the
-    bar at 0 the second round screens the remaining candidate at the new fit."""
+    """A strong stray light, alone: its model, at the decorrelated step from its joint refit,
+    fits at the noise floor, so no second round screens at it (`EXPLAINED_REDUCED_CHI2`), and
+    the record and the summary say why. With the bar at 0 the second round screens the
+    remaining candidate at the new fit."""
     import estimate.diagnose as dg
     from estimate.diagnose import EXPLAINED_REDUCED_CHI2, summary_text
 
