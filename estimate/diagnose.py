@@ -441,10 +441,11 @@ class ChannelDiagnosis:
     partial: dict[str, Any] = field(default_factory=dict)
     #: what the refits minimised (`estimate.refit.OBJECTIVES`)
     refit_objective: str = FIXED_SEED
-    #: where the rounds stopped because the model with the effects confirmed so far already
-    #: explained the mismatch (`EXPLAINED_REDUCED_CHI2`): those effects, that model's reduced
-    #: chi^2 at the floor and the bar; empty where they stopped for another reason
-    rounds_end: dict[str, Any] = field(default_factory=dict)
+    #: after each round that left room for another effect, whether its model already
+    #: explained the mismatch (`EXPLAINED_REDUCED_CHI2`): the effects so far, that model's
+    #: reduced chi^2 at the floor (at the decorrelated step), the bar, and `explained` (True:
+    #: the rounds stopped there)
+    explained_checks: list[dict[str, Any]] = field(default_factory=list)
 
     #: the fields that describe the named model and its fits (`adopt_named_model`)
     NAMED_MODEL_FIELDS: ClassVar[tuple[str, ...]] = (
@@ -520,7 +521,7 @@ class ChannelDiagnosis:
                                           if self.fixed_seed_after else None),
             "second_pass": _plain(self.second_pass) or None,
             "partial": _plain(self.partial) or None,
-            "rounds_end": _plain(self.rounds_end) or None,
+            "explained_checks": _plain(self.explained_checks),
         }
 
 
@@ -1327,7 +1328,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
     confirmed: list[str] = []
     last_full: tuple[RefitResult, np.ndarray] | None = None
     deferred: RefitResult | None = None
-    rounds_end: dict[str, Any] = {}
+    explained_checks: list[dict[str, Any]] = []
     while before.residuals.significant and len(confirmed) < max_effects:
         remaining = [c for c in cands if c not in confirmed]
         if not remaining:
@@ -1456,9 +1457,9 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                       if full.decorrelated is not None and full.decorrelated != full.parameters else current)
             explained = judged.residuals.reduced_chi2_adjusted
             laps("model")
+            explained_checks.append({"after": list(confirmed), "reduced_chi2_adjusted": explained,
+                                     "bar": EXPLAINED_REDUCED_CHI2, "explained": explained <= EXPLAINED_REDUCED_CHI2})
             if explained <= EXPLAINED_REDUCED_CHI2:
-                rounds_end = {"after": list(confirmed), "reduced_chi2_adjusted": explained,
-                              "bar": EXPLAINED_REDUCED_CHI2}
                 say(f"  with {', '.join(confirmed)} at the decorrelated step the reduced chi2 at the floor is "
                     f"{explained:.3f} <= {EXPLAINED_REDUCED_CHI2:g}: explained, no further effect is looked for")
                 break
@@ -1495,7 +1496,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                             stage_times_s=dict(laps.seconds),
                             model_stage="deferred" if deferred is not None else "refit" if confirmed else "",
                             first_round=first_round, partial=partial, refit_objective=refit_objective,
-                            rounds_end=rounds_end)
+                            explained_checks=explained_checks)
 
 
 def explained_share(before: Evaluation, after: Evaluation) -> float:

@@ -192,11 +192,12 @@ def summary_text(doc: Mapping[str, Any]) -> str:
             tried = f" (fitted by the estimator: {e['final_fit_outcome']})" if e.get("final_fit_outcome") else ""
             print(f"  {tag}refit with {what}{grid}: BIC improves by {e['delta_bic']:.1f}{ind}{held}{mag}"
                   f" -> {'confirmed' if e['confirmed'] else 'not confirmed'}{tried}", file=out)
-        end = d.get("rounds_end") or {}
-        if end:
-            print(f"  with {', '.join(end['after'])} the reduced chi2 at the floor is "
-                  f"{end['reduced_chi2_adjusted']:.3f}, at most {end['bar']:g}: explained, no second effect looked for",
-                  file=out)
+        for chk in d.get("explained_checks") or []:
+            # Since session 66: a further round only where the model so far leaves more than the bar.
+            print(f"  with {', '.join(chk['after'])} (at the decorrelated step from its refit) the reduced chi2 at the "
+                  f"floor is {chk['reduced_chi2_adjusted']:.3f}, "
+                  + (f"at most {chk['bar']:g}: explained, no second effect looked for" if chk["explained"]
+                     else f"above {chk['bar']:g}: a second effect looked for"), file=out)
         part = d.get("partial") or {}
         if part and part["share_explained"] <= 0.0:
             print(f"  not named: {', '.join(part['effects'])}: the model with "

@@ -2252,14 +2252,16 @@ def test_no_second_effect_is_looked_for_once_the_first_explains_the_mismatch(mon
     doc = d.as_dict()
     text = summary_text({"channels": {"g": doc}, "run_id": "x", "refit_run": None})
     if bar is None:
-        end = doc["rounds_end"]
-        assert end["after"] == ["stray_light"] and end["bar"] == EXPLAINED_REDUCED_CHI2
+        (end,) = doc["explained_checks"]
+        assert end["after"] == ["stray_light"] and end["bar"] == EXPLAINED_REDUCED_CHI2 and end["explained"]
         assert end["reduced_chi2_adjusted"] <= EXPLAINED_REDUCED_CHI2
         assert not any(e["round"] == 2 for e in d.confirmations)
         assert "explained, no second effect looked for" in text
     else:
-        assert screened[1] == ["angle_offset"] and doc["rounds_end"] is None
-        assert "no second effect looked for" not in text
+        assert screened[1] == ["angle_offset"]
+        (chk,) = doc["explained_checks"]
+        assert not chk["explained"] and chk["bar"] == 0.0
+        assert "a second effect looked for" in text and "no second effect looked for" not in text
 
 
 @pytest.mark.parametrize("final_chi2, reported", [(1.44, "refit"), (1.15, "final fit")])
