@@ -1878,7 +1878,8 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
                    log: Callable[[str], None] | None = None,
                    scale_calibration: ScaleCalibration | None = None,
                    progress: Callable[[int, float, int], None] | None = None,
-                   on_stage: Callable[[str], None] | None = None, min_share: float = MIN_SHARE) -> FitResult | None:
+                   on_stage: Callable[[str], None] | None = None, min_share: float = MIN_SHARE,
+                   prefer_refit: bool = True) -> FitResult | None:
     """The final model fitted by the estimator itself, in place of the Levenberg-Marquardt refit.
 
     The confirmations refit by Levenberg-Marquardt on chi^2 at one fixed seed: fast, and the
@@ -1897,7 +1898,8 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
     worse than the model without the effect; then the LM refit is kept and `d.final_fit`
     says why. Where the final fit fits better than the base fit but more than
     `REFIT_PREFERRED_MARGIN` worse than the LM refit, its check still decides the names, and
-    the LM refit is reported (`d.final_fit["reported"]` = "refit"). Returns the estimator's
+    the LM refit is reported (`d.final_fit["reported"]` = "refit"; not with `prefer_refit`
+    False: the second pass compares final fits with each other). Returns the estimator's
     `FitResult` when kept and reported, else None. Costs one fit at the default settings on
     2 cores: 146 s on the bench's stray-light session, 504 s with the
     refractive boundary, whose renders are the slowest. `progress` and `on_stage` go to
@@ -1968,7 +1970,8 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
         _name_after_check(problem, d, m, fr.parameters, "final fit", spp=spp, seed=seed, repeats=repeats,
                           renders=stack, uncertainties=fr.uncertainties, covariance=fr.covariance, say=say)
     _explains_enough(d, ev, min_share, "final fit", say)
-    if d.confirmed and a.reduced_chi2_adjusted > (1.0 + REFIT_PREFERRED_MARGIN) * lm.residuals.reduced_chi2_adjusted:
+    if (prefer_refit and d.confirmed
+            and a.reduced_chi2_adjusted > (1.0 + REFIT_PREFERRED_MARGIN) * lm.residuals.reduced_chi2_adjusted):
         # The estimator's fit stopped short of the model's optimum: the refit of the same
         # model fits the recording better, both rendered at the same independent seeds.
         # Its figures are reported; the names stay those the estimator's fit needs and
@@ -2171,8 +2174,10 @@ def second_pass_channel(problem: Any, d: ChannelDiagnosis, final: FitResult | No
                                                                       max_confirm=1, **how)
         frk = None
         if dk.confirmed:
+            # Its final fit is weighed against the first final fit (`_against_first`): estimator
+            # fit against estimator fit, whatever its own refit reached.
             frk = refine_channel(problem, dk, make_model, settings, spp=spp, seed=seed, repeats=repeats, log=log,
-                                 progress=progress, on_stage=on_stage)
+                                 progress=progress, on_stage=on_stage, prefer_refit=False)
         better = None
         if frk is not None and dk.confirmed:
             t0 = time.perf_counter()

@@ -12,6 +12,7 @@ under a minute.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from dataclasses import dataclass
@@ -2307,6 +2308,7 @@ def test_a_final_fit_that_stops_short_of_the_refit_leaves_the_refit_reported_and
                          ["sigma_t"], covariance_after={a: {b: (unc[a] ** 2 if a == b else 0.0) for b in unc}
                                                         for a in unc}, model_stage="deferred")
     model = SimpleNamespace(parameter_names=list(params), phase="exp3")
+    d_second_pass = copy.deepcopy(d)
     fr = refine_channel(None, d, lambda exts: model, FitSettings(scale="free"))
     assert d.final_fit["kept"] and d.confirmed == ["beam_halo"]
     assert [(e["stage"], e["dropped"]) for e in d.pruned] == [("final fit", False)]
@@ -2321,3 +2323,6 @@ def test_a_final_fit_that_stops_short_of_the_refit_leaves_the_refit_reported_and
     assert doc["material_after"]["sigma_t"] == (2.001 if reported == "refit" else 2.01)
     text = summary_text({"channels": {"g": doc}, "run_id": "x", "refit_run": None})
     assert ("the refit is reported" in text) is (reported == "refit")
+    # The second pass weighs final fits against each other: there the final fit stands.
+    fr2 = refine_channel(None, d_second_pass, lambda exts: model, FitSettings(scale="free"), prefer_refit=False)
+    assert fr2 is not None and d_second_pass.after is not lm and "reported" not in d_second_pass.final_fit
