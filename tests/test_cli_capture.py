@@ -146,11 +146,17 @@ def test_interrupted_capture_resumes_without_touching_completed_stacks(tmp_path:
     cmd = [sys.executable, "-m", "rig.cli", "capture", "--angles", "2", "--filters", "rgb", "--out", str(out),
            "--config", str(cfg), "--sim", "--first-exposure", "0.5", "--saturation-headroom", "0.5", *SMALL]
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 30
+    # The first stack's time is start-up (imports, the twins) plus a bracket: seconds alone, far
+    # more on busy cores; the interrupt must come after it, so the wait is long and says why it failed.
+    deadline = time.monotonic() + 300
     while time.monotonic() < deadline and proc.poll() is None:
         if (out / "session.yaml").exists() and _done_records(out):
             break
         time.sleep(0.01)
+    if proc.poll() is not None or not ((out / "session.yaml").exists() and _done_records(out)):
+        proc.kill()
+        _, err = proc.communicate(timeout=30)
+        pytest.fail(f"the capture saved no stack within 300 s, or ended before the interrupt: {err[-2000:]}")
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 130, err
