@@ -1448,6 +1448,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         full_mv = _render_variance(current, repeats, FINAL_SPP_FACTOR)
         full, current = conf.settle(current_exts, chosen_fit.parameters, full_mv, confirmed)
         last_full = (full, full_mv)
+        check: dict[str, Any] | None = None
         if len(confirmed) < max_effects and any(c not in confirmed for c in cands):
             # Is a further effect worth looking for? Judged where the model stage would report
             # this model: at the decorrelated step from the fixed-seed optimum, whose render-noise
@@ -1459,16 +1460,17 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             judged = (conf.evaluate_all(current_exts, full.decorrelated)
                       if full.decorrelated is not None and full.decorrelated != full.parameters else current)
             explained = judged.residuals.reduced_chi2_adjusted
-            laps("model")
-            explained_checks.append({"after": list(confirmed), "reduced_chi2_adjusted": explained,
-                                     "bar": EXPLAINED_REDUCED_CHI2, "explained": explained <= EXPLAINED_REDUCED_CHI2})
-            if explained <= EXPLAINED_REDUCED_CHI2:
-                say(f"  with {', '.join(confirmed)} at the decorrelated step the reduced chi2 at the floor is "
-                    f"{explained:.3f} <= {EXPLAINED_REDUCED_CHI2:g}: explained, no further effect is looked for")
-                break
-            say(f"  with {', '.join(confirmed)} at the decorrelated step the reduced chi2 at the floor is "
-                f"{explained:.3f} > {EXPLAINED_REDUCED_CHI2:g}: a further effect is looked for")
+            check = {"after": list(confirmed), "reduced_chi2_adjusted": explained, "bar": EXPLAINED_REDUCED_CHI2,
+                     "explained": explained <= EXPLAINED_REDUCED_CHI2}
+            explained_checks.append(check)
         laps("model")
+        if check is not None:
+            say(f"  with {', '.join(confirmed)} at the decorrelated step the reduced chi2 at the floor is "
+                + (f"{check['reduced_chi2_adjusted']:.3f} <= {EXPLAINED_REDUCED_CHI2:g}: explained, no further effect "
+                   "is looked for" if check["explained"] else
+                   f"{check['reduced_chi2_adjusted']:.3f} > {EXPLAINED_REDUCED_CHI2:g}: a further effect is looked for"))
+            if check["explained"]:
+                break
     confirmed_order = list(confirmed)
     stage = conf.model_stage(confirmed, current_exts, current, last_full, deferred)
     confirmed, current_exts, current = stage.confirmed, stage.exts, stage.current
@@ -1956,11 +1958,6 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
         d.verdict = _verdict(d.before, d.localisation, d.candidates, d.confirmed, lm,
                              [e["effect"] for e in d.pruned if e["dropped"]], d.partial)
         return None
-    lm_uncertainties, lm_covariance = dict(d.uncertainties_after), dict(d.covariance_after)
-    d.lm_after = lm
-    d.after = ev
-    d.uncertainties_after = dict(fr.uncertainties)
-    d.covariance_after = {k: dict(row) for k, row in fr.covariance.items()}
     if d.confirmed:
         # The estimator's fit can take an effect that the LM refit needed close to absent
         # (the bench's refractive-boundary session: the blur confirmed in round 1 ends with a
@@ -1982,12 +1979,14 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
                           f"{refit_name(d.refit_objective)}'s {lm.residuals.reduced_chi2_adjusted:.3g} of the same "
                           "model: the refit is reported, with the effects the estimator's fit needs named")
         say(f"  {info['reason']}")
-        d.lm_after = None
-        d.after = lm
-        d.uncertainties_after, d.covariance_after = lm_uncertainties, lm_covariance
+        # `d.after` and its uncertainties stay the refit's.
         d.verdict = _verdict(d.before, d.localisation, d.candidates, d.confirmed, lm,
                              [e["effect"] for e in d.pruned if e["dropped"]], d.partial)
         return None
+    d.lm_after = lm
+    d.after = ev
+    d.uncertainties_after = dict(fr.uncertainties)
+    d.covariance_after = {k: dict(row) for k, row in fr.covariance.items()}
     d.verdict = _verdict(d.before, d.localisation, d.candidates, d.confirmed, ev,
                          [e["effect"] for e in d.pruned if e["dropped"]], d.partial)
     say(f"  final fit: reduced chi2 {a.reduced_chi2:.3f} (HDR), {a.reduced_chi2_adjusted:.3f} at the noise floor "

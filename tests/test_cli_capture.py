@@ -148,12 +148,13 @@ def test_interrupted_capture_resumes_without_touching_completed_stacks(tmp_path:
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     # The first stack's time is start-up (imports, the twins) plus a bracket: seconds alone, far
     # more on busy cores; the interrupt must come after it, so the wait is long and says why it failed.
+    def saved() -> bool:
+        return (out / "session.yaml").exists() and bool(_done_records(out))
+
     deadline = time.monotonic() + 300
-    while time.monotonic() < deadline and proc.poll() is None:
-        if (out / "session.yaml").exists() and _done_records(out):
-            break
+    while time.monotonic() < deadline and proc.poll() is None and not saved():
         time.sleep(0.01)
-    if proc.poll() is not None or not ((out / "session.yaml").exists() and _done_records(out)):
+    if proc.poll() is not None or not saved():
         proc.kill()
         _, err = proc.communicate(timeout=30)
         pytest.fail(f"the capture saved no stack within 300 s, or ended before the interrupt: {err[-2000:]}")

@@ -2240,7 +2240,7 @@ def test_no_second_effect_is_looked_for_once_the_first_explains_the_mismatch(mon
     real_screen = dg._screen
 
     def counting_screen(problem, ev, exts, make, cands, **kw):
-        screened.append([c for c in cands])
+        screened.append(list(cands))
         return real_screen(problem, ev, exts, make, cands, **kw)
 
     monkeypatch.setattr(dg, "_screen", counting_screen)
