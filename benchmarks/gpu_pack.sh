@@ -44,6 +44,22 @@ if [ "${GPU_PACK:-all}" = bench ]; then
      --exclude=session.lock session) | xz -T0 -6 > .gpu/bench.tar.xz
   du -sh .gpu/site.tar.xz .gpu/bench.tar.xz; exit 0
 fi
+# GPU_PACK=light packs the packages and the light-engine bench sessions LIGHT_CASES (ids under
+# benchmarks/results/diagnose_cases/bench-light-prof8192; default the two boundary sessions that
+# ran past 5 min on 2 cores in session 66), each with its base fit only and without the raw
+# frames, which no estimate or diagnosis reads: gpu_run.sh's light job (session 67, about 40 MB).
+if [ "${GPU_PACK:-all}" = light ]; then
+  base=benchmarks/results/diagnose_cases/bench-light-prof8192
+  dirs=()
+  for c in $(echo "${LIGHT_CASES:-refractive_boundary-2,refractive_boundary+beam_halo}" | tr , ' '); do
+    [ -d "$base/$c/session/estimates" ] || { echo "$base/$c/session: no captured session (run bench_diagnose.py --source bench --engine light --profile-spp 8192)"; exit 2; }
+    dirs+=("$c/session")
+  done
+  (cd "$base" && tar cf - --exclude='session/diagnoses/*' --exclude='session/estimates/*+diagnosis' \
+     --exclude=session.lock --exclude='session/raw' "${dirs[@]}") \
+    | xz -T0 -6 > .gpu/light.tar.xz
+  du -sh .gpu/site.tar.xz .gpu/light.tar.xz; exit 0
+fi
 if [ ! -d .gpu/est_session ]; then
   .venv/bin/python benchmarks/bench_estimate.py --keep-session .gpu/est_session --out "$tmp/cpu.json"
 fi

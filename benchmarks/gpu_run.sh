@@ -40,6 +40,9 @@
 # (the bench job ran out at 240 s there, unfinished, with no log: it prints only at the end; 401 s with the start),
 # `BENCH_LIMIT_S=420 bash benchmarks/gpu_run.sh bench` (219 s), then two cases and one case (108 s, 49 s); logs
 # and JSON in benchmarks/results/gpu_session56/. Chain the calls: the machine goes back after 30 s idle.
+# Session 67's call on an H200 (after GPU_PACK=light gpu_pack.sh, two boundary sessions, 18 MB): `bash
+# benchmarks/gpu_run.sh light` carrying [".gpu/site.tar.xz", ".gpu/light.tar.xz"]; results in
+# benchmarks/results/gpu_session67/.
 set -uo pipefail
 job=${1:-estimate}
 OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT"
@@ -116,6 +119,39 @@ bench)
   tail -4 "$OUT/bench_diagnose.log"; head -12 "$OUT/bench_summary.txt"
   (cd /tmp/bench/session && tar cf "$OUT/bench_diagnosis.tar" diagnoses $(ls -d estimates/*+diagnosis 2>/dev/null))
   ;;
-*) echo "unknown job $job (estimate, paper, diagnose256 or bench)"; exit 2 ;;
+light)
+  # The light engine (the estimator's default since session 61) on a GPU, first run in session 67:
+  # bench_estimate.py on a synthetic session made there (the GPU's 8192-spp polish), then
+  # `rig diagnose --engine light` at 2048 spp, fixed-seed refits, channel g, as
+  # bench_diagnose.py --source bench --engine light runs it, on each bench session that
+  # gpu_pack.sh's GPU_PACK=light put in .gpu/light.tar.xz, each under LIGHT_LIMIT_S (170).
+  # Back in $OUT: the logs, and light_gpu.tar with every diagnosis' --json ('+' in a case id
+  # is not a name $OUT returns, hence the tar).
+  mkdir -p /tmp/light /tmp/light_out
+  python3 -m rig.cli doctor 2>&1 | tail -4
+  echo "== bench_estimate, light engine (GPU) =="
+  timeout "${EST_LIMIT_S:-120}" python3 benchmarks/bench_estimate.py --keep-session /tmp/est \
+    --out /tmp/light_out/bench_estimate_light_gpu.json 2>&1 | tee "$OUT/bench_estimate_light.log"
+  tar xJf .gpu/light.tar.xz -C /tmp/light || exit 5
+  for c in $(ls /tmp/light); do
+    fit=$(ls -d /tmp/light/$c/session/estimates/*/ | grep -v '+diagnosis' | tail -1)
+    echo "== rig diagnose --engine light $c (GPU) =="
+    t=$(date +%s)
+    timeout "${LIGHT_LIMIT_S:-170}" python3 -m rig.cli diagnose /tmp/light/$c/session --fit "$fit" --channels g \
+      --spp "${LIGHT_SPP:-2048}" --refits fixed-seed --engine light --json --no-plots --no-progress \
+      > "/tmp/light_out/${c}_diagnose.json" 2> "/tmp/light_out/${c}_diagnose.log"
+    echo "$c: rc $? wall $(( $(date +%s) - t )) s"
+    tail -3 "/tmp/light_out/${c}_diagnose.log"
+    python3 - "/tmp/light_out/${c}_diagnose.json" <<'PY' || true
+import json, sys
+ch = json.load(open(sys.argv[1]))["channels"]["g"]
+print("named", list(ch.get("confirmed_effects") or {}),
+      "chi2 at floor", round(ch["reduced_chi2_adjusted_before"], 3), "->", round(ch["reduced_chi2_adjusted_after"], 3),
+      "time_s", round(ch["time_s"], 1), "stages", {k: round(v, 1) for k, v in (ch.get("time_by_stage_s") or {}).items()})
+PY
+  done
+  (cd /tmp/light_out && tar cf "$OUT/light_gpu.tar" .)
+  ;;
+*) echo "unknown job $job (estimate, paper, diagnose256, bench or light)"; exit 2 ;;
 esac
 echo "total $(( $(date +%s) - t0 )) s"
