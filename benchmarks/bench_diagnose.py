@@ -476,7 +476,7 @@ def truth_at_floor(work: Path, channel: str, spp: int, truth: dict[str, float]) 
     if "sensor_nonlinearity" in effects and pb.merge_fill is None:
         return None   # a recording without its brackets: the full-well form has no true W
     fm = ForwardModel(pb.geometry, pb.beam, phase="exp3", extensions=list(effects), profile_y_shape=pb.y_shapes(),
-                      engine=ENGINE, profile_merge_fill=pb.merge_fills())
+                      engine=ENGINE, profile_merge_fill=pb.merge_fills(), beam_fill=pb.beam_fill)
     ev = evaluate(fm, params, pb, len(fm.parameter_names) + 1, spp=spp, seed=DEFAULT_SEED, repeats=DEFAULT_REPEATS)
     return float(ev.residuals.reduced_chi2_adjusted)
 

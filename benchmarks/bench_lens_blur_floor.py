@@ -91,7 +91,7 @@ def main() -> int:
 
     def floor(beam: BeamProfile, shapes: dict[float, np.ndarray]) -> float:
         fm = ForwardModel(pb.geometry, beam, phase="exp3", extensions=list(effects), profile_y_shape=shapes,
-                          engine="light", profile_merge_fill=pb.merge_fills())
+                          engine="light", profile_merge_fill=pb.merge_fills(), beam_fill=pb.beam_fill)
         ev = evaluate(fm, params, pb, len(fm.parameter_names) + 1, spp=args.spp, seed=DEFAULT_SEED,
                       repeats=DEFAULT_REPEATS)
         return float(ev.residuals.reduced_chi2_adjusted)

@@ -2608,7 +2608,7 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
             if key not in _cache:
                 _cache[key] = ForwardModel(_pb.geometry, _pb.beam, phase=_phase, extensions=key,
                                            profile_y_shape=_pb.y_shapes(), engine=engine,
-                                           profile_merge_fill=_pb.merge_fills())
+                                           profile_merge_fill=_pb.merge_fills(), beam_fill=_pb.beam_fill)
             return _cache[key]
 
         base = BaseFit({k: float(v) for k, v in (c.get("parameters") or {}).items()}, float(c.get("scale", 1.0)),

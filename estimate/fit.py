@@ -525,7 +525,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     check_engine(st.engine)   # a hand-edited results.yaml's too, before any work
     fm = forward or ForwardModel(problem.geometry, problem.beam, phase=phase, extensions=extensions,
                                  profile_y_shape=problem.y_shapes(), engine=st.engine,
-                                 profile_merge_fill=problem.merge_fills())
+                                 profile_merge_fill=problem.merge_fills(), beam_fill=problem.beam_fill)
     fixed = dict(fixed or {})
     fm.validate(fixed)
     if st.scale not in ("free", "calibrated"):
@@ -867,6 +867,6 @@ def loss_at(problem: Problem, model: str, params: Mapping[str, float], *, extens
     61 the floor took the camera engine's while the fits rendered with the light engine)."""
     fm = forward or ForwardModel(problem.geometry, problem.beam, phase=model_phase(model), extensions=extensions,
                                  profile_y_shape=problem.y_shapes(), engine=engine or FitSettings().engine,
-                                 profile_merge_fill=problem.merge_fills())
+                                 profile_merge_fill=problem.merge_fills(), beam_fill=problem.beam_fill)
     return evaluate(fm, problem, params, spp=spp, seed=seed, delta_rel=reference_delta(delta_range),
                     fixed_scale=fixed_scale)

@@ -39,7 +39,7 @@ import numpy.typing as npt
 from estimate.beam import BeamProfile
 from estimate.errors import ModelParameterError
 from estimate.extensions import EXTENSIONS, IMAGE_ORDER, check_value, get_extension
-from estimate.extensions.base import ImageExtension, ParameterSpec, RowData, no_row_data
+from estimate.extensions.base import BeamFill, ImageExtension, ParameterSpec, RowData, no_row_data
 from estimate.extensions.filter_bandwidth import band_nodes
 from estimate.extensions.lens_blur import TRUNCATION_PX as LENS_BLUR_RADIUS
 from estimate.extensions.lens_blur import psf_2d
@@ -175,6 +175,10 @@ class ForwardModel:
             for the sensor compression of profile renders
             (`estimate.extensions.sensor_nonlinearity`); without one for every angle the
             compression takes its full-well form.
+        beam_fill: the beam calibration frame's power shares and merge fills
+            (`estimate.problem.Problem.beam_fill`), for the sensor compression of the
+            calibration itself (`estimate.extensions.sensor_nonlinearity.calibration_gain`);
+            None leaves the calibrated power as read.
         engine: how the slab is rendered (`ENGINES`): "camera", Mitsuba's `prbvolpath`
             from the camera with next-event connections to the beam (derivatives by path
             replay); or "light", paths from the beam connected to the camera
@@ -187,8 +191,10 @@ class ForwardModel:
                  extensions: Iterable[str] = (), variant: str | None = None,
                  max_depth: int = 64, rr_depth: int = 16,
                  profile_y_shape: Mapping[float, np.ndarray] | None = None, engine: str = CAMERA,
-                 profile_merge_fill: Mapping[float, np.ndarray] | None = None) -> None:
+                 profile_merge_fill: Mapping[float, np.ndarray] | None = None,
+                 beam_fill: BeamFill | None = None) -> None:
         self.engine = check_engine(engine)
+        self.beam_fill = beam_fill
         self.geometry = geometry
         self.profile_y_shape: dict[float, np.ndarray] = {
             _angle_key(a): np.asarray(h, dtype=np.float64) for a, h in (profile_y_shape or {}).items()}
@@ -484,8 +490,11 @@ class ForwardModel:
         """What the image-space extensions take from the recording for these angles'
         profile rows (`ImageExtension`): the y-shape when the lens blur acts on them
         (`y_shape_for`), the merge's fill when the sensor compression does
-        (`merge_fill_for`); nothing for other windows."""
+        (`merge_fill_for`); nothing for other windows. The beam calibration's fills
+        (`beam_fill`) go to the sensor compression in every window."""
         out = no_row_data()
+        if "sensor_nonlinearity" in self.extensions:
+            out["beam_fill"] = self.beam_fill
         if window != self.geometry.profile_window():
             return out
         if "lens_blur" in self.extensions:

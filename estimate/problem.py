@@ -31,6 +31,7 @@ import numpy as np
 
 from estimate.beam import BeamProfile, map_from_pixel_image
 from estimate.errors import DataError
+from estimate.extensions.base import BeamFill
 from estimate.extensions.lens_blur import TRUNCATION_PX as LENS_BLUR_RADIUS
 from estimate.geometry import RigGeometry
 
@@ -198,6 +199,8 @@ class Problem:
         merge_fill: the HDR merge's mean squared fill of the well per profile pixel, shape
             (N, W) (`merge_fill_from_rows`), for the sensor compression of profile renders;
             None = unknown (a stack without its bracket or the sensor's full well).
+        beam_fill: the beam calibration frame's power shares and merge fills (`_beam_fill`),
+            for the sensor compression of the calibrated power; None = unknown.
     """
 
     angles_deg: np.ndarray
@@ -215,6 +218,7 @@ class Problem:
     angle_correction_deg: float = 0.0
     y_shape: np.ndarray | None = None
     merge_fill: np.ndarray | None = None
+    beam_fill: BeamFill | None = None
 
     def __post_init__(self) -> None:
         if self.valid is None:
@@ -250,7 +254,7 @@ class Problem:
                        self.valid[idx], [self.stack_ids[i] for i in idx], self.session_path,
                        list(self.missing), self.angle_correction_deg,
                        None if self.y_shape is None else self.y_shape[idx],
-                       None if self.merge_fill is None else self.merge_fill[idx])
+                       None if self.merge_fill is None else self.merge_fill[idx], self.beam_fill)
 
 
 def _merge_fills(session: Any, sensor: Any, bands: Sequence[tuple[np.ndarray, np.ndarray, int]],
@@ -309,8 +313,66 @@ def _beam_origin(img: Any, entry: dict[str, Any], path: Path) -> tuple[float, fl
     raise DataError(f"beam map {path} does not say its origin_px")
 
 
+def _beam_kept_counts(raw_path: Path, origin_px: tuple[float, float], shape: tuple[int, int],
+                      noise: Any) -> tuple[np.ndarray, float] | None:
+    """How many exposures the beam calibration's merge kept at each pixel of its map, and
+    the level it saturated at: its saturation and bloom masks (`capture.hdr.merge_hdr`'s,
+    plateau included) run again on the light frames the calibration keeps (`raw/`), cropped
+    to the map. None when those frames are missing, unreadable or do not cover the map."""
+    from capture.exr_io import read_frames
+    from capture.hdr import plateau_saturation_adu, saturation_mask
+
+    try:
+        light = [f for f in read_frames(raw_path) if not f.dark]
+    except (OSError, ValueError, KeyError):
+        return None
+    if not light or len({f.data.shape for f in light}) != 1:
+        return None
+    stack = np.stack([f.data for f in light])
+    level = plateau_saturation_adu(stack, noise)
+    level = float(noise.saturation_adu if level is None else level)
+    # The merge's default bloom reach; the calibration does not change it (`calibrate.beam`).
+    n_valid = (~saturation_mask(stack, level)).sum(axis=0)
+    roi = light[0].roi
+    y0, x0 = int(round(origin_px[1])) - roi.y, int(round(origin_px[0])) - roi.x
+    if y0 < 0 or x0 < 0 or y0 + shape[0] > n_valid.shape[0] or x0 + shape[1] > n_valid.shape[1]:
+        return None
+    return n_valid[y0:y0 + shape[0], x0:x0 + shape[1]], level
+
+
+def _beam_fill(session: Any, sensor: Any, pixel_image: np.ndarray, exposures_s: Any,
+               kept: tuple[np.ndarray, float] | None) -> BeamFill | None:
+    """The beam calibration frame's power shares and merge fills (`BeamFill`): each pixel's
+    share of the map's read power, and `merge_fill_from_rows` over the map's rows, from the
+    exposures the calibration's merge kept there (`_beam_kept_counts`) or, without its
+    frames, replayed from the map and its bracket (an uncompressed prediction, which keeps
+    too few exposures where the compression pulled a sample below the saturation level:
+    0.4 % short of the true power at c = 0.06 in `tests/test_extensions.py`). The
+    calibration's frames are unbinned (`calibrate.beam`). None without the bracket, the
+    session's noise model or the sensor's full well: the calibrated power is then taken as
+    read."""
+    noise = session.noise_model()
+    full_well = getattr(sensor, "full_well_e", None)
+    total = float(pixel_image.sum())
+    try:
+        t = [float(x) for x in exposures_s]
+    except (TypeError, ValueError):
+        return None
+    if noise is None or not full_well or not t or not total > 0:
+        return None
+    n_valid = None
+    if kept is not None:
+        n_valid, level = kept
+        noise = dataclasses.replace(noise, saturation_adu=level)
+    cols = (0, pixel_image.shape[1])
+    fill = np.stack([merge_fill_from_rows(pixel_image, j, cols, t, noise, float(full_well), n_valid=n_valid)
+                     for j in range(pixel_image.shape[0])])
+    lit = pixel_image > 0
+    return BeamFill(weights=pixel_image[lit] / total, fill=fill[lit])
+
+
 def _load_beam(session: Any, cal: dict[str, Any], channel: str, pitch_mm: float,
-               center_px: tuple[float, float]) -> BeamProfile:
+               center_px: tuple[float, float], sensor: Any = None) -> tuple[BeamProfile, BeamFill | None]:
     from capture.exr_io import read_exr
 
     filters = ((cal.get("beam") or {}).get("filters") or {})
@@ -328,11 +390,20 @@ def _load_beam(session: Any, cal: dict[str, Any], channel: str, pitch_mm: float,
         raise DataError(f"beam map {path} holds NaN or infinite radiance")
     # Dark-subtracted noise can dip below zero off the beam; the irradiance cannot. The frame
     # is pixel-integrated and the map is read bilinearly: undo both (estimate.beam).
-    rad = map_from_pixel_image(np.clip(rad, 0.0, None))
+    pixels = np.clip(rad, 0.0, None)
+    exposures = entry.get("exposures_s", (getattr(img, "meta", None) or {}).get("exposures_s"))
+    fill = None
+    if sensor is not None:
+        kept = None
+        if entry.get("raw") and session.noise_model() is not None:
+            kept = _beam_kept_counts(Path(session.calibration_dir) / str(entry["raw"]), (x0, y0), pixels.shape,
+                                     session.noise_model())
+        fill = _beam_fill(session, sensor, pixels, exposures, kept)
+    rad = map_from_pixel_image(pixels)
     cx, cy = center_px
     # Pixel centre (i, j) is at x = (i + 0.5 - cx) p, y = -(j + 0.5 - cy) p (estimate.geometry).
     axis = (cx - 0.5 - x0, cy - 0.5 - y0)
-    return BeamProfile.from_camera_image(rad / pitch_mm ** 2, pitch_mm, axis)
+    return BeamProfile.from_camera_image(rad / pitch_mm ** 2, pitch_mm, axis), fill
 
 
 def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int | None = None, *,
@@ -417,7 +488,7 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
     row = int(geo["profile_row"]) if geo.get("profile_row") is not None else round(cy)
     thickness = float(geo.get("thickness_mm", 1.0))
 
-    beam = _load_beam(s, cal, channel, pitch, (cx, cy))
+    beam, beam_fill = _load_beam(s, cal, channel, pitch, (cx, cy), sensor)
 
     # Read the stacks: one row each.
     angles: list[float] = []
@@ -532,5 +603,5 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
         variance=variance[order], geometry=geometry, beam=beam, channel=channel, wavelength_nm=wl,
         valid=valid[order], stack_ids=[ids[i] for i in order], session_path=str(s.path), missing=missing,
         angle_correction_deg=correction, y_shape=y_shape[order],
-        merge_fill=None if merge_fill is None else merge_fill[order],
+        merge_fill=None if merge_fill is None else merge_fill[order], beam_fill=beam_fill,
     )

@@ -37,7 +37,10 @@ statistic does not depend on the columns' scale.
 -I g, g the merge's mean squared fill of the well per pixel (`estimate.problem.
 merge_fill_from_rows`: exact, the model's own form). Without them the columns of the
 full-well form: -I (I / W)^2 with the well filled either at the brightest pixel of the
-channel or of each angle (the bracket picks a short exposure per angle).
+channel or of each angle (the bracket picks a short exposure per angle). The compression of
+the beam calibration's own frame (`sensor_nonlinearity.calibration_gain`) adds
+I sum_p w_p g_p, a multiple of the profiles, which the scale column absorbs: the columns
+leave it out.
 """
 
 from __future__ import annotations

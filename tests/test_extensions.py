@@ -593,3 +593,109 @@ def test_the_merge_fill_reproduces_the_merge_of_a_compressed_bracket(c: float) -
     order = np.argsort(lum)
     loss = (1.0 - ratio)[order]
     assert np.max(np.maximum.accumulate(loss) - loss) > 0.3 * c
+
+
+@pytest.mark.parametrize("c", [0.06, 0.12])
+def test_the_calibration_gain_restores_the_power_of_a_compressed_beam_frame(c: float, tmp_path) -> None:
+    """The beam calibration reads its frame through the same compressing sensor: the read
+    power is low by about c times the map's mean fill (the bench: 0.73 % at c = 0.06). From
+    the calibration's kept light frames `estimate.problem` finds how many exposures its
+    merge kept per pixel (`_beam_kept_counts`, the merge's own count and level), and the
+    power shares and fills give `calibration_gain`, which restores the true power. Replayed
+    from the map alone (no frames), the uncompressed prediction keeps too few exposures
+    where the compression pulled a sample below the level, and falls short."""
+    from fakes import TEST_SENSOR
+
+    from capture.exr_io import write_frames
+    from capture.hdr import MatchedDarks, NoiseModel, merge_hdr
+    from drivers.interfaces import ROI, Frame
+    from estimate.extensions.base import BeamFill
+    from estimate.extensions.sensor_nonlinearity import calibration_gain
+    from estimate.problem import _beam_kept_counts, merge_fill_from_rows
+
+    s = TEST_SENSOR
+    noise = NoiseModel.from_sensor(s)
+    fw = s.full_well_e
+    times = [0.2 * 4 ** k for k in range(3)]                       # the bench's beam bracket
+    yy, xx = np.mgrid[0:40, 0:48]
+    # e-/s; the shortest exposure fills the peak's well to 0.36, as on the bench
+    beam = 0.36 * fw / times[0] * np.exp(-0.5 * ((xx - 23.6) ** 2 + (yy - 20.3) ** 2) / 1.6 ** 2)
+
+    def frame(t: float, lit: bool) -> np.ndarray:
+        q = np.clip(beam * t, 0.0, fw) if lit else np.zeros_like(beam)
+        e = apply_raw(q, c, fw) + s.dark_current_e_per_s * t
+        return np.clip(np.rint(e / s.gain_e_per_adu + s.bias_adu), 0, s.adc_max).astype(np.uint16)
+
+    roi = ROI(x=100, y=200, width=48, height=40)
+    light = [Frame(frame(t, True), t, False, -20.0, 0, t, roi) for t in times]
+    dark = [Frame(frame(t, False), t, True, -20.0, 0, t, roi) for t in times for _ in range(2)]
+    res = merge_hdr(np.stack([f.data for f in light]), times, MatchedDarks.from_frames(dark, noise), noise)
+    write_frames(tmp_path / "beam_g.npz", light + dark)
+    # the map: a crop of the merged frame at full-sensor origin (105, 204)
+    read = np.clip(res.radiance.astype(np.float64), 0.0, None)[4:36, 5:43]
+    kept = _beam_kept_counts(tmp_path / "beam_g.npz", (105.0, 204.0), read.shape, noise)
+    assert kept is not None
+    assert np.array_equal(kept[0], res.n_valid[4:36, 5:43]) and kept[1] == res.saturation_adu
+    assert _beam_kept_counts(tmp_path / "missing.npz", (105.0, 204.0), read.shape, noise) is None
+    assert _beam_kept_counts(tmp_path / "beam_g.npz", (90.0, 204.0), read.shape, noise) is None   # off the frames
+
+    def gain(n_valid: np.ndarray | None) -> tuple[float, BeamFill]:
+        nz = noise if n_valid is None else NoiseModel(**{**noise.to_dict(), "saturation_adu": kept[1]})
+        fill = np.stack([merge_fill_from_rows(read, j, (0, read.shape[1]), times, nz, fw, n_valid=n_valid)
+                         for j in range(read.shape[0])])
+        lit = read > 0
+        bf = BeamFill(weights=read[lit] / read.sum(), fill=fill[lit])
+        return calibration_gain(c, bf), bf
+
+    true_power = beam[4:36, 5:43].sum()
+    short = 1.0 - read.sum() / true_power
+    assert 0.05 * c < short < 0.5 * c                # c times the map's mean fill
+    k, bf = gain(kept[0])
+    assert read.sum() * k == pytest.approx(true_power, rel=1e-4)
+    if c == 0.06:
+        # here the replay misses exposures the compression kept below the level (at 12 % this
+        # beam's samples happen to sit clear of it, and the replay comes within 4e-5)
+        k_replayed, _ = gain(None)
+        assert read.sum() * k_replayed / true_power - 1 < -2e-3
+    assert calibration_gain(0.0, bf) == 1.0
+    h = 1e-7
+    assert (calibration_gain(h, bf) - 1.0) / h == pytest.approx(float(np.sum(bf.weights * bf.fill)), rel=1e-3)
+
+
+def test_forward_model_scales_by_the_calibration_gain_with_a_beam_fill() -> None:
+    """With the beam calibration's fills the compressed model is brighter by
+    `calibration_gain(c)` in every window, the compression's gradient carries the gain's
+    derivative, and without the compression the fills change nothing."""
+    from estimate.extensions.base import BeamFill
+    from estimate.extensions.sensor_nonlinearity import calibration_gain
+
+    angles = [40.0, 140.0]
+    rng = np.random.default_rng(11)
+    fill = {a: rng.uniform(0.0, 0.9, N_PIX) for a in angles}
+    w = rng.random(200)
+    bf = BeamFill(weights=w / w.sum(), fill=rng.uniform(0.0, 0.7, 200))
+    exts = ["sensor_nonlinearity"]
+    p = {**BASE, "phase.b1": 1.0, "sensor_nonlinearity.compression": 0.05}
+    plain = ForwardModel(GEOM, BEAM, phase="exp1", extensions=exts, profile_merge_fill=fill)
+    gained = ForwardModel(GEOM, BEAM, phase="exp1", extensions=exts, profile_merge_fill=fill, beam_fill=bf)
+    k = calibration_gain(0.05, bf)
+    assert k > 1.0
+    assert np.allclose(gained.render_profiles(p, angles, spp=64, seed=2),
+                       k * plain.render_profiles(p, angles, spp=64, seed=2), rtol=1e-12, atol=1e-15)
+    # a window other than the profile's (full-well form there) carries the gain too
+    assert GEOM.window((0, 8), (0, 1)) != GEOM.profile_window()
+    assert np.allclose(gained.render(p, angles, spp=16, seed=3, columns=(0, 8), rows=(0, 1)),
+                       k * plain.render(p, angles, spp=16, seed=3, columns=(0, 8), rows=(0, 1)), rtol=1e-12, atol=1e-15)
+    cot = rng.random((2, N_PIX))
+    grads = gained.vjp(p, angles, cot, spp=64, seed=2, fd_parameters=False)
+    jac = gained.jacobian(p, angles, ["sensor_nonlinearity.compression"], spp=64, seed=2)
+    h = 1e-5
+    lo, hi = dict(p), dict(p)
+    lo["sensor_nonlinearity.compression"] -= h
+    hi["sensor_nonlinearity.compression"] += h
+    fd = (gained.render_profiles(hi, angles, spp=64, seed=2) - gained.render_profiles(lo, angles, spp=64, seed=2)) / (2 * h)
+    assert np.allclose(jac["sensor_nonlinearity.compression"], fd, rtol=1e-4, atol=1e-12)
+    assert grads["sensor_nonlinearity.compression"] == pytest.approx(float((fd * cot).sum()), rel=1e-4)
+    off = {**p, "sensor_nonlinearity.compression": 0.0}
+    assert np.array_equal(gained.render_profiles(off, angles, spp=64, seed=2),
+                          plain.render_profiles(off, angles, spp=64, seed=2))

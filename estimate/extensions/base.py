@@ -26,7 +26,7 @@ import numpy as np
 
 from estimate.errors import ModelParameterError
 
-__all__ = ["Extension", "ImageExtension", "ParameterSpec", "RowData", "check_value", "no_row_data"]
+__all__ = ["BeamFill", "Extension", "ImageExtension", "ParameterSpec", "RowData", "check_value", "no_row_data"]
 
 
 @dataclass(frozen=True)
@@ -114,17 +114,34 @@ class Extension:
         return out
 
 
+@dataclass(frozen=True)
+class BeamFill:
+    """The beam calibration frame as the sensor read it, for effects of the sensor that also
+    act on the calibration (`estimate.extensions.sensor_nonlinearity.calibration_gain`).
+
+    Attributes:
+        weights: each beam-map pixel's share of the measured beam power, shape (P,), sum 1.
+        fill: the calibration merge's mean squared fill of the well at those pixels, shape
+            (P,) (`estimate.problem.merge_fill_from_rows` over the map's rows).
+    """
+
+    weights: np.ndarray
+    fill: np.ndarray
+
+
 class RowData(TypedDict):
     """What image-space extensions take from the recording about the profile rows (the
-    keyword arguments `y_shape` and `merge_fill` of `ImageExtension` methods)."""
+    keyword arguments `y_shape` and `merge_fill` of `ImageExtension` methods), and about the
+    beam calibration (`beam_fill`, every window)."""
 
     y_shape: np.ndarray | None
     merge_fill: np.ndarray | None
+    beam_fill: BeamFill | None
 
 
 def no_row_data() -> RowData:
     """Nothing from the recording (full frames, other windows, a model without a problem)."""
-    return {"y_shape": None, "merge_fill": None}
+    return {"y_shape": None, "merge_fill": None, "beam_fill": None}
 
 
 class ImageExtension(Extension):
@@ -138,6 +155,10 @@ class ImageExtension(Extension):
     `merge_fill` (profile renders only, else None): per profile pixel, the HDR merge's mean
     (fill of the well)^2 over the exposures it read, shaped (N, W)
     (`estimate.problem.merge_fill_from_rows`). Only the sensor's compression uses it.
+
+    `beam_fill` (any window; None when unknown): the beam calibration frame's power shares
+    and merge fills (`BeamFill`). Only the sensor's compression uses it: the calibration
+    frame went through the same sensor.
     """
 
     kind = "image"
@@ -145,20 +166,23 @@ class ImageExtension(Extension):
     @classmethod
     def apply(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
               profile_only: bool, y_shape: np.ndarray | None = None,
-              merge_fill: np.ndarray | None = None) -> np.ndarray:
+              merge_fill: np.ndarray | None = None,
+              beam_fill: BeamFill | None = None) -> np.ndarray:
         raise NotImplementedError
 
     @classmethod
     def vjp_input(cls, image: np.ndarray, cotangent: np.ndarray, values: Mapping[str, float], *,
                   pixel_mm: float, profile_only: bool, y_shape: np.ndarray | None = None,
-              merge_fill: np.ndarray | None = None) -> np.ndarray:
+              merge_fill: np.ndarray | None = None,
+              beam_fill: BeamFill | None = None) -> np.ndarray:
         """Cotangent w.r.t. the input image given one w.r.t. the output."""
         raise NotImplementedError
 
     @classmethod
     def param_derivatives(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
                           profile_only: bool, y_shape: np.ndarray | None = None,
-              merge_fill: np.ndarray | None = None) -> dict[str, np.ndarray]:
+              merge_fill: np.ndarray | None = None,
+              beam_fill: BeamFill | None = None) -> dict[str, np.ndarray]:
         """d output / d parameter for each parameter (central differences of this exact,
         deterministic image function with a small relative step; no rendering noise)."""
         out = {}
@@ -172,8 +196,8 @@ class ImageExtension(Extension):
             lo[p.name] = a
             hi[p.name] = b
             out[p.name] = (cls.apply(image, hi, pixel_mm=pixel_mm, profile_only=profile_only, y_shape=y_shape,
-                                     merge_fill=merge_fill)
+                                     merge_fill=merge_fill, beam_fill=beam_fill)
                            - cls.apply(image, lo, pixel_mm=pixel_mm, profile_only=profile_only, y_shape=y_shape,
-                                       merge_fill=merge_fill)
+                                       merge_fill=merge_fill, beam_fill=beam_fill)
                            ) / (b - a)
         return out

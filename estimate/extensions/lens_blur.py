@@ -51,7 +51,7 @@ from collections.abc import Mapping
 import numpy as np
 from scipy import ndimage, signal
 
-from estimate.extensions.base import ImageExtension, ParameterSpec
+from estimate.extensions.base import BeamFill, ImageExtension, ParameterSpec
 
 __all__ = ["TRUNCATION_PX", "Y_DEBLUR_REGULARISATION", "LensBlur", "line_spread", "profile_weights", "psf_2d",
            "unblurred_y_shape"]
@@ -228,7 +228,8 @@ class LensBlur(ImageExtension):
     @classmethod
     def apply(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
               profile_only: bool, y_shape: np.ndarray | None = None,
-              merge_fill: np.ndarray | None = None) -> np.ndarray:
+              merge_fill: np.ndarray | None = None,
+              beam_fill: BeamFill | None = None) -> np.ndarray:
         img = np.asarray(image, dtype=np.float64)
         if values["core_sigma_px"] == 0 and values["tail_fraction"] == 0:
             return img.copy()
@@ -244,7 +245,8 @@ class LensBlur(ImageExtension):
     @classmethod
     def vjp_input(cls, image: np.ndarray, cotangent: np.ndarray, values: Mapping[str, float], *,
                   pixel_mm: float, profile_only: bool, y_shape: np.ndarray | None = None,
-              merge_fill: np.ndarray | None = None) -> np.ndarray:
+              merge_fill: np.ndarray | None = None,
+              beam_fill: BeamFill | None = None) -> np.ndarray:
         cot = np.asarray(cotangent, dtype=np.float64)
         if (y_shape is not None and (profile_only or cot.shape[-2] == 1)
                 and not (values["core_sigma_px"] == 0 and values["tail_fraction"] == 0)):

@@ -30,6 +30,19 @@ wells by their plateau (`capture.hdr.plateau_saturation_adu`, since session 64; 
 kept them as measurements) and records how many exposures it kept per pixel, which
 `merge_fill_from_rows` reads. Derivative: exact in the image (linear in it); by c through
 `true_fill`'s root (finite differences of a deterministic function).
+
+The beam calibration went through the same sensor (session 67). Its frame read the beam's
+peak and the well-filled pixels of its bracket low by the same c g, so the calibrated beam
+power is low, by 0.73 % at c = 0.06 on the light bench (3.178e7 against the clean sessions'
+3.201e7 e-/s), and the model, which renders the beam map scaled to that power, is dim by
+as much wherever the scale is the calibrated one (`rig estimate`'s default). Unmodelled, a
+fit with the compression on made up for it with the albedo: 0.9523 against 0.95 on three
+independent recordings at c = 0.06, the compression 0.053-0.058. With the calibration
+frame's fills (`BeamFill`, the map's rows through `merge_fill_from_rows`, replayed from the
+map and its bracket) the model multiplies by `calibration_gain`, which restores the bench's
+power to 0.03 % at c = 0.06 and 0.12. With a free scale the factor is absorbed by the
+scale. The map's shape is left as read: its wings' sawtooth of fills up to 0.6 is a shape
+error of up to c g (3.6 % at c = 0.06) on a beam a quarter of the spot's width.
 """
 
 from __future__ import annotations
@@ -39,9 +52,9 @@ from collections.abc import Mapping
 import numpy as np
 
 from estimate.errors import ModelParameterError
-from estimate.extensions.base import ImageExtension, ParameterSpec
+from estimate.extensions.base import BeamFill, ImageExtension, ParameterSpec
 
-__all__ = ["SensorNonlinearity", "apply_raw", "true_fill"]
+__all__ = ["SensorNonlinearity", "apply_raw", "calibration_gain", "true_fill"]
 
 #: Bisection steps of `true_fill` on [g_m, 1]: 2^-48 < 1e-14.
 _FILL_ITERATIONS = 48
@@ -76,6 +89,19 @@ def true_fill(compression: float, merged_fill: np.ndarray) -> np.ndarray:
     return 0.5 * (lo + hi)
 
 
+def calibration_gain(compression: float, beam_fill: BeamFill) -> float:
+    """How much more power the beam carries than its calibration frame read: sum_p w_p /
+    (1 - c g_p) over the beam map's pixels (`BeamFill`: w_p each pixel's share of the read
+    power, g_p the calibration merge's fill there, converted by `true_fill`). The model
+    renders the beam map scaled to the read power, so its radiance is low by this factor
+    wherever the compression is on; 1 at c = 0, d/dc = sum_p w_p g_p there."""
+    c = float(compression)
+    if c == 0.0:
+        return 1.0
+    w = np.asarray(beam_fill.weights, dtype=np.float64)
+    return float(np.sum(w / (1.0 - c * true_fill(c, beam_fill.fill))))
+
+
 class SensorNonlinearity(ImageExtension):
     name = "sensor_nonlinearity"
     parameters = (
@@ -88,13 +114,15 @@ class SensorNonlinearity(ImageExtension):
     @classmethod
     def apply(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
               profile_only: bool, y_shape: np.ndarray | None = None,
-              merge_fill: np.ndarray | None = None) -> np.ndarray:
+              merge_fill: np.ndarray | None = None,
+              beam_fill: BeamFill | None = None) -> np.ndarray:
         img = np.asarray(image, dtype=np.float64)
+        gain = 1.0 if beam_fill is None else calibration_gain(values["compression"], beam_fill)
         if merge_fill is not None:
             c = values["compression"]
-            return img * (1.0 - c * true_fill(c, cls._fill(img, merge_fill)))
+            return gain * img * (1.0 - c * true_fill(c, cls._fill(img, merge_fill)))
         r = np.clip(img / values["full_well_radiance"], 0.0, 1.0)
-        return img * (1.0 - values["compression"] * r ** 2)
+        return gain * img * (1.0 - values["compression"] * r ** 2)
 
     @staticmethod
     def _fill(img: np.ndarray, merge_fill: np.ndarray) -> np.ndarray:
@@ -107,14 +135,16 @@ class SensorNonlinearity(ImageExtension):
     @classmethod
     def vjp_input(cls, image: np.ndarray, cotangent: np.ndarray, values: Mapping[str, float], *,
                   pixel_mm: float, profile_only: bool, y_shape: np.ndarray | None = None,
-              merge_fill: np.ndarray | None = None) -> np.ndarray:
+              merge_fill: np.ndarray | None = None,
+              beam_fill: BeamFill | None = None) -> np.ndarray:
         img = np.asarray(image, dtype=np.float64)
+        gain = 1.0 if beam_fill is None else calibration_gain(values["compression"], beam_fill)
         if merge_fill is not None:
             c = values["compression"]
-            return np.asarray(cotangent) * (1.0 - c * true_fill(c, cls._fill(img, merge_fill)))
+            return gain * np.asarray(cotangent) * (1.0 - c * true_fill(c, cls._fill(img, merge_fill)))
         w = values["full_well_radiance"]
         r = img / w
         below = (r >= 0) & (r <= 1)
         slope = np.where(below, 1.0 - 3.0 * values["compression"] * r ** 2,
                          1.0 - values["compression"] * np.where(r > 1, 1.0, 0.0))
-        return np.asarray(cotangent) * slope
+        return gain * np.asarray(cotangent) * slope

@@ -10,7 +10,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from estimate.extensions.base import ImageExtension, ParameterSpec
+from estimate.extensions.base import BeamFill, ImageExtension, ParameterSpec
 
 __all__ = ["StrayLight"]
 
@@ -31,7 +31,8 @@ class StrayLight(ImageExtension):
     @classmethod
     def apply(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
               profile_only: bool, y_shape: np.ndarray | None = None,
-              merge_fill: np.ndarray | None = None) -> np.ndarray:
+              merge_fill: np.ndarray | None = None,
+              beam_fill: BeamFill | None = None) -> np.ndarray:
         img = np.asarray(image, dtype=np.float64)
         x = cls._x_mm(img.shape[-1], pixel_mm)
         return img + values["offset"] + values["slope_per_mm"] * x
@@ -39,13 +40,15 @@ class StrayLight(ImageExtension):
     @classmethod
     def vjp_input(cls, image: np.ndarray, cotangent: np.ndarray, values: Mapping[str, float], *,
                   pixel_mm: float, profile_only: bool, y_shape: np.ndarray | None = None,
-              merge_fill: np.ndarray | None = None) -> np.ndarray:
+              merge_fill: np.ndarray | None = None,
+              beam_fill: BeamFill | None = None) -> np.ndarray:
         return np.asarray(cotangent, dtype=np.float64)
 
     @classmethod
     def param_derivatives(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
                           profile_only: bool, y_shape: np.ndarray | None = None,
-              merge_fill: np.ndarray | None = None) -> dict[str, np.ndarray]:
+              merge_fill: np.ndarray | None = None,
+              beam_fill: BeamFill | None = None) -> dict[str, np.ndarray]:
         img = np.asarray(image, dtype=np.float64)
         x = cls._x_mm(img.shape[-1], pixel_mm)
         return {"offset": np.ones_like(img), "slope_per_mm": np.broadcast_to(x, img.shape).copy()}
