@@ -44,6 +44,7 @@ from estimate.extensions.filter_bandwidth import band_nodes
 from estimate.extensions.lens_blur import TRUNCATION_PX as LENS_BLUR_RADIUS
 from estimate.extensions.lens_blur import psf_2d
 from estimate.extensions.refractive_boundary import INTERNAL_REFLECTIONS
+from estimate.extensions.sensor_nonlinearity import decompressed_map
 from estimate.geometry import PixelWindow, RigGeometry
 from estimate.light_paths import LightPaths
 from estimate.mitsuba_env import init_mitsuba
@@ -233,7 +234,20 @@ class ForwardModel:
             for p in EXTENSIONS["lens_blur"].parameters:
                 name = f"lens_blur.{p.name}"
                 self.specs[name] = replace(self.specs[name], derivative="fd")
+        #: The beam map is a calibration frame read through the sensor whose compression the
+        #: model includes (`beam_fill` with the frame's pixels): its wings, read from longer
+        #: exposures at fills up to 0.6, are low against its peak by up to c g (3.6 % at a 6 %
+        #: compression on the bench). The slab is lit by the map with the compression taken
+        #: out at the values' c (`beam_for`; its power stays the read one, which
+        #: `calibration_gain` corrects in the image), so the compression also changes the scene
+        #: and is differentiated by finite differences of whole renders, as the blur is.
+        self.decompresses_beam = ("sensor_nonlinearity" in self.extensions and beam_fill is not None
+                                  and beam_fill.pixels is not None and beam_fill.to_profile is not None)
+        if self.decompresses_beam:
+            self.specs["sensor_nonlinearity.compression"] = replace(
+                self.specs["sensor_nonlinearity.compression"], derivative="fd")
         self._beams: dict[tuple[float, ...], BeamProfile] = {}
+        self._decompressed: dict[float, BeamProfile] = {}
         self.mi = init_mitsuba(variant)
         import drjit as dr
 
@@ -273,13 +287,16 @@ class ForwardModel:
     def beam_for(self, values: Mapping[str, float]) -> BeamProfile:
         """The beam map that lights the slab at these parameter values: the calibrated one,
         or with `deblurs_beam` the calibrated one with the lens's PSF at the values' blur
-        taken out (`estimate.beam.BeamProfile.deblurred`; the map itself at no blur)."""
+        taken out (`estimate.beam.BeamProfile.deblurred`; the map itself at no blur), and
+        with `decompresses_beam` the sensor's compression taken out first."""
+        c = float(values.get("sensor_nonlinearity.compression", 0.0)) if self.decompresses_beam else 0.0
+        base = self.beam_profile if c == 0.0 else self._decompressed_beam(c)
         if not self.deblurs_beam:
-            return self.beam_profile
+            return base
         v = {p.name: float(values.get(f"lens_blur.{p.name}", p.neutral)) for p in EXTENSIONS["lens_blur"].parameters}
         if v["core_sigma_px"] == 0 and v["tail_fraction"] == 0:
-            return self.beam_profile
-        key = tuple(v[k] for k in sorted(v))
+            return base
+        key = (c, *(v[k] for k in sorted(v)))
         hit = self._beams.get(key)
         if hit is None:
             # One sample of the map is one sensor pixel of the calibration frame; the PSF is in
@@ -288,10 +305,23 @@ class ForwardModel:
                 raise ModelParameterError(
                     f"the beam map's pitch {self.beam_profile.pitch_mm:.6g} mm is not the sensor's pixel "
                     f"{self.geometry.pixel_mm:.6g} mm; the lens blur cannot be taken out of it")
-            hit = self.beam_profile.deblurred(psf_2d(v))
+            hit = base.deblurred(psf_2d(v))
             if len(self._beams) >= 16:  # a fit visits many points; keep the recent ones
                 self._beams.pop(next(iter(self._beams)))
             self._beams[key] = hit
+        return hit
+
+    def _decompressed_beam(self, compression: float) -> BeamProfile:
+        """The calibrated map with the sensor's compression at `compression` taken out
+        (`decompresses_beam`; `sensor_nonlinearity.decompressed_map`), recent ones cached."""
+        hit = self._decompressed.get(compression)
+        if hit is None:
+            bf = self.beam_fill
+            assert bf is not None and bf.to_profile is not None
+            hit = bf.to_profile(decompressed_map(compression, bf))
+            if len(self._decompressed) >= 16:
+                self._decompressed.pop(next(iter(self._decompressed)))
+            self._decompressed[compression] = hit
         return hit
 
     def _spec(self, name: str) -> ParameterSpec:
@@ -1081,7 +1111,7 @@ class _SceneBundle:
         model = self.model
         dr = model.dr
         mi = model.mi
-        if model.deblurs_beam:
+        if model.deblurs_beam or model.decompresses_beam:
             prof = model.beam_for(values)
             if prof is not self.beam_installed:
                 self.beam_emitter.set_profile(prof)

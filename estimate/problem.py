@@ -22,7 +22,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -341,7 +341,8 @@ def _beam_kept_counts(raw_path: Path, origin_px: tuple[float, float], shape: tup
 
 
 def _beam_fill(session: Any, sensor: Any, pixel_image: np.ndarray, exposures_s: Any,
-               kept: tuple[np.ndarray, float] | None) -> BeamFill | None:
+               kept: tuple[np.ndarray, float] | None,
+               to_profile: Callable[[np.ndarray], BeamProfile] | None = None) -> BeamFill | None:
     """The beam calibration frame's power shares and merge fills (`BeamFill`): each pixel's
     share of the map's read power, and `merge_fill_from_rows` over the map's rows, from the
     exposures the calibration's merge kept there (`_beam_kept_counts`) or, without its
@@ -368,7 +369,8 @@ def _beam_fill(session: Any, sensor: Any, pixel_image: np.ndarray, exposures_s: 
     fill = np.stack([merge_fill_from_rows(pixel_image, j, cols, t, noise, float(full_well), n_valid=n_valid)
                      for j in range(pixel_image.shape[0])])
     lit = pixel_image > 0
-    return BeamFill(weights=pixel_image[lit] / total, fill=fill[lit])
+    return BeamFill(weights=pixel_image[lit] / total, fill=fill[lit], pixels=pixel_image, fill_map=fill,
+                    to_profile=to_profile)
 
 
 def _load_beam(session: Any, cal: dict[str, Any], channel: str, pitch_mm: float,
@@ -392,18 +394,21 @@ def _load_beam(session: Any, cal: dict[str, Any], channel: str, pitch_mm: float,
     # is pixel-integrated and the map is read bilinearly: undo both (estimate.beam).
     pixels = np.clip(rad, 0.0, None)
     exposures = entry.get("exposures_s", (getattr(img, "meta", None) or {}).get("exposures_s"))
+    cx, cy = center_px
+    # Pixel centre (i, j) is at x = (i + 0.5 - cx) p, y = -(j + 0.5 - cy) p (estimate.geometry).
+    axis = (cx - 0.5 - x0, cy - 0.5 - y0)
+
+    def to_profile(pix: np.ndarray) -> BeamProfile:
+        return BeamProfile.from_camera_image(map_from_pixel_image(pix) / pitch_mm ** 2, pitch_mm, axis)
+
     fill = None
     if sensor is not None:
         kept = None
         if entry.get("raw") and session.noise_model() is not None:
             kept = _beam_kept_counts(Path(session.calibration_dir) / str(entry["raw"]), (x0, y0), pixels.shape,
                                      session.noise_model())
-        fill = _beam_fill(session, sensor, pixels, exposures, kept)
-    rad = map_from_pixel_image(pixels)
-    cx, cy = center_px
-    # Pixel centre (i, j) is at x = (i + 0.5 - cx) p, y = -(j + 0.5 - cy) p (estimate.geometry).
-    axis = (cx - 0.5 - x0, cy - 0.5 - y0)
-    return BeamProfile.from_camera_image(rad / pitch_mm ** 2, pitch_mm, axis), fill
+        fill = _beam_fill(session, sensor, pixels, exposures, kept, to_profile)
+    return to_profile(pixels), fill
 
 
 def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int | None = None, *,

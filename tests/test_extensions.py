@@ -3,6 +3,8 @@ adjoints, scene extensions in renders, derivatives, and bad input."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -699,3 +701,49 @@ def test_forward_model_scales_by_the_calibration_gain_with_a_beam_fill() -> None
     off = {**p, "sensor_nonlinearity.compression": 0.0}
     assert np.array_equal(gained.render_profiles(off, angles, spp=64, seed=2),
                           plain.render_profiles(off, angles, spp=64, seed=2))
+
+
+def test_forward_model_lights_the_slab_with_the_decompressed_beam_map() -> None:
+    """With the calibration frame's pixels and fills the model takes the compression out of
+    the map at the values' c (its wings were read from fuller wells than its peak): the
+    profiles are those of a model lit by that map, the compression becomes a rendered
+    (finite-difference) parameter, and at c = 0 nothing changes."""
+    from estimate.beam import map_from_pixel_image
+    from estimate.extensions.base import BeamFill
+    from estimate.extensions.sensor_nonlinearity import decompressed_map
+
+    pitch = GEOM.pixel_mm
+    yy, xx = np.mgrid[0:15, 0:15]
+    pix = 1e3 * np.exp(-0.5 * ((xx - 7.2) ** 2 + (yy - 6.9) ** 2) / 2.0 ** 2)
+    # a sawtooth of fills: the peak read from a short exposure, the wings from longer ones
+    r = np.hypot(xx - 7.2, yy - 6.9)
+    fill_map = np.where(r < 2.5, 0.15, np.where(r < 5.0, 0.55, 0.3))
+
+    def to_profile(p: np.ndarray) -> BeamProfile:
+        return BeamProfile.from_camera_image(map_from_pixel_image(p) / pitch ** 2, pitch, (7.0, 7.0))
+
+    lit = pix > 0
+    bf = BeamFill(weights=pix[lit] / pix.sum(), fill=fill_map[lit], pixels=pix, fill_map=fill_map,
+                  to_profile=to_profile)
+    c = 0.1
+    exts = ["sensor_nonlinearity"]
+    model = ForwardModel(GEOM, to_profile(pix), phase="exp1", extensions=exts, beam_fill=bf)
+    assert model.decompresses_beam and model.derivative_kind("sensor_nonlinearity.compression") == "fd"
+    shape = decompressed_map(c, bf)
+    assert shape.sum() == pytest.approx(pix.sum(), rel=1e-12)        # the power stays the read one
+    assert shape[7, 7] / shape[7, 12] < pix[7, 7] / pix[7, 12]      # the wings come up against the peak
+    # the same as a model lit by that map with the power put right in the image (calibration_gain)
+    power_only = dataclasses.replace(bf, pixels=None, fill_map=None, to_profile=None)
+    lit_by_it = ForwardModel(GEOM, to_profile(shape), phase="exp1", extensions=exts, beam_fill=power_only)
+    assert not lit_by_it.decompresses_beam
+    p = {**BASE, "phase.b1": 1.0, "sensor_nonlinearity.compression": c}
+    angles = [40.0, 140.0]
+    assert np.allclose(model.render_profiles(p, angles, spp=64, seed=2),
+                       lit_by_it.render_profiles(p, angles, spp=64, seed=2), rtol=1e-5, atol=1e-12)
+    off = {**p, "sensor_nonlinearity.compression": 0.0}
+    read = ForwardModel(GEOM, to_profile(pix), phase="exp1", extensions=exts, beam_fill=power_only)
+    assert np.array_equal(model.render_profiles(off, angles, spp=64, seed=2), read.render_profiles(off, angles, spp=64, seed=2))
+    # a rendered column of the compression, and one unlike the image-only column
+    jac = model.jacobian(p, angles, ["sensor_nonlinearity.compression"], spp=64, seed=2)["sensor_nonlinearity.compression"]
+    image_only = read.jacobian(p, angles, ["sensor_nonlinearity.compression"], spp=64, seed=2)["sensor_nonlinearity.compression"]
+    assert np.all(np.isfinite(jac)) and not np.allclose(jac, image_only, rtol=1e-2)

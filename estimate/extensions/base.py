@@ -18,9 +18,9 @@ next-event estimation, the boundary position, the dielectric index).
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import ClassVar, TypedDict
+from typing import Any, ClassVar, TypedDict
 
 import numpy as np
 
@@ -123,10 +123,19 @@ class BeamFill:
         weights: each beam-map pixel's share of the measured beam power, shape (P,), sum 1.
         fill: the calibration merge's mean squared fill of the well at those pixels, shape
             (P,) (`estimate.problem.merge_fill_from_rows` over the map's rows).
+        pixels: the map as read, the calibration frame's pixels (e-/s, >= 0), shape (H, W);
+            None when only the power is to be corrected.
+        fill_map: the merge's fill at every pixel of `pixels`, shape (H, W).
+        to_profile: how `estimate.problem` turns such a pixel image into the beam profile
+            the renderer takes (`estimate.beam.BeamProfile.from_camera_image` of the map
+            with the pixel integration undone), for a map decompressed at a compression.
     """
 
     weights: np.ndarray
     fill: np.ndarray
+    pixels: np.ndarray | None = None
+    fill_map: np.ndarray | None = None
+    to_profile: Callable[[np.ndarray], Any] | None = None
 
 
 class RowData(TypedDict):

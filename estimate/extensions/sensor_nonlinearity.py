@@ -54,7 +54,7 @@ import numpy as np
 from estimate.errors import ModelParameterError
 from estimate.extensions.base import BeamFill, ImageExtension, ParameterSpec
 
-__all__ = ["SensorNonlinearity", "apply_raw", "calibration_gain", "true_fill"]
+__all__ = ["SensorNonlinearity", "apply_raw", "calibration_gain", "decompressed_map", "true_fill"]
 
 #: Bisection steps of `true_fill` on [g_m, 1]: 2^-48 < 1e-14.
 _FILL_ITERATIONS = 48
@@ -100,6 +100,20 @@ def calibration_gain(compression: float, beam_fill: BeamFill) -> float:
         return 1.0
     w = np.asarray(beam_fill.weights, dtype=np.float64)
     return float(np.sum(w / (1.0 - c * true_fill(c, beam_fill.fill))))
+
+
+def decompressed_map(compression: float, beam_fill: BeamFill) -> np.ndarray:
+    """The calibration frame's pixels with the compression taken out, p / (1 - c g_p), scaled
+    back to the read power (the shape the beam had; its power is `calibration_gain`'s)."""
+    if beam_fill.pixels is None or beam_fill.fill_map is None:
+        raise ValueError("this BeamFill carries no pixel map")
+    pix = np.asarray(beam_fill.pixels, dtype=np.float64)
+    c = float(compression)
+    if c == 0.0:
+        return pix
+    out = pix / (1.0 - c * true_fill(c, beam_fill.fill_map))
+    total = float(out.sum())
+    return out * (float(pix.sum()) / total) if total > 0 else out
 
 
 class SensorNonlinearity(ImageExtension):
