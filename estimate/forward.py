@@ -176,10 +176,11 @@ class ForwardModel:
             for the sensor compression of profile renders
             (`estimate.extensions.sensor_nonlinearity`); without one for every angle the
             compression takes its full-well form.
-        beam_fill: the beam calibration frame's power shares and merge fills
+        beam_fill: the beam calibration frame's power shares, merge fills and pixels
             (`estimate.problem.Problem.beam_fill`), for the sensor compression of the
-            calibration itself (`estimate.extensions.sensor_nonlinearity.calibration_gain`);
-            None leaves the calibrated power as read.
+            calibration itself: its power (`estimate.extensions.sensor_nonlinearity.
+            calibration_gain`) and, with the pixels, its map's shape (`decompresses_beam`);
+            None leaves the calibration as read.
         engine: how the slab is rendered (`ENGINES`): "camera", Mitsuba's `prbvolpath`
             from the camera with next-event connections to the beam (derivatives by path
             replay); or "light", paths from the beam connected to the camera

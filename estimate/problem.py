@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import zipfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -199,8 +200,9 @@ class Problem:
         merge_fill: the HDR merge's mean squared fill of the well per profile pixel, shape
             (N, W) (`merge_fill_from_rows`), for the sensor compression of profile renders;
             None = unknown (a stack without its bracket or the sensor's full well).
-        beam_fill: the beam calibration frame's power shares and merge fills (`_beam_fill`),
-            for the sensor compression of the calibrated power; None = unknown.
+        beam_fill: the beam calibration frame's power shares, merge fills and pixels
+            (`_beam_fill`), for the sensor compression of the calibrated power and of the
+            map's shape; None = unknown.
     """
 
     angles_deg: np.ndarray
@@ -324,7 +326,7 @@ def _beam_kept_counts(raw_path: Path, origin_px: tuple[float, float], shape: tup
 
     try:
         light = [f for f in read_frames(raw_path) if not f.dark]
-    except (OSError, ValueError, KeyError):
+    except (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile):
         return None
     if not light or len({f.data.shape for f in light}) != 1:
         return None
