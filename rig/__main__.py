@@ -1,5 +1,5 @@
-"""`python -m rig ...`: the same command line as the `rig` script (`rig.cli.main`)."""
+"""`python -m rig ...`: the same command line as the `rig` script (`rig.cli.run`)."""
 
-from rig.cli import main
+from rig.cli import run
 
-raise SystemExit(main())
+run()

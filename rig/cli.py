@@ -12,6 +12,7 @@ import importlib
 import pkgutil
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 import rig
 import rig.commands
@@ -95,5 +96,31 @@ def _main(argv: Sequence[str] | None) -> int:
         return 3 if isinstance(e, DeviceError) else 2
 
 
+def run(argv: Sequence[str] | None = None) -> NoReturn:
+    """The `rig` program (`python -m rig`, `python -m rig.cli`): `main`, then exit with its code.
+
+    After a handled Ctrl-C the process leaves without the interpreter's finalisation. The
+    interrupt can land inside a render of the simulated bench, and the renderer's native
+    worker threads may still be unwinding from it when the interpreter finalises: once in
+    session 67's CI an interrupted capture that had saved its stacks, closed its session
+    and printed its resume line then aborted (SIGABRT, "PyThreadState_Get: the GIL is
+    released ... finalizing") instead of exiting 130. By then every stack is saved, the
+    session and the devices are closed (`rig.commands.capture`'s ``finally``), so only the
+    standard streams and the log handlers are flushed first."""
+    code = main(argv)
+    if code == EXIT_INTERRUPTED:
+        import logging
+        import os
+
+        logging.shutdown()
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        os._exit(code)
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    run()
