@@ -2637,11 +2637,21 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
         if "sensor_nonlinearity" in d.confirmed and form == "full_well":
             d.verdict += ("; the sensor compression is in its full-well form (the stacks carry no bracket "
                           "records or noise model to replay the HDR merge), so its magnitude is a bound")
+        # How the compression of the beam calibration's own frame was taken out of its power
+        # and its map's shape (`sensor_nonlinearity.calibration_gain`, `decompressed_map`):
+        # from the exposures its merge kept, replayed from the map, or not at all.
+        calibration = pb.beam_fill.source if pb.beam_fill is not None else "as read"
+        if "sensor_nonlinearity" in d.confirmed and calibration == "as read":
+            d.verdict += ("; the beam calibration's own compression is not taken out (its map carries no "
+                          "bracket record, or the session no noise model or full well), so the calibrated "
+                          "power and the map's shape are as read, and a fit on the calibrated scale makes up "
+                          "for them with the albedo")
         diags[ch] = d
         problems[ch] = pb
         phases[ch] = phase
         out["channels"][ch] = d.as_dict()
         out["channels"][ch]["sensor_compression_form"] = form
+        out["channels"][ch]["sensor_calibration"] = calibration
     diag_dir = new_run_dir(session, "diagnosis", kind="diagnoses")
     out["run_id"] = diag_dir.name
     refit_run = None

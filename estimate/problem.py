@@ -372,7 +372,7 @@ def _beam_fill(session: Any, sensor: Any, pixel_image: np.ndarray, exposures_s: 
                      for j in range(pixel_image.shape[0])])
     lit = pixel_image > 0
     return BeamFill(weights=pixel_image[lit] / total, fill=fill[lit], pixels=pixel_image, fill_map=fill,
-                    to_profile=to_profile)
+                    to_profile=to_profile, source="replayed" if kept is None else "kept frames")
 
 
 def _load_beam(session: Any, cal: dict[str, Any], channel: str, pitch_mm: float,

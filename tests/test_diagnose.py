@@ -820,6 +820,8 @@ def test_cli_end_to_end_writes_diagnosis_and_json(tmp_path, capsys):
     assert [c["name"] for c in ch["candidates"]] in ([], ["stray_light"])
     # The synthetic session has no bracket records: the compression would take its full-well form.
     assert ch["sensor_compression_form"] == "full_well"
+    # ... nor a beam calibration bracket: its own compression could not be taken out
+    assert ch["sensor_calibration"] == "as read"
     written = yaml.safe_load((s / "diagnoses" / doc["run_id"] / "diagnosis.yaml").read_text())
     assert written["format"] == "rig-diagnosis/1" and written["channels"]["g"]["significant"] == ch["significant"]
     # The summary `rig diagnose` prints says where the file is from anywhere, not from the session.

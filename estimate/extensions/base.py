@@ -129,6 +129,9 @@ class BeamFill:
         to_profile: how `estimate.problem` turns such a pixel image into the beam profile
             the renderer takes (`estimate.beam.BeamProfile.from_camera_image` of the map
             with the pixel integration undone), for a map decompressed at a compression.
+        source: where the fills come from: "kept frames" (the exposures the calibration's
+            merge kept, recounted from its light frames) or "replayed" (from the map and
+            its bracket alone).
     """
 
     weights: np.ndarray
@@ -136,6 +139,7 @@ class BeamFill:
     pixels: np.ndarray | None = None
     fill_map: np.ndarray | None = None
     to_profile: Callable[[np.ndarray], Any] | None = None
+    source: str = "replayed"
 
 
 class RowData(TypedDict):
