@@ -249,6 +249,8 @@ class ForwardModel:
                 self.specs["sensor_nonlinearity.compression"], derivative="fd")
         self._beams: dict[tuple[float, ...], BeamProfile] = {}
         self._decompressed: dict[float, BeamProfile] = {}
+        self._y_shapes: dict[tuple[float, ...], np.ndarray] = {}
+        self._last_deblurred: dict[float, BeamProfile] = {}
         self.mi = init_mitsuba(variant)
         import drjit as dr
 
@@ -306,7 +308,11 @@ class ForwardModel:
                 raise ModelParameterError(
                     f"the beam map's pitch {self.beam_profile.pitch_mm:.6g} mm is not the sensor's pixel "
                     f"{self.geometry.pixel_mm:.6g} mm; the lens blur cannot be taken out of it")
-            hit = base.deblurred(psf_2d(v))
+            # Started from the last map deblurred from the same base: a fit moves the blur a
+            # little at a time (a lens blur diagnosis deblurs at about 200 distinct blurs).
+            last = self._last_deblurred.get(c)
+            hit = base.deblurred(psf_2d(v), start=None if last is None else last.irradiance)
+            self._last_deblurred = {c: hit}
             if len(self._beams) >= 16:  # a fit visits many points; keep the recent ones
                 self._beams.pop(next(iter(self._beams)))
             self._beams[key] = hit
@@ -548,6 +554,10 @@ class ForwardModel:
         angles without one; None when the model has none (the lens blur uses its LSF)."""
         if not self.profile_y_shape:
             return None
+        key = tuple(_angle_key(a) for a in angles)
+        hit = self._y_shapes.get(key)
+        if hit is not None:
+            return hit
         window = self.geometry.profile_window()
         rows = []
         for a in angles:
@@ -555,7 +565,13 @@ class ForwardModel:
             if h is None or h.shape[-1] != window.width:
                 h = np.ones((2 * LENS_BLUR_RADIUS + 1, window.width))
             rows.append(h)
-        return np.stack(rows)
+        # One read-only array per set of angles: the lens blur caches its weights by it.
+        out = np.stack(rows)
+        out.setflags(write=False)
+        if len(self._y_shapes) >= 16:
+            self._y_shapes.pop(next(iter(self._y_shapes)))
+        self._y_shapes[key] = out
+        return out
 
     def _post(self, radiance: np.ndarray, values: Mapping[str, float], profile_only: bool,
               row_data: RowData | None = None) -> np.ndarray:

@@ -46,6 +46,7 @@ function.
 from __future__ import annotations
 
 import functools
+from collections import OrderedDict
 from collections.abc import Mapping
 
 import numpy as np
@@ -166,6 +167,36 @@ def profile_weights(values: Mapping[str, float], y_shape: np.ndarray, radius: in
     return w
 
 
+#: Recent `profile_weights` of the recorded y-shape, by the y-shape array's identity and the
+#: blur's values: a fit's finite differences and Jacobians blur renders of the same angles at
+#: the same blur many times over (a lens blur's diagnosis called it 1049 times, 18 s of its
+#: 84 s on 2 cores at 256 spp; on a GPU the largest cost of that diagnosis). The entry holds
+#: the array itself, so a hit is the same object, never a new one at a reused id;
+#: `estimate.forward.ForwardModel.y_shape_for` hands out one array per set of angles.
+_WEIGHTS_CACHE: OrderedDict[tuple[int, tuple[tuple[str, float], ...]], tuple[np.ndarray, np.ndarray]] = OrderedDict()
+_WEIGHTS_CACHE_SIZE = 32
+
+
+def _recorded_profile_weights(values: Mapping[str, float], y_shape: np.ndarray) -> np.ndarray:
+    """`profile_weights(values, y_shape)` of a recorded y-shape, from `_WEIGHTS_CACHE` when the
+    same array was blurred at the same values lately (read-only arrays only: a writable one
+    could change under its id)."""
+    h = np.asarray(y_shape)
+    if h.flags.writeable:
+        return profile_weights(values, h)
+    key = (id(h), tuple(sorted((k, float(v)) for k, v in values.items())))
+    hit = _WEIGHTS_CACHE.get(key)
+    if hit is not None and hit[0] is h:
+        _WEIGHTS_CACHE.move_to_end(key)
+        return hit[1]
+    w = profile_weights(values, h)
+    w.setflags(write=False)
+    _WEIGHTS_CACHE[key] = (h, w)
+    while len(_WEIGHTS_CACHE) > _WEIGHTS_CACHE_SIZE:
+        _WEIGHTS_CACHE.popitem(last=False)
+    return w
+
+
 def _weighted_profile(img: np.ndarray, w: np.ndarray, transpose: bool) -> np.ndarray:
     """out[n, x] = sum_k img[n, x - dx_k] w[n, k, x - dx_k] (or its transpose:
     out[n, x'] = sum_k img[n, x' + dx_k] w[n, k, x']), img (N, W), zero padding."""
@@ -236,7 +267,7 @@ class LensBlur(ImageExtension):
         if profile_only or img.shape[-2] == 1:
             if y_shape is not None:
                 flat, shape = cls._profile_rows(img, y_shape)
-                return _weighted_profile(flat, profile_weights(values, y_shape), False).reshape(shape)
+                return _weighted_profile(flat, _recorded_profile_weights(values, y_shape), False).reshape(shape)
             return ndimage.convolve1d(img, line_spread(values), axis=-1, mode="constant")
         k = psf_2d(values)
         k = k.reshape((1,) * (img.ndim - 2) + k.shape)
@@ -251,5 +282,5 @@ class LensBlur(ImageExtension):
         if (y_shape is not None and (profile_only or cot.shape[-2] == 1)
                 and not (values["core_sigma_px"] == 0 and values["tail_fraction"] == 0)):
             flat, shape = cls._profile_rows(cot, y_shape)
-            return _weighted_profile(flat, profile_weights(values, y_shape), True).reshape(shape)
+            return _weighted_profile(flat, _recorded_profile_weights(values, y_shape), True).reshape(shape)
         return cls.apply(cot, values, pixel_mm=pixel_mm, profile_only=profile_only)
