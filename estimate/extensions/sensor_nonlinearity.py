@@ -38,8 +38,9 @@ power is low, by 0.73 % at c = 0.06 on the light bench (3.178e7 against the clea
 as much wherever the scale is the calibrated one (`rig estimate`'s default). Unmodelled, a
 fit with the compression on made up for it with the albedo: 0.9523 against 0.95 on three
 independent recordings at c = 0.06, the compression 0.053-0.058. With the calibration
-frame's fills (`BeamFill`, the map's rows through `merge_fill_from_rows`, replayed from the
-map and its bracket) the model multiplies by `calibration_gain`, which restores the bench's
+frame's fills (`BeamFill`: the map's rows through `merge_fill_from_rows`, with the exposures
+the calibration's merge kept, recounted from its frames) the model multiplies by
+`calibration_gain`, which restores the bench's
 power to 0.005 % at c = 0.06 and 0.01 % at 0.12 (from the calibration merge's kept exposures
 per pixel; replayed from the map alone, 0.03 %). With a free scale the factor is absorbed by
 the scale. The map's shape was read wrong too: its wings, read from longer exposures at fills
