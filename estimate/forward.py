@@ -250,7 +250,7 @@ class ForwardModel:
         self._beams: dict[tuple[float, ...], BeamProfile] = {}
         self._decompressed: dict[float, BeamProfile] = {}
         self._y_shapes: dict[tuple[float, ...], np.ndarray] = {}
-        self._last_deblurred: dict[float, BeamProfile] = {}
+        self._last_deblurred: tuple[float, BeamProfile] | None = None
         self.mi = init_mitsuba(variant)
         import drjit as dr
 
@@ -310,9 +310,9 @@ class ForwardModel:
                     f"{self.geometry.pixel_mm:.6g} mm; the lens blur cannot be taken out of it")
             # Started from the last map deblurred from the same base: a fit moves the blur a
             # little at a time (a lens blur diagnosis deblurs at about 200 distinct blurs).
-            last = self._last_deblurred.get(c)
-            hit = base.deblurred(psf_2d(v), start=None if last is None else last.irradiance)
-            self._last_deblurred = {c: hit}
+            last = self._last_deblurred
+            hit = base.deblurred(psf_2d(v), start=last[1].irradiance if last is not None and last[0] == c else None)
+            self._last_deblurred = (c, hit)
             if len(self._beams) >= 16:  # a fit visits many points; keep the recent ones
                 self._beams.pop(next(iter(self._beams)))
             self._beams[key] = hit

@@ -342,7 +342,7 @@ def _beam_kept_counts(raw_path: Path, origin_px: tuple[float, float], shape: tup
     return n_valid[y0:y0 + shape[0], x0:x0 + shape[1]], level
 
 
-def _beam_fill(session: Any, sensor: Any, pixel_image: np.ndarray, exposures_s: Any,
+def _beam_fill(noise: Any, sensor: Any, pixel_image: np.ndarray, exposures_s: Any,
                kept: tuple[np.ndarray, float] | None,
                to_profile: Callable[[np.ndarray], BeamProfile] | None = None) -> BeamFill | None:
     """The beam calibration frame's power shares and merge fills (`BeamFill`): each pixel's
@@ -351,10 +351,9 @@ def _beam_fill(session: Any, sensor: Any, pixel_image: np.ndarray, exposures_s: 
     frames, replayed from the map and its bracket (an uncompressed prediction, which keeps
     too few exposures where the compression pulled a sample below the saturation level:
     0.4 % short of the true power at c = 0.06 in `tests/test_extensions.py`). The
-    calibration's frames are unbinned (`calibrate.beam`). None without the bracket, the
-    session's noise model or the sensor's full well: the calibrated power is then taken as
-    read."""
-    noise = session.noise_model()
+    calibration's frames are unbinned (`calibrate.beam`). `noise`: the session's noise model.
+    None without the bracket, the noise model or the sensor's full well: the calibrated
+    power is then taken as read."""
     full_well = getattr(sensor, "full_well_e", None)
     total = float(pixel_image.sum())
     try:
@@ -405,11 +404,11 @@ def _load_beam(session: Any, cal: dict[str, Any], channel: str, pitch_mm: float,
 
     fill = None
     if sensor is not None:
+        noise = session.noise_model()
         kept = None
-        if entry.get("raw") and session.noise_model() is not None:
-            kept = _beam_kept_counts(Path(session.calibration_dir) / str(entry["raw"]), (x0, y0), pixels.shape,
-                                     session.noise_model())
-        fill = _beam_fill(session, sensor, pixels, exposures, kept, to_profile)
+        if entry.get("raw") and noise is not None:
+            kept = _beam_kept_counts(Path(session.calibration_dir) / str(entry["raw"]), (x0, y0), pixels.shape, noise)
+        fill = _beam_fill(noise, sensor, pixels, exposures, kept, to_profile)
     return to_profile(pixels), fill
 
 

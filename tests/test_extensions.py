@@ -658,14 +658,12 @@ def test_the_calibration_gain_restores_the_power_of_a_compressed_beam_frame(c: f
     from types import SimpleNamespace
 
     from estimate.problem import _beam_fill
-    session = SimpleNamespace(noise_model=lambda: noise)
-    built = _beam_fill(session, SimpleNamespace(full_well_e=fw), read, times, kept)
+    built = _beam_fill(noise, SimpleNamespace(full_well_e=fw), read, times, kept)
     assert built is not None and built.source == "kept frames" and built.pixels is read
     assert calibration_gain(c, built) == pytest.approx(k, rel=1e-12)
-    replayed = _beam_fill(session, SimpleNamespace(full_well_e=fw), read, times, None)
+    replayed = _beam_fill(noise, SimpleNamespace(full_well_e=fw), read, times, None)
     assert replayed is not None and replayed.source == "replayed"
-    assert _beam_fill(SimpleNamespace(noise_model=lambda: None), SimpleNamespace(full_well_e=fw), read, times,
-                      kept) is None
+    assert _beam_fill(None, SimpleNamespace(full_well_e=fw), read, times, kept) is None
     if c == 0.06:
         # here the replay misses exposures the compression kept below the level (at 12 % this
         # beam's samples happen to sit clear of it, and the replay comes within 4e-5)

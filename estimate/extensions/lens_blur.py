@@ -46,6 +46,7 @@ function.
 from __future__ import annotations
 
 import functools
+import weakref
 from collections import OrderedDict
 from collections.abc import Mapping
 
@@ -171,10 +172,13 @@ def profile_weights(values: Mapping[str, float], y_shape: np.ndarray, radius: in
 #: blur's values: a fit's finite differences and Jacobians blur renders of the same angles at
 #: the same blur many times over (a lens blur's diagnosis called it 1049 times, 18 s of its
 #: 84 s on 2 cores at 256 spp; on a GPU the largest cost of that diagnosis). The entry holds
-#: the array itself, so a hit is the same object, never a new one at a reused id;
-#: `estimate.forward.ForwardModel.y_shape_for` hands out one array per set of angles.
-_WEIGHTS_CACHE: OrderedDict[tuple[int, tuple[tuple[str, float], ...]], tuple[np.ndarray, np.ndarray]] = OrderedDict()
-_WEIGHTS_CACHE_SIZE = 32
+#: a weak reference to the array, so a hit is the same object, never a new one at a reused
+#: id, and the cache keeps no y-shape alive (each entry's weights: about 2 MB on rig
+#: estimate's 8 x 256-px window); `estimate.forward.ForwardModel.y_shape_for` hands out one
+#: array per set of angles.
+_WEIGHTS_CACHE: OrderedDict[tuple[int, tuple[tuple[str, float], ...]],
+                            tuple[weakref.ref[np.ndarray], np.ndarray]] = OrderedDict()
+_WEIGHTS_CACHE_SIZE = 16
 
 
 def _recorded_profile_weights(values: Mapping[str, float], y_shape: np.ndarray) -> np.ndarray:
@@ -186,12 +190,12 @@ def _recorded_profile_weights(values: Mapping[str, float], y_shape: np.ndarray) 
         return profile_weights(values, h)
     key = (id(h), tuple(sorted((k, float(v)) for k, v in values.items())))
     hit = _WEIGHTS_CACHE.get(key)
-    if hit is not None and hit[0] is h:
+    if hit is not None and hit[0]() is h:
         _WEIGHTS_CACHE.move_to_end(key)
         return hit[1]
     w = profile_weights(values, h)
     w.setflags(write=False)
-    _WEIGHTS_CACHE[key] = (h, w)
+    _WEIGHTS_CACHE[key] = (weakref.ref(h), w)
     while len(_WEIGHTS_CACHE) > _WEIGHTS_CACHE_SIZE:
         _WEIGHTS_CACHE.popitem(last=False)
     return w
