@@ -43,6 +43,8 @@
 # Session 67's call on an H200 (after GPU_PACK=light gpu_pack.sh, two boundary sessions, 18 MB): `bash
 # benchmarks/gpu_run.sh light` carrying [".gpu/site.tar.xz", ".gpu/light.tar.xz"]; results in
 # benchmarks/results/gpu_session67/.
+# Session 68's call on an H200: `LB_CASES=... LB_LABEL=gpu68 bash benchmarks/gpu_run.sh lightbench` carrying
+# [".gpu/site.tar.xz"]; results in benchmarks/results/gpu_session68/.
 set -uo pipefail
 job=${1:-estimate}
 OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT"
@@ -152,6 +154,26 @@ PY
   done
   (cd /tmp/light_out && tar cf "$OUT/light_gpu.tar" .)
   ;;
-*) echo "unknown job $job (estimate, paper, diagnose256, bench or light)"; exit 2 ;;
+lightbench)
+  # The light bench recorded and diagnosed there from scratch, as on the cores:
+  # bench_diagnose.py --source bench --engine light --profile-spp 8192 --spp 2048 --fresh on
+  # the cases LB_CASES (comma-separated, run in that order), new cases stopped after
+  # LB_BUDGET_S (420; the budget stops new cases, not a running one, so leave LB_LIMIT_S above
+  # it by the longest case, ~130 s). The report and every case JSON this run wrote come back in
+  # $OUT/lightbench.tar ('+' in a case id is not a name $OUT returns); bench_diagnose.py keys
+  # its case files without the label, so rename them (e.g. *_gpu68.json) when unpacking beside
+  # the cores' files. Session 68: the 10 cases session 67's budget cut, and the compression pair
+  # again after session 67's fix.
+  mkdir -p benchmarks/results/diagnose_cases && touch "$OUT/.start"
+  t=$(date +%s)
+  timeout "${LB_LIMIT_S:-560}" python3 benchmarks/bench_diagnose.py --source bench --engine light --profile-spp 8192 \
+    --spp 2048 --fresh --only "${LB_CASES:-clean-3}" --time-budget "${LB_BUDGET_S:-420}" --label "${LB_LABEL:-gpu}" \
+    2>&1 | tee "$OUT/lightbench.log"
+  echo "lightbench: wall $(( $(date +%s) - t )) s"
+  (cd benchmarks/results && find . -newer "$OUT/.start" -type f \( -name '*.json' -o -name '*.md' \) \
+     -not -path '*/session/*' -print0 | tar cf "$OUT/lightbench.tar" --null -T -)
+  rm -f "$OUT/.start"
+  ;;
+*) echo "unknown job $job (estimate, paper, diagnose256, bench, light or lightbench)"; exit 2 ;;
 esac
 echo "total $(( $(date +%s) - t0 )) s"

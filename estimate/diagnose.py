@@ -2531,7 +2531,7 @@ def _check_same_session(session_dir: Any, run_doc: Mapping[str, Any], run_dir: A
 def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[str] | None = None,
                   channels: Sequence[str] | None = None, spp: int | None = None, repeats: int = DEFAULT_REPEATS,
                   iterations: int = 8, seed: int = DEFAULT_SEED, plots: bool = True, log: Callable[[str], None] | None = None,
-                  refine: bool = True, refit_objective: str = FIXED_SEED, engine: str = "camera",
+                  refine: bool = True, refit_objective: str = FIXED_SEED, engine: str | None = None,
                   fit_progress: Callable[[str, str], tuple[Callable[[int, float, int], None], Callable[[str], None]]]
                   | None = None) -> dict[str, Any]:
     """Diagnose every channel of an estimate run of a session and write the results.
@@ -2541,9 +2541,11 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
     of a channel with confirmed effects is fitted by the estimator with the run's own
     settings (`refine_channel`); without, the Levenberg-Marquardt refit is the final one.
     `spp` None takes `default_diagnose_spp()` (256 on the CPU, 2048 on a GPU; 2048 with the
-    light engine). `engine`: the
-    forward model's render engine for every model of the diagnosis (`estimate.forward.ENGINES`;
-    its bars were set on the camera engine's renders, docs/diagnosis-log.md).
+    light engine). `engine`: the forward model's render engine for every model of the
+    diagnosis (`estimate.forward.ENGINES`); None takes the fit's own (`FitSettings.engine`,
+    the light engine for `rig estimate`'s runs since session 61), so that the diagnosis'
+    models carry the render noise and the means the fit was made with (the light bench's
+    proof, docs/diagnosis-log.md, sessions 62-68).
     Returns the diagnosis document (`channels.<f>` = `ChannelDiagnosis.as_dict()`, plus
     `refit_run`). `fit_progress(channel, model)`, when given, returns the (progress,
     on_stage) callbacks for a channel's final fit (`rig.fit_progress.FitProgress.channel`).
@@ -2568,9 +2570,8 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
     if refit_objective not in OBJECTIVES:
         raise ModelParameterError(f"refit objective {refit_objective!r}: expected one of {', '.join(OBJECTIVES)}")
     from estimate.forward import check_engine
-    check_engine(engine)
-    if spp is None:
-        spp = default_diagnose_spp(engine=engine)
+    if engine is not None:
+        check_engine(engine)
     session = Path(session_dir)
     run_dir = _resolve_fit(session, fit_run)
     doc = read_run(run_dir)
@@ -2579,6 +2580,12 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
     if not isinstance(settings, Mapping):
         raise DataError(f"{run_dir / 'results.yaml'}: settings is not a mapping; restore the file or run the "
                         "estimate again")
+    fit_settings = _run_fit_settings(settings, str(run_dir / "results.yaml"))
+    if engine is None:
+        engine = fit_settings.engine
+        check_engine(engine)   # a hand-edited results.yaml's, before any work
+    if spp is None:
+        spp = default_diagnose_spp(engine=engine)
     base_exts = list(settings.get("extensions") or [])
     chans = doc.get("channels") or {}
     chosen = list(channels) if channels else list(chans)
@@ -2589,7 +2596,6 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
                                         "effects": list(effects) if effects else list(CANDIDATES),
                                         "final_fit": "estimator" if refine else "levenberg-marquardt"},
                            "channels": {}}
-    fit_settings = _run_fit_settings(settings, str(run_dir / "results.yaml"))
     finals: dict[str, Any] = {}
     diags: dict[str, ChannelDiagnosis] = {}
     problems: dict[str, Any] = {}

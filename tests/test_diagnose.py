@@ -814,6 +814,9 @@ def test_cli_end_to_end_writes_diagnosis_and_json(tmp_path, capsys):
     capsys.readouterr()
     assert main(["diagnose", str(s), "--effects", "stray_light", "--spp", "32", "--no-plots", "--json"]) == 0
     doc = __import__("json").loads(capsys.readouterr().out)
+    # Without --engine the diagnosis renders with the fit's own engine (rig estimate's default).
+    fit_engine = yaml.safe_load((Path(doc["fit_run"]) / "results.yaml").read_text())["settings"]["fit"]["engine"]
+    assert doc["settings"]["engine"] == fit_engine == "light"
     ch = doc["channels"]["g"]
     assert set(ch) >= {"significant", "localisation", "candidates", "confirmed_effects", "reduced_chi2_before",
                        "reduced_chi2_after", "material_before", "material_after"}

@@ -1,7 +1,7 @@
 """``rig diagnose SESSION/``: where a fit and the recording disagree, and which physics is missing.
 
     rig diagnose SESSION/ [--fit RUN] [--effects a,b,...] [--channels rgb] [--spp N]
-                 [--refits fixed-seed|decorrelated] [--quick] [--json]
+                 [--refits fixed-seed|decorrelated] [--engine light|camera] [--quick] [--json]
 
 Diagnoses the latest estimate run (or `--fit RUN`: a run id under SESSION/estimates/ or its
 path): tests the whole fit against the noise (the HDR variance scaled by an empirical
@@ -32,8 +32,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="candidate extensions to test (default: all eight)")
     p.add_argument("--channels", default=None, help="channels to diagnose, e.g. rgb or r,g (default: all of the fit)")
     p.add_argument("--spp", type=int, default=None,
-                   help="samples per pixel of the diagnosis renders (256 on the CPU; 2048 on a GPU, the reference "
-                        "setting on rig estimate's 256-px window, a few minutes a channel there)")
+                   help="samples per pixel of the diagnosis renders (the light engine: 2048 on the CPU and a GPU; "
+                        "the camera engine: 256 on the CPU, 2048 on a GPU)")
     p.add_argument("--seed", type=int, default=1000, help="base render seed (1000)")
     p.add_argument("--quick", action="store_true",
                    help="skip the estimator's final fit of the confirmed effects (on the simulated bench it saves "
@@ -47,10 +47,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "Levenberg-Marquardt; its optimum leans towards quieter renders, so a 256-px window wants "
                         "about 2048 spp) or the decorrelated chi2 of two seeds (decorrelated, Gauss-Newton; no such "
                         "lean, so fewer spp serve: see docs/diagnosis-log.md, session 45)")
-    p.add_argument("--engine", choices=("camera", "light"), default="camera",
-                   help="the forward model's render engine for the diagnosis' models: Mitsuba's prbvolpath from "
-                        "the camera (camera, default: the one the diagnosis' bars were set on) or light paths from "
-                        "the beam (light: much less render noise a second; see docs/diagnosis-log.md, session 61)")
+    p.add_argument("--engine", choices=("camera", "light"), default=None,
+                   help="the forward model's render engine for the diagnosis' models: light paths from the beam "
+                        "(light: much less render noise a second, 2048 spp by default) or Mitsuba's prbvolpath from "
+                        "the camera (camera); default: the fit's own, light for rig estimate's default fits "
+                        "(docs/diagnosis-log.md, sessions 61-68)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     p.add_argument("--json", action="store_true", help="print the diagnosis as JSON")
     p.add_argument("--no-progress", action="store_true",
@@ -81,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
         if e not in EXTENSIONS:
             raise UsageError(f"--effects: unknown effect {e!r}; known: {', '.join(sorted(EXTENSIONS))}")
     if args.spp is not None and args.spp < 16:
-        raise UsageError(f"--spp {args.spp}: use at least 16 samples per pixel (default 256 on the CPU, 2048 on a GPU; 2048 with --engine light)")
+        raise UsageError(f"--spp {args.spp}: use at least 16 samples per pixel (default 2048 with the light engine; 256 on the CPU and 2048 on a GPU with the camera engine)")
     log = None if args.json else (lambda s: print(s, file=sys.stderr))
     with FitProgress(enabled=not (args.json or args.no_progress)) as live:
         doc = run_diagnosis(session, args.fit, effects=effects, channels=_list(args.channels, True), spp=args.spp,
