@@ -37,9 +37,15 @@ renders the image and its Jacobian for these parameters (unbiased; the slab's fa
 move with them, so there is no boundary term). The beam halo, the stage angle and the
 thickness move the light's sources or the walls: those are differentiated by differences.
 
-Scope: index-matched slab (no refractive boundary: its Fresnel terms and internal
-reflections are not traced here), Gaussian halo around the map's centroid as in
-`estimate.beam`, phase functions exp<M>, hg and tthg as in the camera engine. Units: mm,
+A refractive boundary (`eta` > 1, the extension `refractive_boundary`): the beam is refracted
+on entry and carries the share 1 - F that enters (Fresnel); a flight that reaches a face is
+reflected with probability F (totally beyond the critical angle), else the path leaves; the
+connection to the camera leaves through the front face at normal incidence, transmitted by
+1 - F0 with the radiance divided by n^2, directly or after reflecting off the back face, with
+every round trip between the faces summed in closed form (`_connection`).
+
+Scope: the slab, with or without that boundary; a Gaussian halo around the map's centroid as
+in `estimate.beam`; phase functions exp<M>, hg and tthg as in the camera engine. Units: mm,
 1/mm; the image is radiance in the map's irradiance units per steradian, as the camera
 engine's.
 """
