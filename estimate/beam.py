@@ -185,6 +185,33 @@ class BeamProfile:
         var_v = float((e.sum(axis=1) * (v - cv) ** 2).sum() / s)
         return float(np.sqrt(0.5 * (var_u + var_v)))
 
+    def blurred_along_v(self, kernel: np.ndarray) -> BeamProfile:
+        """The map convolved along v (world y) with a 1D kernel in map samples (odd length,
+        centred), widened by the kernel's reach so that no power is lost.
+
+        The slab and the medium do not change along y, so an image row of the slab lit by
+        this map is the image lit by the map itself, blurred along y by the kernel at the
+        map's pitch: how the light engine renders the profile row with the lens blur's core
+        (separable, so its y part) already applied (`estimate.forward.ForwardModel.beam_for`).
+        """
+        k = np.asarray(kernel, dtype=np.float64)
+        if k.ndim != 1 or k.size % 2 != 1:
+            raise ModelParameterError(f"beam blurring kernel has shape {k.shape}; expected an odd length")
+        r = k.size // 2
+        # Trim the kernel's negligible ends (a 2.5 px core in a 129-sample kernel).
+        keep = np.nonzero(k > 1e-12 * float(k.max()))[0]
+        reach = int(max(r - keep[0], keep[-1] - r)) if keep.size else 0
+        k = k[r - reach:r + reach + 1]
+        if reach == 0:
+            return BeamProfile(self.irradiance * float(k[0]), self.pitch_mm, self.u0_mm, self.v0_mm,
+                               through_lens=self.through_lens)
+        from scipy import ndimage
+
+        e = np.pad(self.irradiance, ((reach, reach), (0, 0)))
+        out = ndimage.convolve1d(e, k, axis=0, mode="constant")
+        return BeamProfile(np.clip(out, 0.0, None), self.pitch_mm, self.u0_mm, self.v0_mm - reach * self.pitch_mm,
+                           through_lens=self.through_lens)
+
     def deblurred(self, psf: np.ndarray, regularisation: float = DEBLUR_REGULARISATION, *,
                   start: np.ndarray | None = None) -> BeamProfile:
         """The map with a point-spread function taken out (regularised least squares).

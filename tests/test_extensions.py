@@ -460,6 +460,59 @@ def test_a_model_with_lens_blur_lights_the_slab_with_the_map_deblurred() -> None
         ForwardModel(GEOM, coarse, phase="exp1", extensions=exts).render_profiles(p, angles, spp=4, seed=0)
 
 
+def test_the_light_engine_blurs_the_profile_row_along_y_by_lighting_the_slab_with_the_core_blurred_map() -> None:
+    """The slab does not change along y, so an image row lit by the map blurred along v by
+    the blur's core is the image blurred along y by the core: the light engine's profile row
+    of a lens blur model equals the centre row of the rows around it blurred in 2D by the
+    core, exactly (the same paths: blurring along v leaves the map's marginal in u, where
+    the paths start, as it is). No y-shape is read for it."""
+    from scipy import signal
+
+    from estimate.extensions.lens_blur import psf_2d
+
+    geom = RigGeometry(thickness_mm=1.0, sensor_px=(N_PIX, 33), magnification=0.4, image_center_px=(N_PIX / 2, 16.5))
+    assert geom.pixel_mm == GEOM.pixel_mm
+    blur = {"core_sigma_px": 1.2, "tail_fraction": 0.0, "tail_scale_px": 20.0}
+    _, frame = _camera_map(blur)
+    model = ForwardModel(geom, frame, phase="exp1", extensions=["lens_blur"], engine="light")
+    assert model.core_blur_in_scene
+    assert not ForwardModel(geom, frame, phase="exp1", extensions=["lens_blur"]).core_blur_in_scene  # camera engine
+    p = {**BASE, "phase.b1": 1.0, **{f"lens_blur.{k}": v for k, v in blur.items()}}
+    angles = [40.0, 140.0]
+    row = model.render_profiles(p, angles, spp=64, seed=2)
+    lit = model.beam_for(model.validate(p), single_row=True)
+    flat = model.beam_for(model.validate(p))
+    assert lit.power() == pytest.approx(flat.power(), rel=1e-9) and lit.irradiance.shape[0] > flat.irradiance.shape[0]
+    y0, r = geom.profile_window().row0, 6
+    plain = ForwardModel(geom, flat, phase="exp1", engine="light")
+    rows = plain.render({**BASE, "phase.b1": 1.0}, angles, rows=(y0 - r, y0 + r + 1), spp=64, seed=2)
+    want = signal.fftconvolve(rows, psf_2d(blur)[None], mode="same", axes=(-2, -1))[:, r, :]
+    assert np.abs(row - want).max() <= 1e-5 * want.max()
+    # the rows of a taller window are blurred in 2D in the image, lit by the map itself
+    tall = model.render(p, angles, rows=(y0 - r, y0 + r + 1), spp=64, seed=2)
+    assert np.abs(tall[:, r, :] - want).max() <= 1e-5 * want.max()
+
+
+def test_with_the_core_in_the_scene_the_profile_weights_keep_the_core_line_spread_and_the_tail_on_the_image() -> None:
+    """`core_in_scene`: the row holds I(x', y0) E_G[h] already, so the core's weight is its
+    line spread alone and the tail's is divided by E_G[h]: applied to that row, the weights
+    give what the weights without it give applied to I(x', y0)."""
+    from estimate.extensions.lens_blur import core_line_spread
+
+    rng = np.random.default_rng(5)
+    values = {"core_sigma_px": 1.5, "tail_fraction": 0.05, "tail_scale_px": 8.0}
+    radius = 64
+    dy = np.arange(-radius, radius + 1)[:, None]
+    widths = rng.uniform(3.0, 9.0, size=(2, 1, 40))
+    h = np.exp(-0.5 * (dy[None] / widths) ** 2)          # unblurred y-shapes, (N, 2 R + 1, W)
+    row = rng.uniform(0.5, 2.0, size=(2, 40))            # I(x', y0)
+    core = core_line_spread(values, radius)
+    lit = row * np.einsum("d,ndw->nw", core, h)          # the row lit by the core-blurred map
+    plain = _weighted_profile(row, profile_weights(values, h, recorded=False), False)
+    in_scene = _weighted_profile(lit, profile_weights(values, h, recorded=False, core_in_scene=True), False)
+    assert np.allclose(in_scene, plain, rtol=1e-12, atol=0.0)
+
+
 def test_screening_renders_the_lens_blur_where_the_map_was_imaged_through_the_lens() -> None:
     from estimate.screening import PROBES, candidate_columns, image_columns
 

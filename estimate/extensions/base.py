@@ -150,11 +150,12 @@ class RowData(TypedDict):
     y_shape: np.ndarray | None
     merge_fill: np.ndarray | None
     beam_fill: BeamFill | None
+    core_in_scene: bool
 
 
 def no_row_data() -> RowData:
     """Nothing from the recording (full frames, other windows, a model without a problem)."""
-    return {"y_shape": None, "merge_fill": None, "beam_fill": None}
+    return {"y_shape": None, "merge_fill": None, "beam_fill": None, "core_in_scene": False}
 
 
 class ImageExtension(Extension):
@@ -172,6 +173,10 @@ class ImageExtension(Extension):
     `beam_fill` (any window; None when unknown): the beam calibration frame's power shares
     and merge fills (`BeamFill`). Only the sensor's compression uses it: the calibration
     frame went through the same sensor.
+
+    `core_in_scene` (single-row renders only): the render was lit by the beam map blurred
+    along y by the lens blur's core (`ForwardModel.core_blur_in_scene`), so the core's y
+    part is in the image already. Only the lens blur uses it.
     """
 
     kind = "image"
@@ -180,14 +185,14 @@ class ImageExtension(Extension):
     def apply(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
               profile_only: bool, y_shape: np.ndarray | None = None,
               merge_fill: np.ndarray | None = None,
-              beam_fill: BeamFill | None = None) -> np.ndarray:
+              beam_fill: BeamFill | None = None, core_in_scene: bool = False) -> np.ndarray:
         raise NotImplementedError
 
     @classmethod
     def vjp_input(cls, image: np.ndarray, cotangent: np.ndarray, values: Mapping[str, float], *,
                   pixel_mm: float, profile_only: bool, y_shape: np.ndarray | None = None,
               merge_fill: np.ndarray | None = None,
-              beam_fill: BeamFill | None = None) -> np.ndarray:
+              beam_fill: BeamFill | None = None, core_in_scene: bool = False) -> np.ndarray:
         """Cotangent w.r.t. the input image given one w.r.t. the output."""
         raise NotImplementedError
 
@@ -195,7 +200,7 @@ class ImageExtension(Extension):
     def param_derivatives(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
                           profile_only: bool, y_shape: np.ndarray | None = None,
               merge_fill: np.ndarray | None = None,
-              beam_fill: BeamFill | None = None) -> dict[str, np.ndarray]:
+              beam_fill: BeamFill | None = None, core_in_scene: bool = False) -> dict[str, np.ndarray]:
         """d output / d parameter for each parameter (central differences of this exact,
         deterministic image function with a small relative step; no rendering noise)."""
         out = {}
@@ -209,8 +214,8 @@ class ImageExtension(Extension):
             lo[p.name] = a
             hi[p.name] = b
             out[p.name] = (cls.apply(image, hi, pixel_mm=pixel_mm, profile_only=profile_only, y_shape=y_shape,
-                                     merge_fill=merge_fill, beam_fill=beam_fill)
+                                     merge_fill=merge_fill, beam_fill=beam_fill, core_in_scene=core_in_scene)
                            - cls.apply(image, lo, pixel_mm=pixel_mm, profile_only=profile_only, y_shape=y_shape,
-                                       merge_fill=merge_fill, beam_fill=beam_fill)
+                                       merge_fill=merge_fill, beam_fill=beam_fill, core_in_scene=core_in_scene)
                            ) / (b - a)
         return out

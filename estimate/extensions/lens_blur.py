@@ -55,8 +55,8 @@ from scipy import ndimage, signal
 
 from estimate.extensions.base import BeamFill, ImageExtension, ParameterSpec
 
-__all__ = ["TRUNCATION_PX", "Y_DEBLUR_REGULARISATION", "LensBlur", "line_spread", "profile_weights", "psf_2d",
-           "unblurred_y_shape"]
+__all__ = ["TRUNCATION_PX", "Y_DEBLUR_REGULARISATION", "LensBlur", "core_line_spread", "line_spread",
+           "profile_weights", "psf_2d", "unblurred_y_shape"]
 
 TRUNCATION_PX = 64
 #: Weight of the curvature penalty in the y-shape's deblurring (`unblurred_y_shape`), in
@@ -141,12 +141,16 @@ def unblurred_y_shape(values: Mapping[str, float], y_shape: np.ndarray, radius: 
 
 
 def profile_weights(values: Mapping[str, float], y_shape: np.ndarray, radius: int = TRUNCATION_PX, *,
-                    recorded: bool = True) -> np.ndarray:
+                    recorded: bool = True, core_in_scene: bool = False) -> np.ndarray:
     """Weights w[n, k, x'] of the profile blur: the light of source pixel x' of row n that
     lands at x' + (k - radius) (module docstring). `y_shape`: (N, 2 radius + 1, W), h at
     dy = -radius..radius (row `radius` is dy = 0); `recorded`: it is the blurred recording's
     shape (deblurred first by `unblurred_y_shape`), else the unblurred image's.
-    Returns (N, 2 radius + 1, W).
+    `core_in_scene`: the row to blur was rendered lit by the beam map blurred along y by the
+    core (`estimate.beam.BeamProfile.blurred_along_v`), so it holds sum_dy G(dy) I(x', y0 +
+    dy) = I(x', y0) E_G[h(x', .)] already: the core's weight is then its line spread alone,
+    exact whatever the image's y-shape, and the tail's term, which acts on I(x', y0), is
+    divided by that E_G[h]. Returns (N, 2 radius + 1, W).
     """
     h = np.asarray(y_shape, dtype=np.float64)
     if h.ndim != 3 or h.shape[1] != 2 * radius + 1:
@@ -158,14 +162,26 @@ def profile_weights(values: Mapping[str, float], y_shape: np.ndarray, radius: in
     f = values["tail_fraction"]
     # Core: separable, so the mean of h over y is one number per source pixel.
     e_core = np.einsum("d,ndw->nw", core, h)
-    w = (1.0 - f) * core[None, :, None] * e_core[:, None, :]
+    if core_in_scene:
+        w = np.broadcast_to((1.0 - f) * core[None, :, None], (h.shape[0], core.size, h.shape[2])).copy()
+    else:
+        w = (1.0 - f) * core[None, :, None] * e_core[:, None, :]
     if f > 0:
         # Tail: the 2D kernel (1 + r^2 / s^2)^-3/2 at offset dx, normalised over dy.
         t2 = _tail_2d(x, s)   # [dx, dy]
         cond = t2 / t2.sum(axis=1, keepdims=True)
         e_tail = np.einsum("kd,ndw->nkw", cond, h)
+        if core_in_scene:
+            # A column whose deblurred shape has no centre left keeps the tail's own weight.
+            e_tail = e_tail / np.where(e_core > 1e-6, e_core, 1.0)[:, None, :]
         w = w + f * tail[None, :, None] * e_tail
     return w
+
+
+def core_line_spread(values: Mapping[str, float], radius: int = TRUNCATION_PX) -> np.ndarray:
+    """The core's line spread (odd length 2 radius + 1, sums to 1): its kernel along x, and,
+    the core being separable, along y (`ForwardModel.beam_for` blurs the beam map with it)."""
+    return _line_spread_parts(values, radius)[1]
 
 
 #: Recent `profile_weights` of the recorded y-shape, by the y-shape array's identity and the
@@ -176,24 +192,25 @@ def profile_weights(values: Mapping[str, float], y_shape: np.ndarray, radius: in
 #: id, and the cache keeps no y-shape alive (each entry's weights: about 2 MB on rig
 #: estimate's 8 x 256-px window); `estimate.forward.ForwardModel.y_shape_for` hands out one
 #: array per set of angles.
-_WEIGHTS_CACHE: OrderedDict[tuple[int, tuple[tuple[str, float], ...]],
+_WEIGHTS_CACHE: OrderedDict[tuple[int, bool, tuple[tuple[str, float], ...]],
                             tuple[weakref.ref[np.ndarray], np.ndarray]] = OrderedDict()
 _WEIGHTS_CACHE_SIZE = 16
 
 
-def _recorded_profile_weights(values: Mapping[str, float], y_shape: np.ndarray) -> np.ndarray:
-    """`profile_weights(values, y_shape)` of a recorded y-shape, from `_WEIGHTS_CACHE` when the
-    same array was blurred at the same values lately (read-only arrays only: a writable one
-    could change under its id)."""
+def _recorded_profile_weights(values: Mapping[str, float], y_shape: np.ndarray,
+                              core_in_scene: bool = False) -> np.ndarray:
+    """`profile_weights(values, y_shape, core_in_scene=...)` of a recorded y-shape, from
+    `_WEIGHTS_CACHE` when the same array was blurred at the same values lately (read-only
+    arrays only: a writable one could change under its id)."""
     h = np.asarray(y_shape)
     if h.flags.writeable:
-        return profile_weights(values, h)
-    key = (id(h), tuple(sorted((k, float(v)) for k, v in values.items())))
+        return profile_weights(values, h, core_in_scene=core_in_scene)
+    key = (id(h), core_in_scene, tuple(sorted((k, float(v)) for k, v in values.items())))
     hit = _WEIGHTS_CACHE.get(key)
     if hit is not None and hit[0]() is h:
         _WEIGHTS_CACHE.move_to_end(key)
         return hit[1]
-    w = profile_weights(values, h)
+    w = profile_weights(values, h, core_in_scene=core_in_scene)
     w.setflags(write=False)
     _WEIGHTS_CACHE[key] = (weakref.ref(h), w)
     while len(_WEIGHTS_CACHE) > _WEIGHTS_CACHE_SIZE:
@@ -264,14 +281,17 @@ class LensBlur(ImageExtension):
     def apply(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
               profile_only: bool, y_shape: np.ndarray | None = None,
               merge_fill: np.ndarray | None = None,
-              beam_fill: BeamFill | None = None) -> np.ndarray:
+              beam_fill: BeamFill | None = None, core_in_scene: bool = False) -> np.ndarray:
         img = np.asarray(image, dtype=np.float64)
         if values["core_sigma_px"] == 0 and values["tail_fraction"] == 0:
             return img.copy()
         if profile_only or img.shape[-2] == 1:
             if y_shape is not None:
                 flat, shape = cls._profile_rows(img, y_shape)
-                return _weighted_profile(flat, _recorded_profile_weights(values, y_shape), False).reshape(shape)
+                return _weighted_profile(flat, _recorded_profile_weights(values, y_shape, core_in_scene),
+                                         False).reshape(shape)
+            # Without a y-shape, the line spread: with the core in the scene its core part is
+            # exact; otherwise, and for the tail, the image is taken as constant along y.
             return ndimage.convolve1d(img, line_spread(values), axis=-1, mode="constant")
         k = psf_2d(values)
         k = k.reshape((1,) * (img.ndim - 2) + k.shape)
@@ -281,10 +301,11 @@ class LensBlur(ImageExtension):
     def vjp_input(cls, image: np.ndarray, cotangent: np.ndarray, values: Mapping[str, float], *,
                   pixel_mm: float, profile_only: bool, y_shape: np.ndarray | None = None,
               merge_fill: np.ndarray | None = None,
-              beam_fill: BeamFill | None = None) -> np.ndarray:
+              beam_fill: BeamFill | None = None, core_in_scene: bool = False) -> np.ndarray:
         cot = np.asarray(cotangent, dtype=np.float64)
         if (y_shape is not None and (profile_only or cot.shape[-2] == 1)
                 and not (values["core_sigma_px"] == 0 and values["tail_fraction"] == 0)):
             flat, shape = cls._profile_rows(cot, y_shape)
-            return _weighted_profile(flat, _recorded_profile_weights(values, y_shape), True).reshape(shape)
+            return _weighted_profile(flat, _recorded_profile_weights(values, y_shape, core_in_scene),
+                                     True).reshape(shape)
         return cls.apply(cot, values, pixel_mm=pixel_mm, profile_only=profile_only)

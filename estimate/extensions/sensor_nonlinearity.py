@@ -135,7 +135,7 @@ class SensorNonlinearity(ImageExtension):
     def apply(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
               profile_only: bool, y_shape: np.ndarray | None = None,
               merge_fill: np.ndarray | None = None,
-              beam_fill: BeamFill | None = None) -> np.ndarray:
+              beam_fill: BeamFill | None = None, core_in_scene: bool = False) -> np.ndarray:
         img = np.asarray(image, dtype=np.float64)
         gain = 1.0 if beam_fill is None else calibration_gain(values["compression"], beam_fill)
         if merge_fill is not None:
@@ -156,7 +156,7 @@ class SensorNonlinearity(ImageExtension):
     def vjp_input(cls, image: np.ndarray, cotangent: np.ndarray, values: Mapping[str, float], *,
                   pixel_mm: float, profile_only: bool, y_shape: np.ndarray | None = None,
               merge_fill: np.ndarray | None = None,
-              beam_fill: BeamFill | None = None) -> np.ndarray:
+              beam_fill: BeamFill | None = None, core_in_scene: bool = False) -> np.ndarray:
         img = np.asarray(image, dtype=np.float64)
         gain = 1.0 if beam_fill is None else calibration_gain(values["compression"], beam_fill)
         if merge_fill is not None:

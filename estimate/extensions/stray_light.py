@@ -32,7 +32,7 @@ class StrayLight(ImageExtension):
     def apply(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
               profile_only: bool, y_shape: np.ndarray | None = None,
               merge_fill: np.ndarray | None = None,
-              beam_fill: BeamFill | None = None) -> np.ndarray:
+              beam_fill: BeamFill | None = None, core_in_scene: bool = False) -> np.ndarray:
         img = np.asarray(image, dtype=np.float64)
         x = cls._x_mm(img.shape[-1], pixel_mm)
         return img + values["offset"] + values["slope_per_mm"] * x
@@ -41,14 +41,14 @@ class StrayLight(ImageExtension):
     def vjp_input(cls, image: np.ndarray, cotangent: np.ndarray, values: Mapping[str, float], *,
                   pixel_mm: float, profile_only: bool, y_shape: np.ndarray | None = None,
               merge_fill: np.ndarray | None = None,
-              beam_fill: BeamFill | None = None) -> np.ndarray:
+              beam_fill: BeamFill | None = None, core_in_scene: bool = False) -> np.ndarray:
         return np.asarray(cotangent, dtype=np.float64)
 
     @classmethod
     def param_derivatives(cls, image: np.ndarray, values: Mapping[str, float], *, pixel_mm: float,
                           profile_only: bool, y_shape: np.ndarray | None = None,
               merge_fill: np.ndarray | None = None,
-              beam_fill: BeamFill | None = None) -> dict[str, np.ndarray]:
+              beam_fill: BeamFill | None = None, core_in_scene: bool = False) -> dict[str, np.ndarray]:
         img = np.asarray(image, dtype=np.float64)
         x = cls._x_mm(img.shape[-1], pixel_mm)
         return {"offset": np.ones_like(img), "slope_per_mm": np.broadcast_to(x, img.shape).copy()}
