@@ -37,7 +37,15 @@ For an image a(x) b(y) under the separable core this recovers b up to the regula
 smoothing; the tail, not separable, to first order. A column
 whose deblurred centre is not clearly positive keeps its recorded shape. The deblurring is
 a fixed linear map for given blur values (cached), so derivatives by the parameters stay
-those of a deterministic image function. Zero padding outside the rendered window. The PSF is
+those of a deterministic image function. Zero padding outside the rendered window.
+
+The core's part needs no y-shape where the scene can carry it (`core_in_scene`): the slab
+does not change along y, so the row of the slab lit by the beam map blurred along v by the
+core's line spread is sum_dy G(dy) I(x, y0 + dy), the image blurred along y by the (separable)
+core. The light engine renders the profile row that way when it re-lights the slab at every
+blur anyway (`estimate.forward.ForwardModel.core_blur_in_scene`); the weights then keep the
+core's line spread alone, and the tail's term, which acts on I(x', y0), is divided by the
+core's mean of h, E_G[h(x', .)], since the row holds I(x', y0) E_G[h(x', .)]. The PSF is
 symmetric, so the full-frame and LSF operators are self-adjoint; the weighted profile
 operator is not (`vjp_input` applies its transpose). Derivative: exact through this image
 function.
