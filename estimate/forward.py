@@ -235,13 +235,6 @@ class ForwardModel:
             for p in EXTENSIONS["lens_blur"].parameters:
                 name = f"lens_blur.{p.name}"
                 self.specs[name] = replace(self.specs[name], derivative="fd")
-        #: The beam map is a calibration frame read through the sensor whose compression the
-        #: model includes (`beam_fill` with the frame's pixels): its wings, read from longer
-        #: exposures at fills up to 0.6, are low against its peak by up to c g (3.6 % at a 6 %
-        #: compression on the bench). The slab is lit by the map with the compression taken
-        #: out at the values' c (`beam_for`; its power stays the read one, which
-        #: `calibration_gain` corrects in the image), so the compression also changes the scene
-        #: and is differentiated by finite differences of whole renders, as the blur is.
         #: With the light engine, a single-row render (the profile) of such a model is lit by
         #: that map blurred along v by the blur's core (`beam_for(single_row=True)`): the slab
         #: does not change along y, so that row is the image blurred along y by the core, and
@@ -253,6 +246,13 @@ class ForwardModel:
         #: model's own rows (docs/diagnosis-log.md, session 68). The tail, not separable,
         #: still reads the y-shape.
         self.core_blur_in_scene = self.deblurs_beam and engine == LIGHT
+        #: The beam map is a calibration frame read through the sensor whose compression the
+        #: model includes (`beam_fill` with the frame's pixels): its wings, read from longer
+        #: exposures at fills up to 0.6, are low against its peak by up to c g (3.6 % at a 6 %
+        #: compression on the bench). The slab is lit by the map with the compression taken
+        #: out at the values' c (`beam_for`; its power stays the read one, which
+        #: `calibration_gain` corrects in the image), so the compression also changes the scene
+        #: and is differentiated by finite differences of whole renders, as the blur is.
         self.decompresses_beam = ("sensor_nonlinearity" in self.extensions and beam_fill is not None
                                   and beam_fill.pixels is not None and beam_fill.to_profile is not None)
         if self.decompresses_beam:
