@@ -202,9 +202,6 @@ class BeamProfile:
         keep = np.nonzero(k > 1e-12 * float(k.max()))[0]
         reach = int(max(r - keep[0], keep[-1] - r)) if keep.size else 0
         k = k[r - reach:r + reach + 1]
-        if reach == 0:
-            return BeamProfile(self.irradiance * float(k[0]), self.pitch_mm, self.u0_mm, self.v0_mm,
-                               through_lens=self.through_lens)
         from scipy import ndimage
 
         e = np.pad(self.irradiance, ((reach, reach), (0, 0)))

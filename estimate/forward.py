@@ -313,10 +313,10 @@ class ForwardModel:
         v = {p.name: float(values.get(f"lens_blur.{p.name}", p.neutral)) for p in EXTENSIONS["lens_blur"].parameters}
         if v["core_sigma_px"] == 0 and v["tail_fraction"] == 0:
             return base
-        deblurred = self._deblurred_beam(base, c, v)
+        key = (c, *(v[k] for k in sorted(v)))
+        deblurred = self._deblurred_beam(base, key, v)
         if not (single_row and self.core_blur_in_scene and v["core_sigma_px"] > 0):
             return deblurred
-        key = (c, *(v[k] for k in sorted(v)))
         hit = self._core_beams.get(key)
         if hit is None:
             hit = deblurred.blurred_along_v(core_line_spread(v))
@@ -325,10 +325,10 @@ class ForwardModel:
             self._core_beams[key] = hit
         return hit
 
-    def _deblurred_beam(self, base: BeamProfile, c: float, v: Mapping[str, float]) -> BeamProfile:
-        """`base` (the map decompressed at c) with the lens's PSF at the blur values `v` taken
-        out, cached."""
-        key = (c, *(v[k] for k in sorted(v)))
+    def _deblurred_beam(self, base: BeamProfile, key: tuple[float, ...], v: Mapping[str, float]) -> BeamProfile:
+        """`base` (the map decompressed at c = key[0]) with the lens's PSF at the blur values
+        `v` taken out, cached under `key`."""
+        c = key[0]
         hit = self._beams.get(key)
         if hit is None:
             # One sample of the map is one sensor pixel of the calibration frame; the PSF is in
