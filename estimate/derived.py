@@ -65,7 +65,10 @@ def derived_quantities(model: str, params: Mapping[str, float],
         {name: {"value", "uncertainty" (None when unknown), "unit"}} for the names of
         `DERIVED_UNITS`.
     """
+    from estimate.forward import BASE_SPECS, phase_specs
+
     fns = _functions(model)
+    ranges = {k: (spec.lower, spec.upper) for k, spec in {**BASE_SPECS, **phase_specs(model)}.items()}
     names = [n for n in (covariance or {}) if n in params]
     cov = np.array([[float(covariance[a].get(b, 0.0)) for b in names] for a in names]) if names else None  # type: ignore[index]
     out: dict[str, dict[str, float | str | None]] = {}
@@ -75,12 +78,19 @@ def derived_quantities(model: str, params: Mapping[str, float],
         if cov is not None and np.all(np.isfinite(cov)):
             grad = np.zeros(len(names))
             for i, n in enumerate(names):
-                h = rel_step * max(1.0, abs(float(params[n])))
+                x = float(params[n])
+                h = rel_step * max(1.0, abs(x))
+                # Inside the parameter's range: a two-lobe fit with its forward weight at
+                # 0.999999 would otherwise ask the phase function of w = 1.000009, which it
+                # refuses (one-sided there).
+                lower, upper = ranges.get(n, (-math.inf, math.inf))
                 hi = dict(params)
                 lo = dict(params)
-                hi[n] = float(params[n]) + h
-                lo[n] = float(params[n]) - h
-                grad[i] = (f(hi) - f(lo)) / (2.0 * h)
+                hi[n] = min(x + h, upper)
+                lo[n] = max(x - h, lower)
+                if not hi[n] > lo[n]:
+                    continue
+                grad[i] = (f(hi) - f(lo)) / (hi[n] - lo[n])
             var = float(grad @ cov @ grad)
             unc = math.sqrt(var) if var >= 0 and math.isfinite(var) else None
         out[key] = {"value": value, "uncertainty": unc, "unit": DERIVED_UNITS[key]}

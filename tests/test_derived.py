@@ -59,3 +59,15 @@ def test_fixed_parameters_contribute_no_uncertainty():
     d = derived_quantities("hg", params, {"sigma_t": {"sigma_t": 0.01}})
     assert d["sigma_a"]["uncertainty"] == pytest.approx(0.1 * 0.1)
     assert d["g"]["uncertainty"] == 0.0
+
+
+@pytest.mark.parametrize("w", [1.0, 0.999999, 0.0])
+def test_a_parameter_at_the_end_of_its_range_is_differenced_inside_it(w):
+    """A two-lobe fit with its forward weight at (or a hair below) 1: the difference for g
+    stays inside [0, 1], where the phase function is defined, and still gives the slope
+    (g = w g_f + (1 - w) g_b, so dg/dw = g_f - g_b)."""
+    params = {"sigma_t": 2.0, "albedo": 0.9, "phase.g_forward": 0.8, "phase.g_backward": -0.2,
+              "phase.w_forward": w}
+    d = derived_quantities("tthg", params, {"phase.w_forward": {"phase.w_forward": 0.01 ** 2}})
+    assert d["g"]["value"] == pytest.approx(w * 0.8 - (1 - w) * 0.2, abs=1e-9)
+    assert d["g"]["uncertainty"] == pytest.approx(0.01 * 1.0, rel=1e-6)

@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 import yaml
 
+import estimate.refit as refit_module
 from estimate.beam import BeamProfile
 from estimate.diagnose import (
     FREE_PARAMETERS,
@@ -56,6 +57,7 @@ from estimate.refit import (
     refit,
     render_stack,
     smoothed_variance,
+    still_descending,
 )
 from estimate.residuals import (
     fit_significance,
@@ -1845,6 +1847,58 @@ def test_a_refit_cannot_buy_its_own_weights_by_dimming_its_renders():
         # dimmed 100 x by hand: the same chi^2, the scale 100 x
         dim = refit(toy, rec, {**start, "toy.b": 0.01}, ["toy.b"], iterations=0, **kw)
         assert dim.chi2 == pytest.approx(at_start.chi2, rel=1e-6) and dim.scale == pytest.approx(100 * at_start.scale)
+
+
+class _SteepSecant(_NoisyWidth):
+    """`_NoisyWidth` without render noise whose Jacobian is three times too steep, as a
+    secant over a wide step of a strongly curved render can be: each Gauss-Newton step then
+    covers a third of the way, and the refit walks towards the optimum in many short steps."""
+
+    def render_profiles(self, th, angles, *, spp, seed):
+        return np.tile(self.mean(th), (len(angles), 1))
+
+    def jacobian(self, th, angles, free, *, spp, seed, steps):
+        return {n: 3.0 * v for n, v in super().jacobian(th, angles, free, spp=spp, seed=seed, steps=steps).items()}
+
+
+def test_a_refit_still_descending_fast_when_its_iterations_are_spent_goes_on_to_its_optimum(monkeypatch):
+    """The LM's `iterations` are extended, up to LM_EXTENSION x, while its last two
+    iterations still lowered chi^2 by more than LM_STILL_DESCENDING of it, with longer steps
+    there; the first `iterations` are the plain LM's; a refit that starts at its optimum stops
+    as before."""
+    toy = _SteepSecant()
+    _, truth, _, (rec,) = _width_recordings(1, seed=9)
+    start = {"toy.w": 2.5, "toy.c": -0.3}
+    kw = {"spp": 64, "seed": 1, "uncertainties": False}
+    monkeypatch.setattr(refit_module, "LM_EXTENSION", 1)
+    capped = refit(toy, rec, start, ["toy.w", "toy.c"], iterations=3, **kw)
+    monkeypatch.setattr(refit_module, "LM_EXTENSION", 2)
+    monkeypatch.setattr(refit_module, "LM_EXPANSION_MAX", 0.0)
+    plain = refit(toy, rec, start, ["toy.w", "toy.c"], iterations=3, **kw)
+    monkeypatch.undo()
+    went_on = refit(toy, rec, start, ["toy.w", "toy.c"], iterations=3, **kw)
+    assert capped.iterations == 3
+    assert 3 < went_on.iterations <= refit_module.LM_EXTENSION * 3
+    assert went_on.chi2 < plain.chi2 < 0.5 * capped.chi2
+    assert abs(went_on.parameters["toy.w"] - truth["toy.w"]) < abs(capped.parameters["toy.w"] - truth["toy.w"])
+    # The first three iterations are the capped refit's: only the fourth on takes longer steps.
+    monkeypatch.setattr(refit_module, "LM_EXTENSION", 1)
+    assert refit(toy, rec, start, ["toy.w", "toy.c"], iterations=3, **kw).parameters == capped.parameters
+    monkeypatch.undo()
+    optimum = refit(toy, rec, start, ["toy.w", "toy.c"], iterations=40, **kw)
+    again = refit(toy, rec, optimum.parameters, ["toy.w", "toy.c"], iterations=3, **kw)
+    assert again.iterations <= 3
+
+
+@pytest.mark.parametrize(("history", "expect"), [
+    ([100.0, 90.0, 80.0], True),           # 20 % over the last two iterations
+    ([100.0, 99.0, 97.0], False),          # 3 %
+    ([1000.0, 100.0, 98.0, 97.0], False),  # fast earlier, slow now
+    ([100.0, 50.0], False),                # fewer than two iterations
+    ([0.0, 0.0, 0.0], False),
+])
+def test_still_descending_reads_the_last_two_iterations(history, expect):
+    assert still_descending(history) is expect
 
 
 def test_decorrelated_step_removes_the_fixed_seed_refits_render_noise_bias():
