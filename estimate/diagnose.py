@@ -1460,8 +1460,14 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             judged = (conf.evaluate_all(current_exts, full.decorrelated)
                       if full.decorrelated is not None and full.decorrelated != full.parameters else current)
             explained = judged.residuals.reduced_chi2_adjusted
+            # The fixed-seed optimum's own evaluation is recorded beside it: on the n = 1.5
+            # boundary the step read 1.16 in one run and 1.58 in another of the same code
+            # (session 69), and which of the two points to judge is still open.
             check = {"after": list(confirmed), "reduced_chi2_adjusted": explained, "bar": EXPLAINED_REDUCED_CHI2,
-                     "explained": explained <= EXPLAINED_REDUCED_CHI2}
+                     "explained": explained <= EXPLAINED_REDUCED_CHI2,
+                     "reduced_chi2_adjusted_optimum": current.residuals.reduced_chi2_adjusted,
+                     "sigma_t_step": judged.parameters.get("sigma_t"),
+                     "sigma_t_optimum": current.parameters.get("sigma_t")}
             explained_checks.append(check)
         laps("model")
         if check is not None:

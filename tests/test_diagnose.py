@@ -2315,6 +2315,8 @@ def test_no_second_effect_is_looked_for_once_the_first_explains_the_mismatch(mon
         (end,) = doc["explained_checks"]
         assert end["after"] == ["stray_light"] and end["bar"] == EXPLAINED_REDUCED_CHI2 and end["explained"]
         assert end["reduced_chi2_adjusted"] <= EXPLAINED_REDUCED_CHI2
+        assert end["reduced_chi2_adjusted_optimum"] > 0 and end["sigma_t_optimum"] > 0 and end["sigma_t_step"] > 0
+        assert f"{end['reduced_chi2_adjusted_optimum']:.3f} at the refit's own optimum" in text
         assert not any(e["round"] == 2 for e in d.confirmations)
         assert "explained, no second effect looked for" in text
     else:
