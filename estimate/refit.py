@@ -547,8 +547,9 @@ def refit(model: ProfileModel, problem: ProfileRecording, start: Mapping[str, fl
                 improved = True
                 break
             lam *= 4.0
-        _log.debug("LM iteration %d: chi2 %.3f (%s), lambda %.1e, at %s", it, chi2, "step" if improved else "no step",
-                   lam, ", ".join(f"{n} {theta[n]:.5g}" for n in free))
+        if _log.isEnabledFor(logging.DEBUG):
+            _log.debug("LM iteration %d: chi2 %.3f (%s), lambda %.1e, at %s", it, chi2,
+                       "step" if improved else "no step", lam, ", ".join(f"{n} {theta[n]:.5g}" for n in free))
         history.append(chi2)
         if not improved or rel < 1e-4:
             break
