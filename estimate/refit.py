@@ -388,9 +388,7 @@ def decorrelated_step(render: Callable[[dict[str, float]], tuple[np.ndarray, np.
     loss0, s0 = decorrelated_chi2(meas, sig, f_a, f_b)
     for k in range(halvings + 1):
         frac = 0.5 ** k
-        trial = dict(theta)
-        for j, (n, (lo, hi)) in enumerate(zip(free, bounds)):
-            trial[n] = float(np.clip(theta[n] + frac * step[j], lo, hi))
+        trial = stepped(theta, free, bounds, frac * step)
         try:
             fa_t, fb_t = render(trial)
         except ModelParameterError:
@@ -485,9 +483,7 @@ def refit(model: ProfileModel, problem: ProfileRecording, start: Mapping[str, fl
         # The accepted step from theta, longer while that lowers the chi^2 (LM_EXPANSION_MAX).
         k = 2.0
         while k <= LM_EXPANSION_MAX:
-            longer = dict(theta)
-            for j, (n, (lo, hi)) in enumerate(zip(free, bounds)):
-                longer[n] = float(np.clip(theta[n] + k * step[j], lo, hi))
+            longer = stepped(theta, free, bounds, k * step)
             if longer == best[0]:      # held at its bounds: no longer step
                 break
             try:
@@ -529,9 +525,7 @@ def refit(model: ProfileModel, problem: ProfileRecording, start: Mapping[str, fl
             except np.linalg.LinAlgError:
                 lam *= 10.0
                 continue
-            trial = dict(theta)
-            for j, (n, (lo, hi)) in enumerate(zip(free, bounds)):
-                trial[n] = float(np.clip(theta[n] + step[j], lo, hi))
+            trial = stepped(theta, free, bounds, step)
             try:
                 r2, f2, s2 = residual(trial)
             except ModelParameterError:
@@ -579,6 +573,15 @@ def refit(model: ProfileModel, problem: ProfileRecording, start: Mapping[str, fl
 
         dec, dec_s = decorrelated_step(both, meas, sig, theta, s, f, f_b, As[0], As[1], free, bounds)
     return RefitResult(theta, s, unc, chi2, it, covd, dec, dec_s)
+
+
+def stepped(theta: Mapping[str, float], free: Sequence[str], bounds: Sequence[tuple[float, float]],
+            step: np.ndarray) -> dict[str, float]:
+    """`theta` moved by `step` along the `free` parameters, each held within its bounds."""
+    out = dict(theta)
+    for j, (n, (lo, hi)) in enumerate(zip(free, bounds)):
+        out[n] = float(np.clip(theta[n] + step[j], lo, hi))
+    return out
 
 
 def still_descending(history: Sequence[float]) -> bool:
