@@ -443,6 +443,12 @@ class Session:
         d = self._m.get("noise_model")
         return NoiseModel.from_dict(d) if d else None
 
+    def render_noise(self) -> dict[str, Any] | None:
+        """The simulated camera's declared frozen render noise (``extra.render_noise``,
+        docs/session-format.md); None for a real camera or an older session."""
+        d = (self._m.get("extra") or {}).get("render_noise")
+        return dict(d) if isinstance(d, dict) else None
+
     def stacks(self) -> list[StackRecord]:
         """Every stack in plan order."""
         return [self._stacks[k] for k in self.plan.keys()]

@@ -23,7 +23,7 @@ import dataclasses
 import math
 import os
 import zipfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,6 +37,7 @@ from estimate.extensions.lens_blur import TRUNCATION_PX as LENS_BLUR_RADIUS
 from estimate.geometry import RigGeometry
 
 __all__ = ["DEFAULT_COLUMNS", "Y_SHAPE_MAX", "Y_SHAPE_SMOOTH_PX", "Problem", "load_problem", "merge_fill_from_rows",
+           "recorded_light_paths",
            "session_channels", "y_shape_from_rows"]
 
 #: Default width of the profile window (pixels of the ROI, i.e. binned pixels).
@@ -203,6 +204,9 @@ class Problem:
         beam_fill: the beam calibration frame's power shares, merge fills and pixels
             (`_beam_fill`), for the sensor compression of the calibrated power and of the
             map's shape; None = unknown.
+        recording_paths: light paths per image behind the profile row's frozen Monte Carlo
+            noise, when the simulated camera declared a light-engine render
+            (`recorded_light_paths`); None = no such noise (a real camera) or undeclared.
     """
 
     angles_deg: np.ndarray
@@ -221,6 +225,7 @@ class Problem:
     y_shape: np.ndarray | None = None
     merge_fill: np.ndarray | None = None
     beam_fill: BeamFill | None = None
+    recording_paths: int | None = None
 
     def __post_init__(self) -> None:
         if self.valid is None:
@@ -256,7 +261,8 @@ class Problem:
                        self.valid[idx], [self.stack_ids[i] for i in idx], self.session_path,
                        list(self.missing), self.angle_correction_deg,
                        None if self.y_shape is None else self.y_shape[idx],
-                       None if self.merge_fill is None else self.merge_fill[idx], self.beam_fill)
+                       None if self.merge_fill is None else self.merge_fill[idx], self.beam_fill,
+                       self.recording_paths)
 
 
 def _merge_fills(session: Any, sensor: Any, bands: Sequence[tuple[np.ndarray, np.ndarray, int]],
@@ -610,4 +616,24 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
         valid=valid[order], stack_ids=[ids[i] for i in order], session_path=str(s.path), missing=missing,
         angle_correction_deg=correction, y_shape=y_shape[order],
         merge_fill=None if merge_fill is None else merge_fill[order], beam_fill=beam_fill,
+        recording_paths=recorded_light_paths(s.render_noise(), row, by),
     )
+
+
+def recorded_light_paths(declared: Mapping[str, Any] | None, row: int, bin_y: int = 1) -> int | None:
+    """Light paths per image of the render tier that holds the profile row (unbinned sensor
+    `row`, the `bin_y` rows from it), from a session's declared render noise
+    (`capture.session.Session.render_noise`); None unless a light-engine render covers
+    them all (the camera engine's noise is white: the noise floor measures it)."""
+    if not declared or declared.get("engine") != "light":
+        return None
+    r0, r1 = row - row % max(1, bin_y), row - row % max(1, bin_y) + max(1, bin_y)
+    for t in declared.get("tiers") or []:
+        try:
+            lo, hi = (int(v) for v in t["rows"])
+            paths = int(t["paths_per_image"])
+        except (KeyError, TypeError, ValueError):
+            continue
+        if lo <= r0 and r1 <= hi and paths > 0:
+            return paths
+    return None

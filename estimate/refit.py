@@ -39,7 +39,7 @@ from estimate.uncertainties import UNCERTAINTY_CROSS_FLOOR
 __all__ = ["DECORRELATED", "DEFAULT_REPEATS", "DEFAULT_SEED", "FIXED_SEED", "MAX_GLARE_FRACTION", "OBJECTIVES",
            "Evaluation", "RefitResult", "best_scale",
            "cross_covariance", "decorrelated_step", "evaluate", "independent_residuals", "parameter_bounds",
-           "recording_variance", "refit", "render_stack", "smoothed_variance"]
+           "recorded_noise_share", "recording_variance", "refit", "render_stack", "smoothed_variance"]
 
 
 _log = logging.getLogger(__name__)
@@ -207,7 +207,8 @@ def evaluate(model: ProfileModel, params: Mapping[str, float], problem: ProfileR
     r = np.where(np.isfinite(nv), r, np.nan)
     # The smooth test's null holds the mean render's correlated noise (the light engine's:
     # one path adds to several columns), estimated from the same renders.
-    modes = render_noise_modes(renders, s, np.sqrt(nv + s ** 2 * mvar), repeats)
+    modes = render_noise_modes(renders, s, np.sqrt(nv + s ** 2 * mvar), repeats,
+                               recorded_noise_share(model, problem, spp))
     res = fit_significance(r, n_params, noise_modes=modes,
                            noise_scale=None if noise_variance is None else np.ones(len(idx)))
     return Evaluation(dict(model.validate(params)), list(model.extensions), s, mean, mvar, res, n_params)
@@ -246,7 +247,27 @@ def independent_residuals(problem: ProfileRecording, ev: Evaluation, model: Prof
     r = np.where(np.isfinite(var), r, np.nan)
     f, _ = noise_floor(r)
     sigma = np.sqrt(var + ev.scale ** 2 * mvar) * f[:, None]
-    return r / f[:, None], sigma, render_noise_modes(stack, ev.scale, sigma, repeats)
+    return r / f[:, None], sigma, render_noise_modes(stack, ev.scale, sigma, repeats,
+                                                     recorded_noise_share(model, problem, spp))
+
+
+def recorded_noise_share(model: ProfileModel, problem: ProfileRecording, spp: int) -> float:
+    """The recording's frozen render noise as a variance in units of one model render's
+    at `spp` (`estimate.residuals.render_noise_modes`' `recorded`): the model's paths per
+    image over the recording's, when the simulated camera declared a light-engine render
+    (`estimate.problem.Problem.recording_paths`) and the model is the light engine too
+    (its renders then carry that noise's correlation along the row); else 0.
+
+    On the demo world (1024 spp on a 512-column frame, the model 2048 spp on 256 columns)
+    the share is 1: the recording's noise is as large as one model render's and 4 times
+    that of the 4-render mean the smooth test held alone, and clean sessions tested
+    significant on it (docs/diagnosis-log.md, session 70).
+    """
+    paths = getattr(problem, "recording_paths", None)
+    if not paths or getattr(model, "engine", "camera") != "light":
+        return 0.0
+    width = int(np.shape(problem.measured)[1])
+    return float(spp) * width / float(paths)
 
 
 def render_stack(model: ProfileModel, params: Mapping[str, float], problem: ProfileRecording, *, spp: int = 256,

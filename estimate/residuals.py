@@ -67,6 +67,12 @@ Statistics of a fit (all reported):
   `noise_modes`). Without them, a clean bench session fitted with the light engine tested
   significant on its own render noise (the demo's channel b: 16-px variance ratio 1.5, p
   1e-4; the model's noise alone, 6 x 256 spp against a 131072-spp truth, 1.55).
+  A recording made by the simulated camera holds the same engine's noise, frozen: the
+  difference of two demo recordings of one world (render seeds 1 and 2, no model) had a
+  16-px variance ratio 1.7 and p 1e-5 on channel g. The camera twin declares it
+  (`Problem.recording_paths`) and its covariance, one model render's scaled by their
+  paths, joins the null too (`render_noise_modes`' `recorded`). A real camera declares
+  none, and its excess noise (fixed pattern, PRNU) is white, which the floor f measures.
 """
 
 from __future__ import annotations
@@ -215,7 +221,8 @@ def noise_floor(r: np.ndarray, *, clip: float = NOISE_CLIP) -> tuple[np.ndarray,
 _COUPLED_PX = 32
 
 
-def render_noise_modes(renders: np.ndarray, scale: float, sigma: np.ndarray, n_mean: int) -> np.ndarray:
+def render_noise_modes(renders: np.ndarray, scale: float, sigma: np.ndarray, n_mean: int,
+                       recorded: float = 0.0) -> np.ndarray:
     """Modes of the noise that a mean of `n_mean` renders puts into residuals divided by
     `sigma`: M (K, angles, pixels) with cov(r_i, r_j) ~ sum_k M_ki M_kj (module docstring).
 
@@ -223,13 +230,18 @@ def render_noise_modes(renders: np.ndarray, scale: float, sigma: np.ndarray, n_m
     not necessarily the ones averaged (the same model, seeds and spp give the same
     covariance); `scale`: the fit's scale; `sigma`: each pixel's noise standard deviation
     in measured units (the residual's divisor, noise floor included). Pixels with a
-    non-finite sigma get 0.
+    non-finite sigma get 0. `recorded`: the recording's own frozen render noise, when it
+    was made by the same engine, as its variance in units of one of these renders' (their
+    paths over the recording's; `estimate.refit.recorded_noise_share`): it is in the
+    residual with the model's, independent of it and correlated the same way, so the
+    covariance is one render's times 1 / n_mean + recorded.
     """
     rr = np.asarray(renders, dtype=np.float64)
     k = rr.shape[0]
     if k < 2:
         return np.zeros((0,) + rr.shape[1:])
-    dev = (rr - rr.mean(axis=0)) * (float(scale) / math.sqrt((k - 1) * max(1, int(n_mean))))
+    share = 1.0 / max(1, int(n_mean)) + max(0.0, float(recorded))
+    dev = (rr - rr.mean(axis=0)) * (float(scale) * math.sqrt(share / (k - 1)))
     with np.errstate(invalid="ignore", divide="ignore"):
         m = dev / np.asarray(sigma, dtype=np.float64)[None]
     return np.where(np.isfinite(m), m, 0.0)

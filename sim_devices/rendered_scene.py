@@ -21,7 +21,8 @@ profile rows (axis row +- `profile_halfwidth_rows`, widened to 3 core sigmas + 1
 world's lens blur, which mixes those rows into the profile) at `spp_profile`, the band around
 them (+- `band_halfwidth_rows`) at `spp_band`, the rest of the frame at `spp_outside`
 (it only feeds blooming and full-frame views). benchmarks/sim_render.py measures the
-residual noise against the sensor noise of a merged bracket.
+residual noise against the sensor noise of a merged bracket. `RenderedScene.render_noise`
+declares it to the session (`rig capture` writes it as `extra.render_noise`).
 
 Caching. Radiance images are cached in memory and on disk under
 `<cache_dir>/<sha256(world truth, render settings, geometry, filter, angle)>.npz`, so a
@@ -316,6 +317,31 @@ class RenderedScene:
         """[row0, row1) rendered at `spp_profile`."""
         r0, r1, _ = self.row_tiers()[0]
         return r0, r1
+
+    def render_noise(self) -> dict[str, Any]:
+        """What this camera's frames hold besides the sensor's noise: the frozen Monte Carlo
+        noise of its renders, declared the way a real camera's data sheet declares its read
+        noise, so that the estimator can put it in its null (`estimate.problem.Problem`).
+
+        The light engine's noise is correlated along a row, unlike a real sensor's fixed
+        pattern: one path adds to every column its vertices land in, a mean free path apart
+        (several pixels), and every vertex adds to every row of its tier. Its size on a
+        row depends only on the paths of the image: `paths_per_image` = spp x the frame's
+        columns (`estimate.forward` traces spp x window width paths an angle). The camera
+        engine's pixels have paths of their own: white, which the diagnosis' noise floor
+        already measures.
+
+        Returns: {"engine", "tiers": [{"rows": [row0, row1), "spp", "paths_per_image"}]}
+        in unbinned sensor rows; "blurred": the world's lens blur mixes rows and columns
+        of it after the render.
+        """
+        cols_n = self.sensor_px[0]
+        light = self.world.render.engine == "light"
+        tiers = [{"rows": [int(r0), int(r1)], "spp": int(spp),
+                  "paths_per_image": int(spp) * cols_n if light else None}
+                 for r0, r1, spp in self.row_tiers()]
+        return {"engine": self.world.render.engine, "tiers": tiers,
+                "blurred": bool(self.world.effects.get("lens_blur"))}
 
 
 def _check_stray_light(world: World, cols: int, pixel_mm: float) -> None:

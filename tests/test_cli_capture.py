@@ -111,6 +111,16 @@ def test_capture_completes_and_records_what_estimation_needs(finished: Path) -> 
     assert img["n_valid"].min() >= 1 and img["n_valid"].max() == len(rec.info["bracket"]["exposures_s"])
     assert rec.info["merge"]["saturation_adu"] == rec.info["noise_model"]["saturation_adu"]
     assert "world" not in json.dumps(s.rig_config)  # the simulated truth stays out of sessions
+    # ... but the simulated camera declares its frozen render noise, as a data sheet would: the
+    # profile row's light paths per image (spp x the frame's 512 columns), which the estimator reads
+    noise = s.render_noise()
+    assert (noise is not None) == bool(_WORLD)
+    if noise is not None:  # the rendered bench is installed
+        tier = next(t for t in noise["tiers"] if t["rows"][0] <= 256 < t["rows"][1])
+        assert noise["engine"] == "light" and tier["paths_per_image"] == tier["spp"] * 512
+        from estimate.problem import recorded_light_paths
+
+        assert recorded_light_paths(noise, 256) == tier["paths_per_image"]
 
 
 def test_info_verifies_and_names_a_corrupt_file(finished: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

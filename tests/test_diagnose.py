@@ -333,6 +333,61 @@ def test_correlated_render_noise_joins_the_null_of_the_smooth_and_score_tests():
     assert score_test(r.ravel(), X, Z, noise_var=np.ones(r.size), noise_modes=modes).log10_p < -3
 
 
+def test_the_recordings_own_render_noise_joins_the_null_when_declared():
+    """A simulated recording carries frozen render noise of the same engine (the camera
+    twin's): correlated along the row like the model's, and as large as one model render's
+    (the demo world's share, `estimate.refit.recorded_noise_share`). The model's mean of
+    4 renders alone leaves most correct fits "significant"; with `recorded` the smooth test
+    holds its level, and a smooth mismatch as large as that noise at its scales is found."""
+    from estimate.residuals import render_noise_modes
+
+    rng = np.random.default_rng(70)
+    n_ang, width, repeats, recorded = 10, 256, 4, 1.0
+    x = np.linspace(-1, 1, width)
+    total = 1.0 + 1.0 / repeats + recorded            # sensor + model mean + recording, per pixel
+    sigma = np.full((n_ang, width), math.sqrt(total))
+
+    def renders(k: int) -> np.ndarray:                # k renders of unit variance per pixel
+        return np.stack([_light_like_render_noise(rng, n_ang, width) for _ in range(k)])
+
+    def residual() -> np.ndarray:
+        model = renders(repeats).mean(axis=0)
+        frozen = math.sqrt(recorded) * _light_like_render_noise(rng, n_ang, width)
+        return (rng.normal(size=(n_ang, width)) + model + frozen) / math.sqrt(total)
+
+    plain_sig = with_sig = 0
+    for _ in range(40):
+        r, other = residual(), renders(24)
+        plain_sig += fit_significance(r, 1, noise_modes=render_noise_modes(other, 1.0, sigma, repeats)).significant
+        with_sig += fit_significance(r, 1, noise_modes=render_noise_modes(other, 1.0, sigma, repeats,
+                                                                           recorded)).significant
+    assert plain_sig > 20 and with_sig <= 1
+    # the modes' covariance is one render's times 1 / repeats + recorded
+    m0 = render_noise_modes(renders(24), 1.0, sigma, repeats)
+    m1 = render_noise_modes(renders(24), 1.0, sigma, repeats, recorded)
+    ratio = float(np.sum(m1 ** 2) / np.sum(m0 ** 2))
+    assert abs(ratio - (1.0 / repeats + recorded) * repeats) < 0.5
+    bump = np.exp(-(x / 0.3) ** 2)
+    r = residual() + 1.5 * bump[None, :]
+    assert fit_significance(r, 1, noise_modes=render_noise_modes(renders(24), 1.0, sigma, repeats,
+                                                                 recorded)).significant
+
+
+def test_recorded_light_paths_reads_the_declared_tier_of_the_profile_row():
+    from estimate.problem import recorded_light_paths
+
+    declared = {"engine": "light", "tiers": [{"rows": [251, 256], "spp": 1024, "paths_per_image": 524288},
+                                             {"rows": [237, 251], "spp": 32, "paths_per_image": 16384}]}
+    assert recorded_light_paths(declared, 254) == 524288
+    assert recorded_light_paths(declared, 240) == 16384
+    assert recorded_light_paths(declared, 300) is None                 # no tier holds the row
+    assert recorded_light_paths(declared, 255, bin_y=2) == 524288      # binned rows 254-255
+    assert recorded_light_paths(declared, 251, bin_y=2) is None        # 250-251 straddle two tiers
+    assert recorded_light_paths({**declared, "engine": "camera"}, 254) is None   # white: the floor's
+    assert recorded_light_paths(None, 254) is None                     # a real camera
+    assert recorded_light_paths({"engine": "light", "tiers": [{"rows": "x"}]}, 254) is None
+
+
 def test_local_noise_variance_follows_the_level_and_ignores_a_smooth_mismatch():
     rng = np.random.default_rng(8)
     w = 400

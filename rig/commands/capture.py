@@ -449,6 +449,12 @@ def _run_checked(args: argparse.Namespace, req: _Request) -> int:
             noise = NoiseModel.from_sensor(sensor, headroom=merge.saturation_headroom)
             extra = {"command": "rig capture", "simulated": rig.simulated,
                      "options": {"band_rows": req.band_rows, "full_frame": req.band_rows is None}}
+            declared = getattr(scene_fn, "render_noise", None)
+            if callable(declared):
+                # The rendered world's frozen Monte Carlo noise, which the HDR variance does
+                # not hold and which is correlated along a row with the light engine
+                # (sim_devices.rendered_scene.RenderedScene.render_noise).
+                extra["render_noise"] = declared()
             cam.set_roi(roi)
             session = Session.create(req.out, plan=plan, frame_shape=roi.shape, rig_config=_rig_snapshot(req.cfg),
                                      devices=devices, sensor=sensor, noise=noise, geometry=geometry,
