@@ -45,7 +45,8 @@ import numpy as np
 
 from estimate.errors import ModelParameterError
 
-__all__ = ["PLUGIN_NAME", "BeamProfile", "beam_frame", "map_from_pixel_image", "register_plugins"]
+__all__ = ["PLUGIN_NAME", "SUPPORT_BOX_PX", "SUPPORT_MARGIN_PX", "SUPPORT_Z", "BeamProfile", "beam_frame",
+           "beam_support", "map_from_pixel_image", "register_plugins"]
 
 PLUGIN_NAME = "collimated_beam"
 #: How far beyond the lit face a shadow ray ends when it may cross the boundary (mm).
@@ -314,6 +315,63 @@ class BeamProfile:
 #: Per axis, a camera pixel value of the bilinear map with samples B at the pixel centres is
 #: sum_j B_j K(i - j): the bilinear (triangle) kernel integrated over the pixel's width.
 _PIXEL_OF_BILINEAR = (1.0 / 8.0, 3.0 / 4.0, 1.0 / 8.0)
+
+
+#: Side (pixels) of the box over which `beam_support` sums the frame before testing it.
+SUPPORT_BOX_PX = 5
+#: A box sum this many standard deviations above zero is the beam's light (`beam_support`).
+SUPPORT_Z = 4.0
+#: Pixels around the boxes above the threshold that the support keeps (the beam's faint edge).
+SUPPORT_MARGIN_PX = 2
+
+
+def beam_support(image: np.ndarray, variance: np.ndarray | None = None) -> np.ndarray:
+    """Where a dark-subtracted calibration frame holds the beam's light, not only its noise.
+
+    Off the beam a dark-subtracted pixel is noise of zero mean, and the irradiance cannot be
+    negative, so the map clips it at zero; the clipped noise keeps its positive half, a
+    pedestal of about 0.4 noise standard deviations in every dark pixel. Spread over the
+    crop it is a faint, very wide halo lighting the whole slab: on the simulated rig's
+    clean sessions (a 0.25 mm beam in a 46 x 46 px crop, the b filter's frame the noisiest)
+    0.02 % of the map's power beyond 1.5 mm, where the beam has none, enough that the
+    true model's chi^2 at the noise floor was 77-135 (of 2560 pixels) above a model lit by
+    the world's own beam, and that the halo led the clean channels' candidates
+    (docs/diagnosis-log.md, session 70).
+
+    The support: the pixels whose box of `SUPPORT_BOX_PX`^2 pixels around them sums to more
+    than `SUPPORT_Z` standard deviations above zero, widened by `SUPPORT_MARGIN_PX`. The standard deviation
+    of each pixel is the merge's (`variance`) times the excess the frame's negative pixels
+    show over it (frozen noise the merge does not hold), or without a variance the negative
+    pixels' root mean square. A real beam's faint halo, a few 1e-4 of the peak over
+    millimetres, lifts many boxes above the threshold and stays; the dark noise (about one
+    box in 30000 above 4 sigma) goes.
+
+    Returns a bool mask of the frame's shape; everything when the frame has no negative
+    pixel to measure the noise by (a noise-free map).
+    """
+    from scipy import ndimage
+
+    x = np.asarray(image, dtype=np.float64)
+    neg = x < 0
+    if not neg.any():
+        return np.ones(x.shape, dtype=bool)
+    if variance is not None and np.all(np.isfinite(variance)) and np.all(np.asarray(variance) > 0):
+        sd = np.sqrt(np.asarray(variance, dtype=np.float64))
+        excess = math.sqrt(max(1.0, float(np.mean((x[neg] / sd[neg]) ** 2))))
+        var = (sd * excess) ** 2
+    else:
+        var = np.full(x.shape, float(np.mean(x[neg] ** 2)))
+    b = SUPPORT_BOX_PX
+    # Box sums (mode "constant": the frame's edge adds nothing) and their standard deviations.
+    total = ndimage.uniform_filter(x, b, mode="constant") * b * b
+    spread = np.sqrt(ndimage.uniform_filter(var, b, mode="constant") * b * b)
+    lit = total > SUPPORT_Z * spread
+    if not lit.any():
+        return np.ones(x.shape, dtype=bool)
+    # The boxes' centres above the threshold, and the margin around them. (Marking each
+    # lit box's whole footprint kept dark rings two pixels wider, where clipped noise
+    # then remained: on the clean sessions above, about half of the pedestal's chi^2.)
+    return ndimage.binary_dilation(lit, iterations=SUPPORT_MARGIN_PX)
 
 
 def map_from_pixel_image(image: np.ndarray) -> np.ndarray:

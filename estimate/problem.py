@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from estimate.beam import BeamProfile, map_from_pixel_image
+from estimate.beam import BeamProfile, beam_support, map_from_pixel_image
 from estimate.errors import DataError
 from estimate.extensions.base import BeamFill
 from estimate.extensions.lens_blur import TRUNCATION_PX as LENS_BLUR_RADIUS
@@ -397,9 +397,17 @@ def _load_beam(session: Any, cal: dict[str, Any], channel: str, pitch_mm: float,
     x0, y0 = _beam_origin(img, entry, path)
     if not np.all(np.isfinite(rad)):
         raise DataError(f"beam map {path} holds NaN or infinite radiance")
-    # Dark-subtracted noise can dip below zero off the beam; the irradiance cannot. The frame
-    # is pixel-integrated and the map is read bilinearly: undo both (estimate.beam).
-    pixels = np.clip(rad, 0.0, None)
+    # Dark-subtracted noise can dip below zero off the beam; the irradiance cannot. Off the
+    # beam's support the frame is dark noise, whose clipped positive half would light the
+    # slab as a faint wide halo: zero there (estimate.beam.beam_support). The frame is
+    # pixel-integrated and the map is read bilinearly: undo both (estimate.beam).
+    try:
+        var = np.asarray(img["variance"], dtype=np.float64)
+    except KeyError:
+        var = None
+    if var is not None and var.shape != rad.shape:
+        var = None
+    pixels = np.where(beam_support(rad, var), np.clip(rad, 0.0, None), 0.0)
     exposures = entry.get("exposures_s", (getattr(img, "meta", None) or {}).get("exposures_s"))
     cx, cy = center_px
     # Pixel centre (i, j) is at x = (i + 0.5 - cx) p, y = -(j + 0.5 - cy) p (estimate.geometry).

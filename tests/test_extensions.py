@@ -810,3 +810,36 @@ def test_forward_model_lights_the_slab_with_the_decompressed_beam_map() -> None:
     jac = model.jacobian(p, angles, ["sensor_nonlinearity.compression"], spp=64, seed=2)["sensor_nonlinearity.compression"]
     image_only = read.jacobian(p, angles, ["sensor_nonlinearity.compression"], spp=64, seed=2)["sensor_nonlinearity.compression"]
     assert np.all(np.isfinite(jac)) and not np.allclose(jac, image_only, rtol=1e-2)
+
+
+@pytest.mark.parametrize("with_variance", [True, False])
+def test_beam_support_leaves_the_dark_noise_out_of_the_map_and_a_real_halo_in(with_variance: bool) -> None:
+    """A calibration frame of a 3.75 px beam (the simulated rig's 0.25 mm) in a 46 px crop,
+    dark noise of sd 15 against a peak of 2.7e5 (its b filter's): clipped at zero, the noise
+    put ~2e-4 of the power beyond 5.5 beam sigmas, where the beam has none; inside the support
+    nothing of the beam is lost, and a real halo (1 % of the power, sigma 12 px) stays."""
+    from estimate.beam import beam_support, map_from_pixel_image
+
+    rng = np.random.default_rng(70)
+    yy, xx = np.mgrid[0:46, 0:46]
+    r2 = (xx - 22.6) ** 2 + (yy - 23.1) ** 2
+    beam = np.exp(-0.5 * r2 / 3.75 ** 2)
+    beam *= 2.7e5 / beam.max()
+    halo = 0.01 * beam.sum() * np.exp(-0.5 * r2 / 12.0 ** 2) / (2 * np.pi * 12.0 ** 2)
+    sd = 15.0
+    far = np.sqrt(r2) > 5.5 * 3.75
+    for truth, keeps_halo in ((beam, False), (beam + halo, True)):
+        frame = truth + rng.normal(0.0, sd, truth.shape)
+        var = np.full(truth.shape, (sd / 2) ** 2) if with_variance else None   # the merge's, half the real noise
+        clipped = np.clip(frame, 0.0, None)
+        kept = np.where(beam_support(frame, var), clipped, 0.0)
+        if not keeps_halo:
+            assert clipped[far].sum() / truth.sum() > 5e-5                  # the pedestal
+            assert kept[far].sum() / truth.sum() < 1e-6                     # gone
+        else:
+            # the halo's light inside the crop is kept (its part in the far region, within 5 %)
+            assert kept[far].sum() == pytest.approx(truth[far].sum(), rel=0.05)
+        assert kept.sum() == pytest.approx(truth.sum(), rel=2e-4)
+        assert np.all(map_from_pixel_image(kept) >= 0)
+    # a noise-free frame (no negative pixel): everything is support
+    assert beam_support(beam).all()
