@@ -334,15 +334,15 @@ def beam_support(image: np.ndarray, variance: np.ndarray | None = None) -> np.nd
     crop it is a faint, very wide halo lighting the whole slab: on the simulated rig's
     clean sessions (a 0.25 mm beam in a 46 x 46 px crop, the b filter's frame the noisiest)
     0.02 % of the map's power beyond 1.5 mm, where the beam has none, enough that the
-    true model's chi^2 at the noise floor was 77-135 (of 2560 pixels) above a model lit by
+    true model's chi^2 at the noise floor was 50-135 (of 2560 pixels) above a model lit by
     the world's own beam, and that the halo led the clean channels' candidates
     (docs/diagnosis-log.md, session 70).
 
-    The support: the pixels whose box of `SUPPORT_BOX_PX`^2 pixels around them sums to more
-    than `SUPPORT_Z` standard deviations above zero, widened by `SUPPORT_MARGIN_PX`. The standard deviation
-    of each pixel is the merge's (`variance`) times the excess the frame's negative pixels
-    show over it (frozen noise the merge does not hold), or without a variance the negative
-    pixels' root mean square. A real beam's faint halo, a few 1e-4 of the peak over
+    The support: the pixels whose box of `SUPPORT_BOX_PX`^2 pixels around them sums to
+    more than `SUPPORT_Z` standard deviations above zero, widened by `SUPPORT_MARGIN_PX`.
+    The standard deviation of each pixel is the merge's (`variance`) times the excess the
+    frame's negative pixels show over it (frozen noise the merge does not hold), or without
+    a variance the negative pixels' root mean square. A real beam's faint halo, a few 1e-4 of the peak over
     millimetres, lifts many boxes above the threshold and stays; the dark noise (about one
     box in 30000 above 4 sigma) goes.
 
