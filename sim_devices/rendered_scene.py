@@ -332,16 +332,15 @@ class RenderedScene:
         already measures.
 
         Returns: {"engine", "tiers": [{"rows": [row0, row1), "spp", "paths_per_image"}]}
-        in unbinned sensor rows; "blurred": the world's lens blur mixes rows and columns
-        of it after the render.
+        in unbinned sensor rows. Nothing of the world's effects is declared (a session of a
+        proof case must not say what is concealed in it).
         """
         cols_n = self.sensor_px[0]
         light = self.world.render.engine == "light"
         tiers = [{"rows": [int(r0), int(r1)], "spp": int(spp),
                   "paths_per_image": int(spp) * cols_n if light else None}
                  for r0, r1, spp in self.row_tiers()]
-        return {"engine": self.world.render.engine, "tiers": tiers,
-                "blurred": bool(self.world.effects.get("lens_blur"))}
+        return {"engine": self.world.render.engine, "tiers": tiers}
 
 
 def _check_stray_light(world: World, cols: int, pixel_mm: float) -> None:
