@@ -617,6 +617,80 @@ def test_with_the_final_fit_to_follow_the_last_round_leaves_the_joint_refit_to_i
     assert "the last candidate's Levenberg-Marquardt refit had reduced chi2" in text
 
 
+def _round_fitter(pb, calls: list):
+    """A `round_fit` for `diagnose_channel`, as `run_diagnosis` builds it, that keeps each fit
+    it made in `calls`."""
+    import estimate.diagnose as dg
+
+    st = FitSettings(seed=2, scale="free", max_iterations=14, spp_start=64, spp_max=128, final_spp=256, window=3,
+                     polish_steps=1)
+
+    def round_fit(refitted):
+        done = dg.estimator_fit(pb, make_model(refitted.extensions), refitted, st, spp=128, seed=1000, repeats=3)
+        calls.append(done)
+        return done
+    return round_fit, st
+
+
+def test_a_round_with_room_for_another_is_judged_on_the_estimators_fit_which_becomes_the_final_fit():
+    """With the final fit to follow and a second effect possible, the round that confirms the
+    concealed stray light fits its model by the estimator (`round_fit`) instead of the joint
+    Levenberg-Marquardt refit; the check reads that fit, the rounds stop there, and
+    `refine_channel` takes it as the final fit rather than fitting it again."""
+    rec = record({"stray_light.offset": 0.01})
+    pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
+    calls: list = []
+    round_fit, st = _round_fitter(pb, calls)
+    d = diagnose_channel(pb, BaseFit(dict(TRUE), 1e4, "hg"), make_model, candidates=["stray_light", "angle_offset"],
+                         spp=128, repeats=3, iterations=8, final_fit_follows=True, round_fit=round_fit)
+    assert d.confirmed == ["stray_light"] and len(calls) == 1 and d.round_fit is calls[0]
+    assert d.round_fit.extensions == ["stray_light"]
+    check = d.explained_checks[0]
+    assert check["stage"] == "estimator fit" and check["explained"]
+    assert check["reduced_chi2_adjusted"] == d.round_fit.evaluation.residuals.reduced_chi2_adjusted
+    assert all(e["round"] == 1 for e in d.confirmations)      # no second round
+    # `after` is the candidate's refit on every angle, as where the joint refit is deferred
+    assert d.model_stage == "deferred" and d.after.model.shape == rec.measured.shape
+    assert check["reduced_chi2_adjusted_refit"] == d.after.residuals.reduced_chi2_adjusted
+    assert d.stage_times_s["model"] >= d.round_fit.time_s and "final_fit" not in d.stage_times_s
+    made = d.round_fit
+    fr = refine_channel(pb, d, make_model, st, spp=128, repeats=3)
+    assert fr is made.fit and d.after is made.evaluation and d.final_fit["made_for"] == "the rounds' check"
+    assert d.final_fit["time_s"] == made.time_s and "final_fit" not in d.stage_times_s   # counted once, in "model"
+    assert fr.parameters["stray_light.offset"] == pytest.approx(0.01, rel=0.5)
+    doc = d.as_dict()
+    assert sum(doc["time_by_stage_s"].values()) == pytest.approx(d.time_s, rel=1e-3, abs=0.05)
+
+
+def test_where_the_estimators_fit_leaves_a_mismatch_the_next_round_starts_from_it(monkeypatch):
+    """A check that fails (the bar set below any fit here) sends the diagnosis into a second
+    round screened at the estimator's fit; where that round confirms nothing (nothing else is
+    concealed), the round-1 model and its estimator's fit stay the final model."""
+    import estimate.diagnose as dg
+
+    monkeypatch.setattr(dg, "EXPLAINED_REDUCED_CHI2", 0.0)
+    rec = record({"stray_light.offset": 0.01})
+    pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
+    calls: list = []
+    round_fit, st = _round_fitter(pb, calls)
+    screened_at: list[dict] = []
+    real = dg._screen
+
+    def spy(problem, current, *a, **kw):
+        screened_at.append(dict(current.parameters))
+        return real(problem, current, *a, **kw)
+
+    monkeypatch.setattr(dg, "_screen", spy)
+    d = diagnose_channel(pb, BaseFit(dict(TRUE), 1e4, "hg"), make_model, candidates=["stray_light", "angle_offset"],
+                         spp=128, repeats=3, iterations=6, final_fit_follows=True, round_fit=round_fit)
+    assert len(calls) == 1 and not d.explained_checks[0]["explained"]
+    # round 1 screened at the base fit, round 2 at the estimator's fit of the stray light
+    assert len(screened_at) == 2 and screened_at[1] == calls[0].evaluation.parameters
+    assert d.confirmed == ["stray_light"] and d.round_fit is calls[0] and d.model_stage == "deferred"
+    assert d.after.parameters != calls[0].evaluation.parameters     # the candidate's refit, for refine_channel
+    assert refine_channel(pb, d, make_model, st, spp=128, repeats=3) is calls[0].fit
+
+
 def test_a_diagnosis_with_decorrelated_refits_confirms_and_models_on_that_objective(monkeypatch):
     """`refit_objective=DECORRELATED`: the control, the candidate, its neutral point and the
     joint refit all minimise or evaluate the decorrelated chi^2 (two seeds), so the paired
