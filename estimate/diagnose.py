@@ -27,8 +27,9 @@
    chi^2's standard deviation. Of the confirmed candidates of a round, the one whose BIC
    gain is largest on that independently rendered chi^2 joins the model (`_rank_key`).
    After one confirmed effect the fit is tested again: where the model with it leaves a
-   reduced chi^2 at the noise floor above `EXPLAINED_REDUCED_CHI2`, the remaining mismatch is
-   screened at the new fit for a second effect (pairs). A first round that confirms no
+   reduced chi^2 at the noise floor above `EXPLAINED_REDUCED_CHI2` (at the estimator's fit
+   of that model in `rig diagnose`, at the decorrelated step from its joint refit in
+   `--quick`), the remaining mismatch is screened at the new fit for a second effect (pairs). A first round that confirms no
    single candidate tries pairs: the candidate that passed every test but the BIC bar, or
    every test but the held-out one (`_pair_lead`), is refitted together with each candidate
    the screening flags at its refit (`try_pair`), both effects priced. With two, each is put back to
@@ -46,7 +47,11 @@
    itself is reported as `material_fixed_seed_after`. When the final fit follows, the round
    that adds the last effect skips that joint refit (`diagnose_channel`'s
    `final_fit_follows`): the final fit starts from the candidate's refit and makes the
-   backward check itself; `model_stage` says which way the model was made.
+   backward check itself; `model_stage` says which way the model was made. In `rig
+   diagnose` (`run_diagnosis`, since session 71) a round that leaves room for another
+   effect skips it too: its model is fitted by the estimator at once (`round_fit`), the
+   test for a further effect reads that fit, and where the rounds stop there it is the
+   final fit.
 5. Second pass: when the estimator's final fit drops every effect the refits confirmed
    (none of their magnitudes can be told from absent there), every other candidate is
    refitted, flagged by the screening or not, from the base fit or from the coarse grid
@@ -204,8 +209,9 @@ MAX_CONFIRM = 2
 #: At most this many effects are added.
 MAX_EFFECTS = 2
 #: A further round (a second effect, `MAX_EFFECTS`) is screened and refitted only while the
-#: model with the effects confirmed so far, at the decorrelated step from its joint refit,
-#: leaves a reduced chi^2 at the noise floor above this (`diagnose_channel`): the issue's bar
+#: model with the effects confirmed so far, fitted by the estimator (`round_fit`; in `--quick`
+#: at the decorrelated step from its joint refit), leaves a reduced chi^2 at the noise floor
+#: above this (`diagnose_channel`): the issue's bar
 #: for a mismatch explained. The score tests alone are no such bar: at a model that already
 #: fits at the floor they are overpowered by the pixel count. On the light bench at 8192 spp
 #: (session 65) the refractive-boundary sessions' second rounds screened at the boundary's

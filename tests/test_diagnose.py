@@ -660,6 +660,10 @@ def test_a_round_with_room_for_another_is_judged_on_the_estimators_fit_which_bec
     assert fr.parameters["stray_light.offset"] == pytest.approx(0.01, rel=0.5)
     doc = d.as_dict()
     assert sum(doc["time_by_stage_s"].values()) == pytest.approx(d.time_s, rel=1e-3, abs=0.05)
+    from estimate.diagnose import summary_text
+
+    text = summary_text({"channels": {"g": doc}, "run_id": "x", "refit_run": None})
+    assert "with stray_light (fitted by the estimator) the reduced chi2 at the floor is" in text
 
 
 def test_where_the_estimators_fit_leaves_a_mismatch_the_next_round_starts_from_it(monkeypatch):
