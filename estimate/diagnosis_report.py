@@ -196,13 +196,14 @@ def summary_text(doc: Mapping[str, Any]) -> str:
             # Since session 66: a further round only where the model so far leaves more than the bar.
             # Since session 71 (not --quick): read at the estimator's fit of that model.
             at_opt = chk.get("reduced_chi2_adjusted_optimum")
-            at_refit = chk.get("reduced_chi2_adjusted_refit")
-            where = ("fitted by the estimator" if chk.get("stage") == "estimator fit"
-                     else "at the decorrelated step from its refit")
-            print(f"  with {', '.join(chk['after'])} ({where}) the reduced chi2 at the "
-                  f"floor is {chk['reduced_chi2_adjusted']:.3f}"
-                  + (f" ({at_opt:.3f} at the refit's own optimum)" if at_opt is not None else "")
-                  + (f" ({at_refit:.3f} at the candidate's refit)" if at_refit is not None else "") + ", "
+            if chk.get("stage") == "estimator fit":
+                what = (f" the reduced chi2 at the floor is {chk['reduced_chi2_adjusted_fit']:.3f} fitted by the "
+                        f"estimator, {chk['reduced_chi2_adjusted_refit']:.3f} at the candidate's refit")
+            else:
+                what = (" (at the decorrelated step from its refit) the reduced chi2 at the floor is "
+                        f"{chk['reduced_chi2_adjusted']:.3f}"
+                        + (f" ({at_opt:.3f} at the refit's own optimum)" if at_opt is not None else ""))
+            print(f"  with {', '.join(chk['after'])}{what}, "
                   + (f"at most {chk['bar']:g}: explained, no second effect looked for" if chk["explained"]
                      else f"above {chk['bar']:g}: a second effect looked for"), file=out)
         part = d.get("partial") or {}
