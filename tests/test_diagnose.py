@@ -671,7 +671,9 @@ def test_a_round_with_room_for_another_is_judged_on_the_estimators_fit_which_bec
 def test_where_the_estimators_fit_leaves_a_mismatch_the_next_round_starts_from_it(monkeypatch):
     """A check that fails (the bar set below any fit here) sends the diagnosis into a second
     round screened at the estimator's fit; where that round confirms nothing (nothing else is
-    concealed), the round-1 model and its estimator's fit stay the final model."""
+    concealed), the round-1 model stays, with its joint Levenberg-Marquardt refit made after
+    all (`after`, at its decorrelated step) and its estimator's fit taken as the final fit,
+    which `refine_channel` compares with that refit."""
     import estimate.diagnose as dg
 
     monkeypatch.setattr(dg, "EXPLAINED_REDUCED_CHI2", 0.0)
@@ -692,9 +694,14 @@ def test_where_the_estimators_fit_leaves_a_mismatch_the_next_round_starts_from_i
     assert len(calls) == 1 and not d.explained_checks[0]["explained"]
     # round 1 screened at the base fit, round 2 at the estimator's fit of the stray light
     assert len(screened_at) == 2 and screened_at[1] == calls[0].evaluation.parameters
-    assert d.confirmed == ["stray_light"] and d.round_fit is calls[0] and d.model_stage == "deferred"
-    assert d.after.parameters != calls[0].evaluation.parameters     # the candidate's refit, for refine_channel
-    assert refine_channel(pb, d, make_model, st, spp=128, repeats=3) is calls[0].fit
+    assert d.confirmed == ["stray_light"] and d.round_fit is calls[0] and d.model_stage == "refit"
+    assert d.fixed_seed_after and d.after.parameters != d.fixed_seed_after   # the joint refit's decorrelated step
+    assert d.after.parameters != calls[0].evaluation.parameters
+    fr = refine_channel(pb, d, make_model, st, spp=128, repeats=3)
+    assert len(calls) == 1 and d.final_fit["made_for"] == "the rounds' check"     # not fitted again
+    assert d.final_fit["time_s"] == calls[0].time_s
+    # the estimator's fit is reported unless it stopped short of the refit (`REFIT_PREFERRED_MARGIN`)
+    assert (fr is calls[0].fit) == (d.final_fit.get("reported") != "refit")
 
 
 def test_a_diagnosis_with_decorrelated_refits_confirms_and_models_on_that_objective(monkeypatch):
