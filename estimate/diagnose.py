@@ -29,8 +29,9 @@
    After one confirmed effect the fit is tested again: where the model with it leaves a
    reduced chi^2 at the noise floor above `EXPLAINED_REDUCED_CHI2` (the better of the
    estimator's fit of that model and the candidate's refit in `rig diagnose`, at the
-   decorrelated step from its joint refit in `--quick`), the remaining mismatch is screened at the new fit for a second effect (pairs). A first round that confirms no
-   single candidate tries pairs: the candidate that passed every test but the BIC bar, or
+   decorrelated step from its joint refit in `--quick`), the remaining mismatch is screened
+   at the new fit for a second effect (pairs). A first round that confirms no single
+   candidate tries pairs: the candidate that passed every test but the BIC bar, or
    every test but the held-out one (`_pair_lead`), is refitted together with each candidate
    the screening flags at its refit (`try_pair`), both effects priced. With two, each is put back to
    absent in the joint model and stays named only while that raises chi^2 by more than its
@@ -452,8 +453,9 @@ class ChannelDiagnosis:
     refit_objective: str = FIXED_SEED
     #: after each round that left room for another effect, whether its model already
     #: explained the mismatch (`EXPLAINED_REDUCED_CHI2`): the effects so far, that model's
-    #: reduced chi^2 at the floor (at the decorrelated step), the bar, and `explained` (True:
-    #: the rounds stopped there)
+    #: reduced chi^2 at the floor (`stage` "estimator fit": the better of the estimator's fit
+    #: and the candidate's refit, both recorded; without `stage`: at the decorrelated step from
+    #: the joint refit), the bar, and `explained` (True: the rounds stopped there)
     explained_checks: list[dict[str, Any]] = field(default_factory=list)
     #: the estimator's fit of the named model made by the rounds' check (`diagnose_channel`'s
     #: `round_fit`), which `refine_channel` takes as the final fit (not reported apart)
@@ -1285,8 +1287,9 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             confirms an effect and leaves room for another fits its model by the estimator
             instead of the joint Levenberg-Marquardt refit, and the check whether a further
             effect is looked for reads the better of that fit and the candidate's refit; where
-            the rounds stop there, it is the final fit (`refine_channel` takes it). The joint refit minimises the chi^2 of one render
-            seed, which leans towards parameters with quieter renders: on the light bench's
+            the rounds stop there, it is the final fit (`refine_channel` takes it). The joint
+            refit minimises the chi^2 of one render seed, which leans towards parameters with
+            quieter renders: on the light bench's
             n = 1.5 boundary session its optimum came out at sigma_t 2.01 from one start and
             1.66 from another (truth 2.0), with the lower fixed-seed chi^2 at 1.66 (1873
             against 1995) and a reduced chi^2 at the floor of 4.26 there against 1.22, so the
@@ -2739,9 +2742,12 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
         base = BaseFit({k: float(v) for k, v in (c.get("parameters") or {}).items()}, float(c.get("scale", 1.0)),
                        phase, base_exts, {k: float(v) for k, v in (c.get("uncertainties") or {}).items()
                                           if v is not None})
-        def round_fit(refitted: Evaluation, _pb: Any = pb, _phase: str = phase, _ch: str = ch) -> EstimatorFit:
+
+        def round_fit(refitted: Evaluation, _pb: Any = pb, _phase: str = phase, _ch: str = ch,
+                      _make: Any = make_model) -> EstimatorFit:
+            # A round's model fitted by the estimator (`diagnose_channel`'s `round_fit`).
             cb = fit_progress(_ch, _phase) if fit_progress else (None, None)
-            return estimator_fit(_pb, make_model(refitted.extensions), refitted, fit_settings, spp=spp, seed=seed,
+            return estimator_fit(_pb, _make(refitted.extensions), refitted, fit_settings, spp=spp, seed=seed,
                                  repeats=repeats, progress=cb[0], on_stage=cb[1])
 
         d = diagnose_channel(pb, base, make_model, candidates=effects, spp=spp, seed=seed, repeats=repeats,
