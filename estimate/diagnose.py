@@ -1555,8 +1555,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         # candidate's refit passed it). Its joint refit is made as where no estimator's fit
         # follows, so that `refine_channel` has the refit to compare the estimator's fit
         # with: on the light bench's lens blurs and halos the estimator stops short of it
-        # (lens_blur-1 1.48 at the floor against the joint refit's 1.36, beam_halo-2 1.22
-        # against 1.11; the truth's own 1.39, 1.09; session 71), and the refit is then
+        # (lens_blur-1 1.48 at the floor against the joint refit's 1.36, beam_halo-2 1.23
+        # against 1.09; the truth's own 1.39, 1.09; session 71), and the refit is then
         # reported (`REFIT_PREFERRED_MARGIN`).
         full, current = conf.settle(current_exts, round_done[1].parameters, round_done[2], confirmed)
         last_full, deferred = (full, round_done[2]), None
