@@ -52,7 +52,8 @@
    diagnose` (`run_diagnosis`, since session 71) a round that leaves room for another
    effect skips it too: its model is fitted by the estimator at once (`round_fit`), the
    test for a further effect reads the better of that fit and the candidate's refit, and
-   where the rounds stop there it is the final fit.
+   where the rounds stop there it is the final fit (with the joint refit made after all
+   where that fit leaves more than the bar, for `refine_channel` to compare it with).
 5. Second pass: when the estimator's final fit drops every effect the refits confirmed
    (none of their magnitudes can be told from absent there), every other candidate is
    refitted, flagged by the screening or not, from the base fit or from the coarse grid
