@@ -342,9 +342,9 @@ def beam_support(image: np.ndarray, variance: np.ndarray | None = None) -> np.nd
     more than `SUPPORT_Z` standard deviations above zero, widened by `SUPPORT_MARGIN_PX`.
     The standard deviation of each pixel is the merge's (`variance`) times the excess the
     frame's negative pixels show over it (frozen noise the merge does not hold), or without
-    a variance the negative pixels' root mean square. A real beam's faint halo, a few 1e-4 of the peak over
-    millimetres, lifts many boxes above the threshold and stays; the dark noise (about one
-    box in 30000 above 4 sigma) goes.
+    a variance the negative pixels' root mean square. A real beam's faint halo, a few 1e-4
+    of the peak over millimetres, lifts many boxes above the threshold and stays; the dark
+    noise (about one box in 30000 above 4 sigma) goes.
 
     Returns a bool mask of the frame's shape; everything when the frame has no negative
     pixel to measure the noise by (a noise-free map).
@@ -355,8 +355,9 @@ def beam_support(image: np.ndarray, variance: np.ndarray | None = None) -> np.nd
     neg = x < 0
     if not neg.any():
         return np.ones(x.shape, dtype=bool)
-    if variance is not None and np.all(np.isfinite(variance)) and np.all(np.asarray(variance) > 0):
-        sd = np.sqrt(np.asarray(variance, dtype=np.float64))
+    v = None if variance is None else np.asarray(variance, dtype=np.float64)
+    if v is not None and np.all(np.isfinite(v)) and np.all(v > 0):
+        sd = np.sqrt(v)
         excess = math.sqrt(max(1.0, float(np.mean((x[neg] / sd[neg]) ** 2))))
         var = (sd * excess) ** 2
     else:

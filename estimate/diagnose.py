@@ -1356,10 +1356,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
     confirmed: list[str] = []
     last_full: tuple[RefitResult, np.ndarray] | None = None
     deferred: RefitResult | None = None
-    # The estimator's fit of a round's model (`round_fit`) and that round's candidate refit
-    # on all angles, which `after` is where the rounds stop at that model.
-    # With it, the render variance the round's joint refit would have weighed by.
-    round_done: tuple[EstimatorFit, Evaluation, np.ndarray] | None = None
+    # The last round's model fitted by the estimator, where `round_fit` is given.
+    round_done: _RoundFit | None = None
     explained_checks: list[dict[str, Any]] = []
     while before.residuals.significant and len(confirmed) < max_effects:
         remaining = [c for c in cands if c not in confirmed]
@@ -1485,7 +1483,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                 "noise floor (the candidate's refit); fitting the model by the estimator ...")
             laps("model")
             done = round_fit(refitted)
-            round_done = (done, refitted, _render_variance(current, repeats, FINAL_SPP_FACTOR))
+            round_done = _RoundFit(done, refitted, _render_variance(current, repeats, FINAL_SPP_FACTOR))
             current = done.evaluation
             # The model explains the recording where either of its fits does, both rendered
             # at the diagnosis' independent seeds: the estimator's fit can stop short of the
@@ -1546,10 +1544,10 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
             if check["explained"]:
                 break
     confirmed_order = list(confirmed)
-    if round_done is not None and round_done[0].extensions != list(current_exts):
+    if round_done is not None and round_done.fit.extensions != list(current_exts):
         round_done = None        # a later round added an effect: its model is fitted last
-    if round_done is not None and round_done[0].evaluation.residuals.reduced_chi2_adjusted <= EXPLAINED_REDUCED_CHI2:
-        current = round_done[1]
+    if round_done is not None and round_done.fit.evaluation.residuals.reduced_chi2_adjusted <= EXPLAINED_REDUCED_CHI2:
+        current = round_done.refitted
     elif round_done is not None:
         # The estimator's fit of the model the rounds stopped at leaves more than the bar
         # (the check found more to explain and no further effect joined, or only the
@@ -1559,8 +1557,9 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         # (lens_blur-1 1.48 at the floor against the joint refit's 1.36, beam_halo-2 1.23
         # against 1.09; the truth's own 1.39, 1.09; session 71), and the refit is then
         # reported (`REFIT_PREFERRED_MARGIN`).
-        full, current = conf.settle(current_exts, round_done[1].parameters, round_done[2], confirmed)
-        last_full, deferred = (full, round_done[2]), None
+        full, current = conf.settle(current_exts, round_done.refitted.parameters, round_done.render_variance,
+                                    confirmed)
+        last_full, deferred = (full, round_done.render_variance), None
     stage = conf.model_stage(confirmed, current_exts, current, last_full, deferred)
     confirmed, current_exts, current = stage.confirmed, stage.exts, stage.current
     pruned, importance, fixed_seed = stage.pruned, stage.importance, stage.fixed_seed
@@ -1591,7 +1590,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                             model_stage="deferred" if deferred is not None else "refit" if confirmed else "",
                             first_round=first_round, partial=partial, refit_objective=refit_objective,
                             explained_checks=explained_checks,
-                            round_fit=round_done[0] if round_done is not None and confirmed else None)
+                            round_fit=round_done.fit if round_done is not None and confirmed else None)
 
 
 def explained_share(before: Evaluation, after: Evaluation) -> float:
@@ -1976,6 +1975,16 @@ class EstimatorFit:
     renders: np.ndarray
     start_info: dict[str, Any]
     time_s: float
+
+
+class _RoundFit(NamedTuple):
+    """A round's model fitted by the estimator (`diagnose_channel`'s `round_fit`), the round's
+    candidate refit evaluated on all angles, and the render variance (data units, per pixel)
+    that the round's joint refit weighs by where it is made after all."""
+
+    fit: EstimatorFit
+    refitted: Evaluation
+    render_variance: np.ndarray
 
 
 def estimator_fit(problem: Any, model: ForwardModel, lm: Evaluation, settings: FitSettings, *,
