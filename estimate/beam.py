@@ -66,6 +66,39 @@ def beam_frame(phi_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 DEBLUR_REGULARISATION = 1e-2
 #: The 5-point Laplacian (`BeamProfile.deblurred`'s penalty).
 _LAPLACIAN = np.array([[0.0, 1.0, 0.0], [1.0, -4.0, 1.0], [0.0, 1.0, 0.0]])
+#: Spread (samples, Gaussian sigma) over which `_nonnegative_locally` hands a negative
+#: sample's deficit to its neighbours, and its passes.
+_DEFICIT_SPREAD = 1.5
+_DEFICIT_PASSES = 20
+
+
+def _nonnegative_locally(x: np.ndarray) -> np.ndarray:
+    """`x` made non-negative with its sum unchanged: each negative sample's deficit is taken
+    from its neighbours (a Gaussian of `_DEFICIT_SPREAD` samples, renormalised at the edges
+    so none is lost), `_DEFICIT_PASSES` times; what is still owed then (a region whose noise
+    sums negative) is taken from all the positive samples in proportion.
+
+    Where the true irradiance is zero, a deconvolved map is zero-mean noise; clipping it at
+    zero keeps the positive half, a faint positive floor, whereas here the noise's two signs
+    cancel where they lie. Under the beam the deficit is a small share of what is there.
+    """
+    from scipy import ndimage
+
+    y = np.asarray(x, dtype=np.float64).copy()
+    # Gathering through the kernel, each source's share renormalised: scatter weights that
+    # sum to 1 within the map, so a deficit near an edge is not lost off it.
+    reach = ndimage.gaussian_filter(np.ones_like(y), _DEFICIT_SPREAD, mode="constant")
+    for _ in range(_DEFICIT_PASSES):
+        deficit = np.minimum(y, 0.0)
+        if not deficit.any():
+            break
+        y = np.maximum(y, 0.0) + ndimage.gaussian_filter(deficit / reach, _DEFICIT_SPREAD, mode="constant")
+    owed = -float(np.minimum(y, 0.0).sum())
+    out: np.ndarray = np.maximum(y, 0.0)
+    have = float(out.sum())
+    if owed > 0.0 and have > 0.0:
+        out *= max(0.0, 1.0 - owed / have)
+    return out
 
 
 @dataclass(frozen=True)
@@ -252,9 +285,16 @@ class BeamProfile:
                 times in one lens blur diagnosis); None starts from the blurred map's
                 back-projection. The solution is the same to the solver's tolerance.
 
-        Negative samples are clipped. The power is the solution's: the glare that fell
-        outside the crop is restored to the beam it came from (+1.1 % on that session). A
-        delta kernel gives the map itself.
+        The solution's negative samples (the map's noise, amplified) are not clipped but
+        handed to their neighbours (`_nonnegative_locally`): clipping keeps the positive
+        half of zero-mean noise and turns it into a halo. On the light bench's lens_blur-2
+        session (2.5 px core, 5 % tail, calibration map noise about 1.5e-4 of its peak) the
+        clipped map held 0.135 % of its power beyond 1 mm where the unclipped solution holds
+        0.044 % and the beam 0.036 %; that halo lit the slab's wings, the fit answered with
+        the albedo 0.0025 low (4 sigma) and a larger tail, and the true model's reduced
+        chi^2 at the noise floor was 1.32 against 1.16 with the halo gone (session 72). The
+        power is the solution's: the glare that fell outside the crop is restored to the
+        beam it came from (+1.1 % on that session). A delta kernel gives the map itself.
         """
         from scipy import ndimage
         from scipy.sparse.linalg import LinearOperator, cg
@@ -293,7 +333,7 @@ class BeamProfile:
         if start is not None and np.shape(start) == e.shape:
             x0 = np.asarray(start, dtype=np.float64).ravel() / scale
         x, _ = cg(normal, rhs, x0=x0, rtol=1e-7, maxiter=2000)
-        b = np.clip(x.reshape(nv, nu) * scale, 0.0, None)
+        b = _nonnegative_locally(x.reshape(nv, nu)) * scale
         return BeamProfile(b, self.pitch_mm, self.u0_mm, self.v0_mm, through_lens=False)
 
     def lookup(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
