@@ -461,6 +461,11 @@ class ChannelDiagnosis:
     #: the estimator's fit of the named model made by the rounds' check (`diagnose_channel`'s
     #: `round_fit`), which `refine_channel` takes as the final fit (not reported apart)
     round_fit: EstimatorFit | None = field(default=None, repr=False, compare=False)
+    #: per confirmation round: its number, the effects confirmed before it (`after`), the
+    #: seconds its screening and its control refit took (`screening_s`, `control_s`; 0 or
+    #: absent where taken from an earlier run), and after the first round its ranked
+    #: candidates as in `candidates`
+    rounds: list[dict[str, Any]] = field(default_factory=list)
 
     #: the fields that describe the named model and its fits (`adopt_named_model`)
     NAMED_MODEL_FIELDS: ClassVar[tuple[str, ...]] = (
@@ -537,6 +542,7 @@ class ChannelDiagnosis:
             "second_pass": _plain(self.second_pass) or None,
             "partial": _plain(self.partial) or None,
             "explained_checks": _plain(self.explained_checks),
+            "rounds": _plain(self.rounds),
         }
 
 
@@ -1339,10 +1345,12 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         # and `before` already holds the significance they completed.
         first_scores = [c for c in reuse.scores if c.name in cands]
     elif cands:
+        t_screen = time.perf_counter()
         first_scores = _screen(problem, before, list(base.extensions), make_model, cands, spp=spp, seed=seed + 101,
                                repeats=repeats)
         _targeted_significance(before, first_scores)
     first_round = reuse or FirstRound(key, before, loc, list(first_scores))
+    first_screen_s = time.perf_counter() - t_screen if reuse is None and cands else 0.0
     laps("screening")
     conf = _Confirmation(problem=problem, make_model=make_model, cands=cands, spp=spp, seed=seed, repeats=repeats,
                          iterations=iterations, refit_objective=refit_objective,
@@ -1359,13 +1367,21 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
     # The last round's model fitted by the estimator, where `round_fit` is given.
     round_done: _RoundFit | None = None
     explained_checks: list[dict[str, Any]] = []
+    # Each round's screening and control: what they took and, after the first, what they ranked.
+    rounds: list[dict[str, Any]] = []
     while before.residuals.significant and len(confirmed) < max_effects:
         remaining = [c for c in cands if c not in confirmed]
         if not remaining:
             break
+        t_screen = time.perf_counter()
         scores = (first_scores if not confirmed else
                   _screen(problem, current, current_exts, make_model, remaining, spp=spp, seed=seed + 101,
                            repeats=repeats))
+        record: dict[str, Any] = {"round": len(confirmed) + 1, "after": list(confirmed),
+                                  "screening_s": time.perf_counter() - t_screen if confirmed else first_screen_s}
+        if confirmed:
+            record["candidates"] = [c.as_dict() for c in scores]
+        rounds.append(record)
         say("  screening: " + ", ".join(f"{c.name} {c.statistic:.0f}/{c.dof}" for c in scores[:4]))
         laps("screening")
         leading = [c for c in scores if c.log10_p < refit_below_log10_p][:max_confirm]
@@ -1384,7 +1400,9 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         if round_one and first_round.control is not None:
             control = first_round.control
         else:
+            t_control = time.perf_counter()
             control = conf.control(current_exts, current)
+            record["control_s"] = time.perf_counter() - t_control
             if round_one:
                 first_round.control = control
         cur_train, ctrl_tr = control.train_before, control.train_control
@@ -1589,7 +1607,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                             stage_times_s=dict(laps.seconds),
                             model_stage="deferred" if deferred is not None else "refit" if confirmed else "",
                             first_round=first_round, partial=partial, refit_objective=refit_objective,
-                            explained_checks=explained_checks,
+                            explained_checks=explained_checks, rounds=rounds,
                             round_fit=round_done.fit if round_done is not None and confirmed else None)
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -694,6 +695,11 @@ def test_where_the_estimators_fit_leaves_a_mismatch_the_next_round_starts_from_i
     assert len(calls) == 1 and not d.explained_checks[0]["explained"]
     # round 1 screened at the base fit, round 2 at the estimator's fit of the stray light
     assert len(screened_at) == 2 and screened_at[1] == calls[0].evaluation.parameters
+    # each round's screening and control are timed, and the second round's ranking is kept
+    assert [r["round"] for r in d.rounds] == [1, 2] and d.rounds[1]["after"] == ["stray_light"]
+    assert [c["name"] for c in d.rounds[1]["candidates"]] == ["angle_offset"] and "candidates" not in d.rounds[0]
+    assert all(r["screening_s"] > 0 for r in d.rounds) and d.rounds[0]["control_s"] > 0
+    assert json.loads(json.dumps(d.as_dict()["rounds"])) == d.as_dict()["rounds"]
     assert d.confirmed == ["stray_light"] and d.round_fit is calls[0] and d.model_stage == "refit"
     assert d.fixed_seed_after and d.after.parameters != d.fixed_seed_after   # the joint refit's decorrelated step
     assert d.after.parameters != calls[0].evaluation.parameters
