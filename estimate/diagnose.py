@@ -462,8 +462,8 @@ class ChannelDiagnosis:
     #: `round_fit`), which `refine_channel` takes as the final fit (not reported apart)
     round_fit: EstimatorFit | None = field(default=None, repr=False, compare=False)
     #: per confirmation round: its number, the effects confirmed before it (`after`), the
-    #: seconds its screening and its control refit took (`screening_s`, `control_s`; 0 or
-    #: absent where taken from an earlier run), and after the first round its ranked
+    #: seconds its screening and its control refit took (`screening_s`, `control_s`; about 0
+    #: and absent where taken from an earlier run), and after the first round its ranked
     #: candidates as in `candidates`
     rounds: list[dict[str, Any]] = field(default_factory=list)
 
@@ -561,10 +561,13 @@ class _Laps:
         self.seconds: dict[str, float] = {}
         self._t = time.perf_counter()
 
-    def __call__(self, stage: str) -> None:
+    def __call__(self, stage: str) -> float:
+        """Charge the lap to `stage`; returns the lap's seconds."""
         now = time.perf_counter()
-        self.seconds[stage] = self.seconds.get(stage, 0.0) + now - self._t
+        lap = now - self._t
+        self.seconds[stage] = self.seconds.get(stage, 0.0) + lap
         self._t = now
+        return lap
 
 
 def _plain(x: Any) -> Any:
@@ -1345,13 +1348,11 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         # and `before` already holds the significance they completed.
         first_scores = [c for c in reuse.scores if c.name in cands]
     elif cands:
-        t_screen = time.perf_counter()
         first_scores = _screen(problem, before, list(base.extensions), make_model, cands, spp=spp, seed=seed + 101,
                                repeats=repeats)
         _targeted_significance(before, first_scores)
     first_round = reuse or FirstRound(key, before, loc, list(first_scores))
-    first_screen_s = time.perf_counter() - t_screen if reuse is None and cands else 0.0
-    laps("screening")
+    first_screen_s = laps("screening")
     conf = _Confirmation(problem=problem, make_model=make_model, cands=cands, spp=spp, seed=seed, repeats=repeats,
                          iterations=iterations, refit_objective=refit_objective,
                          refit_checks_decide=refit_checks_decide, refit_below_log10_p=refit_below_log10_p,
@@ -1373,17 +1374,16 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         remaining = [c for c in cands if c not in confirmed]
         if not remaining:
             break
-        t_screen = time.perf_counter()
         scores = (first_scores if not confirmed else
                   _screen(problem, current, current_exts, make_model, remaining, spp=spp, seed=seed + 101,
                            repeats=repeats))
+        say("  screening: " + ", ".join(f"{c.name} {c.statistic:.0f}/{c.dof}" for c in scores[:4]))
+        lap = laps("screening")
         record: dict[str, Any] = {"round": len(confirmed) + 1, "after": list(confirmed),
-                                  "screening_s": time.perf_counter() - t_screen if confirmed else first_screen_s}
+                                  "screening_s": lap if confirmed else first_screen_s}
         if confirmed:
             record["candidates"] = [c.as_dict() for c in scores]
         rounds.append(record)
-        say("  screening: " + ", ".join(f"{c.name} {c.statistic:.0f}/{c.dof}" for c in scores[:4]))
-        laps("screening")
         leading = [c for c in scores if c.log10_p < refit_below_log10_p][:max_confirm]
         round_one = not confirmed
         # Where a first round's refits are not confirmed (or no candidate is flagged at all),
