@@ -710,6 +710,47 @@ def test_where_the_estimators_fit_leaves_a_mismatch_the_next_round_starts_from_i
     assert (fr is calls[0].fit) == (d.final_fit.get("reported") != "refit")
 
 
+def test_the_first_round_compares_its_flagged_candidates_and_later_rounds_take_the_first_that_passes(monkeypatch):
+    """Round 1 refits both flagged candidates though the first passes, and adds the one the
+    independent renders rank higher (confusable effects screen in either order at the base
+    fit); round 2 refits in screening order and stops at the first that passes every test,
+    recording the flagged candidate it left (`FIRST_PASS_ROUNDS_FROM`). Every refit here
+    passes, its rank set by the stub: the rule is the control flow around the tests."""
+    import estimate.diagnose as dg
+    from estimate.screening import CandidateScore
+
+    monkeypatch.setattr(dg, "EXPLAINED_REDUCED_CHI2", 0.0)      # always look for a second effect
+    real_screen, real_try = dg._screen, dg._Confirmation.try_candidate
+    order = {1: ["stray_light", "angle_offset"], 2: ["stray_light", "beam_halo"]}
+    rank = {"stray_light": 50.0, "angle_offset": 80.0, "beam_halo": 500.0}
+    rounds_screened: list[int] = []
+
+    def screen(problem, current, exts, *a, **kw):
+        real_screen(problem, current, exts, *a, **kw)            # its side records, as the real one
+        rounds_screened.append(len(exts) + 1)
+        return [CandidateScore(n, 1e3, 1, 0.0, -200.0, 1.0) for n in order[len(exts) + 1]]
+
+    def try_candidate(self, name, rnd, start, *a, **kw):
+        entry, fit = real_try(self, name, rnd, start, *a, **kw)
+        entry.update(delta_bic=1e3, delta_bic_independent=rank[name], magnitude_sigma=50.0, no_harm=True,
+                     heldout_ok=True)
+        return entry, fit
+
+    monkeypatch.setattr(dg, "_screen", screen)
+    monkeypatch.setattr(dg._Confirmation, "try_candidate", try_candidate)
+    rec = record({"stray_light.offset": 0.01})
+    pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
+    d = diagnose_channel(pb, BaseFit(dict(TRUE), 1e4, "hg"), make_model,
+                         candidates=["stray_light", "angle_offset", "beam_halo"], spp=64, repeats=2, iterations=2)
+    assert rounds_screened == [1, 2]
+    tried = [(e["round"], e["effect"]) for e in d.confirmations]
+    # round 1: both refitted, the second (ranked higher) added though the first passed too
+    assert tried == [(1, "stray_light"), (1, "angle_offset"), (2, "stray_light")]
+    assert d.confirmed_order == ["angle_offset", "stray_light"]
+    assert "not_refitted" not in d.rounds[0] and d.rounds[1]["not_refitted"] == ["beam_halo"]
+    assert json.loads(json.dumps(d.as_dict()["rounds"]))[1]["not_refitted"] == ["beam_halo"]
+
+
 def test_a_diagnosis_with_decorrelated_refits_confirms_and_models_on_that_objective(monkeypatch):
     """`refit_objective=DECORRELATED`: the control, the candidate, its neutral point and the
     joint refit all minimise or evaluate the decorrelated chi^2 (two seeds), so the paired
