@@ -2079,44 +2079,6 @@ def test_a_refit_still_descending_fast_when_its_iterations_are_spent_goes_on_to_
     assert again.iterations <= 3
 
 
-class _CountedSteepSecant(_SteepSecant):
-    """`_SteepSecant` counting the refit's own renders (its start and trials; the Jacobians'
-    renders are counted apart, in `jacobian_renders`)."""
-
-    renders = 0
-
-    def render_profiles(self, th, angles, *, spp, seed):
-        self.renders += 1
-        return super().render_profiles(th, angles, spp=spp, seed=seed)
-
-    def own_renders(self) -> int:
-        return self.renders - self.jacobian_renders
-
-
-def test_a_refit_stops_where_a_step_can_gain_no_more_than_a_negligible_chi2(monkeypatch):
-    """From its optimum a refit renders its start and nothing else: the first trial step's
-    predicted gain is below LM_NEGLIGIBLE_GAIN, so the trial is not rendered (without that
-    bar it renders trials). On a long walk it stops once the next step is predicted to gain
-    less than the bar, sooner than it would have crawled on and within about the bar of it
-    (the secant here is 3 x too steep, so the prediction is short by as much)."""
-    _, _, _, (rec,) = _width_recordings(1, seed=9)
-    start = {"toy.w": 2.5, "toy.c": -0.3}
-    kw = {"spp": 64, "seed": 1, "uncertainties": False}
-    toy = _CountedSteepSecant()
-    optimum = refit(toy, rec, start, ["toy.w", "toy.c"], iterations=40, **kw)
-    toy.renders = toy.jacobian_renders = 0
-    again = refit(toy, rec, optimum.parameters, ["toy.w", "toy.c"], iterations=8, **kw)
-    assert toy.own_renders() == 1 and again.iterations == 1 and again.parameters == optimum.parameters
-    monkeypatch.setattr(refit_module, "LM_NEGLIGIBLE_GAIN", 0.0)
-    toy.renders = toy.jacobian_renders = 0
-    refit(toy, rec, optimum.parameters, ["toy.w", "toy.c"], iterations=8, **kw)
-    assert toy.own_renders() > 2                 # trials rendered
-    crawled = refit(toy, rec, start, ["toy.w", "toy.c"], iterations=40, **kw)
-    monkeypatch.undo()
-    assert optimum.iterations < crawled.iterations
-    assert optimum.chi2 - crawled.chi2 < 2 * refit_module.LM_NEGLIGIBLE_GAIN
-
-
 @pytest.mark.parametrize(("history", "expect"), [
     ([100.0, 90.0, 80.0], True),           # 20 % over the last two iterations
     ([100.0, 99.0, 97.0], False),          # 3 %
