@@ -1416,9 +1416,8 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         if round_one and first_round.control is not None:
             control = first_round.control
         else:
-            t_control = time.perf_counter()
             control = conf.control(current_exts, current)
-            record["control_s"] = time.perf_counter() - t_control
+            record["control_s"] = laps("confirmation")
             if round_one:
                 first_round.control = control
         cur_train, ctrl_tr = control.train_before, control.train_control
@@ -1438,7 +1437,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
         rnd = Round(len(confirmed) + 1, current, current_exts, control, conf.refit_how(current),
                     first_round.close_control if round_one else CloseControl())
         while True:
-            for cand in tried:
+            for i, cand in enumerate(tried):
                 # Each entry's time_s: its start's search (the grid's, where asked) and its
                 # refit with the tests; 0 where taken from the round's cache (`reused`).
                 t_cand = time.perf_counter()
@@ -1460,7 +1459,7 @@ def diagnose_channel(problem: Any, base: BaseFit, make_model: ModelFactory, *,
                 round_fits[cand.name] = fit
                 if ok:
                     passed[cand.name] = (entry, fit)
-                    rest = [c.name for c in tried[tried.index(cand) + 1:]]
+                    rest = [c.name for c in tried[i + 1:]]
                     if rest and refit_checks_decide and record["round"] >= FIRST_PASS_ROUNDS_FROM:
                         # A later round takes the first candidate that passes (`FIRST_PASS_ROUNDS_FROM`).
                         record["not_refitted"] = rest
