@@ -84,6 +84,21 @@ LM_STILL_DESCENDING = 0.05
 #: gain between them compared two valleys.
 LM_EXPANSION_MAX = 4.0
 
+#: A fixed-seed refit is done when its next trial step's predicted decrease of the chi^2 (the
+#: linearised model's at this damping, -(2 g.d + d.H.d)) is below this: that trial is not
+#: rendered, nor the more damped ones after it, whose predicted gains are smaller still. The
+#: chi^2 is in units of the noise (each pixel divided by f^2 (var + render var)), and what the
+#: diagnosis decides from refits is a difference of chi^2 against bars of 1 or more (the BIC
+#: bar 10, a magnitude 1 sigma from absent by its likelihood ratio). Before, a refit went on
+#: while a step gained 1e-4 of its chi^2 and tried eight ever more damped steps before giving
+#: up: on the light bench's boundary + halo pair the second round's control crawled
+#: 792.7 -> 792.1 over four more iterations (lambda 13 -> 6e3, each a Jacobian and rejected
+#: trials) and the halo's refit ended on an iteration of eight rejected trials, about 40 s of
+#: a 349-s screening and confirmation (session 73). Not the gain of the step just taken: with
+#: a secant Jacobian one iteration can gain little after rejected trials and the next, on a
+#: new Jacobian, much (a halo refitted at 64 spp in the tests: 0.4, then 20).
+LM_NEGLIGIBLE_GAIN = 0.5
+
 #: A decorrelated refit stops when a step lowers its loss by less than this fraction of it.
 #: On the synthetic suite's 256-px window (loss about 1270 on 1900 pixels) that is about 1.3:
 #: the experiment's refits, whose weights moved with the scale each iteration, bounced within
@@ -429,7 +444,8 @@ def refit(model: ProfileModel, problem: ProfileRecording, start: Mapping[str, fl
 
     `iterations` LM iterations at most, or up to LM_EXTENSION times as many while the fit is
     still descending fast at the end of them (`still_descending`); fewer where a step gains
-    less than 1e-4 of the chi^2 or none is found.
+    less than 1e-4 of the chi^2, where the next step's predicted gain is below
+    LM_NEGLIGIBLE_GAIN (that step not rendered), or where none is found.
 
     `model_variance` (per pixel of the whole problem, in the data's units, e-^2/s^2: a
     render's Monte-Carlo variance times the squared scale of the evaluation that measured
@@ -540,12 +556,16 @@ def refit(model: ProfileModel, problem: ProfileRecording, start: Mapping[str, fl
         H = A.T @ A
         d = np.maximum(np.diag(H), 1e-300)
         improved = False
+        settled = False
         for _ in range(8):
             try:
                 step = -np.linalg.solve(H + lam * np.diag(d), g)
             except np.linalg.LinAlgError:
                 lam *= 10.0
                 continue
+            if -(2.0 * float(g @ step) + float(step @ H @ step)) < LM_NEGLIGIBLE_GAIN:
+                settled = True       # no step at this damping or more can gain what counts
+                break
             trial = stepped(theta, free, bounds, step)
             try:
                 r2, f2, s2 = residual(trial)
@@ -564,9 +584,9 @@ def refit(model: ProfileModel, problem: ProfileRecording, start: Mapping[str, fl
             lam *= 4.0
         if _log.isEnabledFor(logging.DEBUG):
             _log.debug("LM iteration %d: chi2 %.3f (%s), lambda %.1e, at %s", it, chi2,
-                       "step" if improved else "no step", lam, ", ".join(f"{n} {theta[n]:.5g}" for n in free))
+                       "step" if improved else "settled" if settled else "no step", lam, ", ".join(f"{n} {theta[n]:.5g}" for n in free))
         history.append(chi2)
-        if not improved or rel < 1e-4:
+        if not improved or rel < 1e-4 or settled:
             break
         if it >= iterations and not still_descending(history):
             break

@@ -751,6 +751,58 @@ def test_the_first_round_compares_its_flagged_candidates_and_later_rounds_take_t
     assert json.loads(json.dumps(d.as_dict()["rounds"]))[1]["not_refitted"] == ["beam_halo"]
 
 
+@pytest.mark.parametrize(("third", "refitted"), [(920.0, True), (880.0, False)])
+def test_the_first_round_also_refits_a_third_candidate_that_screens_in_a_near_tie(monkeypatch, third, refitted):
+    """Round 1 refits its two flagged candidates and, where the next flagged one's statistic
+    is within `NEAR_TIE` of the second's, that one too, which can then be the one added (the
+    screening cannot order near ties); below the share it is left to later rounds."""
+    import estimate.diagnose as dg
+    from estimate.screening import CandidateScore
+
+    real_screen, real_try = dg._screen, dg._Confirmation.try_candidate
+    stats = {"stray_light": 2e3, "angle_offset": 1e3, "beam_halo": third}
+    rank = {"stray_light": 50.0, "angle_offset": 80.0, "beam_halo": 500.0}
+
+    def screen(problem, current, exts, *a, **kw):
+        real_screen(problem, current, exts, *a, **kw)
+        return [CandidateScore(n, v, 1, 0.0, -200.0, 1.0) for n, v in stats.items()]
+
+    def try_candidate(self, name, rnd, start, *a, **kw):
+        entry, fit = real_try(self, name, rnd, start, *a, **kw)
+        entry.update(delta_bic=1e3, delta_bic_independent=rank[name], magnitude_sigma=50.0, no_harm=True,
+                     heldout_ok=True)
+        return entry, fit
+
+    monkeypatch.setattr(dg, "_screen", screen)
+    monkeypatch.setattr(dg._Confirmation, "try_candidate", try_candidate)
+    rec = record({"stray_light.offset": 0.01})
+    pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
+    d = diagnose_channel(pb, BaseFit(dict(TRUE), 1e4, "hg"), make_model, candidates=list(stats), spp=64,
+                         repeats=2, iterations=2, max_effects=1)
+    tried = [e["effect"] for e in d.confirmations if e["round"] == 1]
+    if refitted:
+        assert tried == ["stray_light", "angle_offset", "beam_halo"]
+        assert d.rounds[0]["near_tie"] == "beam_halo" and d.confirmed_order[:1] == ["beam_halo"]
+    else:
+        assert tried == ["stray_light", "angle_offset"] and "near_tie" not in d.rounds[0]
+        assert d.confirmed_order[:1] == ["angle_offset"]
+
+
+def test_near_tie_takes_only_the_flagged_candidate_right_after_a_full_leading_prefix():
+    from estimate.diagnose import near_tie
+    from estimate.screening import CandidateScore
+
+    def c(n, stat, lp=-100.0):
+        return CandidateScore(n, stat, 1, 0.0, lp, 1.0)
+
+    a, b, t, u = c("a", 10.0), c("b", 5.0), c("t", 4.6), c("u", 4.59)
+    assert near_tie([a, b, t, u], [a, b], -3.0) == [t]                  # one at most
+    assert near_tie([a, b, c("t", 4.4)], [a, b], -3.0) == []            # 88 % of b's
+    assert near_tie([a, b, c("t", 4.8, lp=-2.0)], [a, b], -3.0) == []   # not flagged
+    assert near_tie([a, b], [a, b], -3.0) == [] and near_tie([a, b, t], [], -3.0) == []
+    assert near_tie([a, b, t], [a, t], -3.0) == []                      # not the ranking's prefix
+
+
 def test_a_diagnosis_with_decorrelated_refits_confirms_and_models_on_that_objective(monkeypatch):
     """`refit_objective=DECORRELATED`: the control, the candidate, its neutral point and the
     joint refit all minimise or evaluate the decorrelated chi^2 (two seeds), so the paired
@@ -2077,6 +2129,44 @@ def test_a_refit_still_descending_fast_when_its_iterations_are_spent_goes_on_to_
     optimum = refit(toy, rec, start, ["toy.w", "toy.c"], iterations=40, **kw)
     again = refit(toy, rec, optimum.parameters, ["toy.w", "toy.c"], iterations=3, **kw)
     assert again.iterations <= 3
+
+
+class _CountedSteepSecant(_SteepSecant):
+    """`_SteepSecant` counting the refit's own renders (its start and trials; the Jacobians'
+    renders are counted apart, in `jacobian_renders`)."""
+
+    renders = 0
+
+    def render_profiles(self, th, angles, *, spp, seed):
+        self.renders += 1
+        return super().render_profiles(th, angles, spp=spp, seed=seed)
+
+    def own_renders(self) -> int:
+        return self.renders - self.jacobian_renders
+
+
+def test_a_refit_stops_where_a_step_can_gain_no_more_than_a_negligible_chi2(monkeypatch):
+    """From its optimum a refit renders its start and nothing else: the first trial step's
+    predicted gain is below LM_NEGLIGIBLE_GAIN, so the trial is not rendered (without that
+    bar it renders trials). On a long walk it stops once the next step is predicted to gain
+    less than the bar, sooner than it would have crawled on and within about the bar of it
+    (the secant here is 3 x too steep, so the prediction is short by as much)."""
+    _, _, _, (rec,) = _width_recordings(1, seed=9)
+    start = {"toy.w": 2.5, "toy.c": -0.3}
+    kw = {"spp": 64, "seed": 1, "uncertainties": False}
+    toy = _CountedSteepSecant()
+    optimum = refit(toy, rec, start, ["toy.w", "toy.c"], iterations=40, **kw)
+    toy.renders = toy.jacobian_renders = 0
+    again = refit(toy, rec, optimum.parameters, ["toy.w", "toy.c"], iterations=8, **kw)
+    assert toy.own_renders() == 1 and again.iterations == 1 and again.parameters == optimum.parameters
+    monkeypatch.setattr(refit_module, "LM_NEGLIGIBLE_GAIN", 0.0)
+    toy.renders = toy.jacobian_renders = 0
+    refit(toy, rec, optimum.parameters, ["toy.w", "toy.c"], iterations=8, **kw)
+    assert toy.own_renders() > 2                 # trials rendered
+    crawled = refit(toy, rec, start, ["toy.w", "toy.c"], iterations=40, **kw)
+    monkeypatch.undo()
+    assert optimum.iterations < crawled.iterations
+    assert optimum.chi2 - crawled.chi2 < 2 * refit_module.LM_NEGLIGIBLE_GAIN
 
 
 @pytest.mark.parametrize(("history", "expect"), [
