@@ -226,8 +226,8 @@ FIRST_PASS_ROUNDS_FROM = 2
 #: stand in for each other at the base fit, and their statistics moved by up to 10 % from one
 #: estimate run of the same recording to the next: on the light bench's n = 1.5 boundary
 #: (session 73) the screening ranked the halo 185 077, the blur 182 281 and the boundary
-#: 171 944 (94 % of the second); round 1 refitted the first two and only a second round, 182 s
-#: more, found the boundary alone. In the 143 significant light-bench runs recorded in
+#: 171 944 (94 % of the second); round 1 refitted the first two and only a second round, 140 s
+#: more (its screening 50 s, control 41 s, the boundary's refit 49 s), found the boundary alone. In the 143 significant light-bench runs recorded in
 #: sessions 65-73 such a tie (within 10 %) came up 11 times: on the n = 1.5 boundary in 6 of
 #: 10, the n = 1.33 boundary 2 of 7, the larger halo 3 of 8, and never on the other 17 cases.
 NEAR_TIE = 0.9
@@ -2518,7 +2518,7 @@ def _screen(problem: Any, current: Evaluation, exts: Sequence[str], make_model: 
     # Image-space columns are built on an independent render: built on the evaluation's
     # mean render, a blur's column (blur(model) - model) would carry minus that render's
     # Monte-Carlo noise, which is also in the residual, and favour blur everywhere.
-    # It is also the base of the rendered candidates' secants (`shared` below): the same model
+    # It is also the base of the rendered candidates' secants (below): the same model
     # at the same seed and spp, so one render of the nine a round's screening makes at
     # COLUMN_SPP_FACTOR x the spp (about 4.7 s each on the light bench's boundary model). It
     # is independent of the evaluation, whose renders are at the diagnosis' own seed.
@@ -2547,7 +2547,7 @@ def _screen(problem: Any, current: Evaluation, exts: Sequence[str], make_model: 
         m = make_model(list(exts) + [n])
         if EXTENSIONS[n].neutral_is_identity:
             # The secants' base is the current model's own render at this seed, bit for bit:
-            # one render serves every such candidate (about 1.3 s each on the bench).
+            # `base_render` serves every such candidate (about 1.3 s each on the bench).
             b = base_render
         else:
             b = m.render_profiles(current.parameters, angles, spp=cspp, seed=seed)

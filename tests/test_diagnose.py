@@ -710,6 +710,30 @@ def test_where_the_estimators_fit_leaves_a_mismatch_the_next_round_starts_from_i
     assert (fr is calls[0].fit) == (d.final_fit.get("reported") != "refit")
 
 
+def _every_refit_passes(monkeypatch, scores):
+    """Stub the screening with `scores(exts)` (the ranked CandidateScores at the model with
+    extensions `exts`, after the real screening ran for its side records) and make every
+    refit pass its tests, its independently rendered gain ranking stray light < angle offset
+    < beam halo: the round's control flow is what is left to test."""
+    import estimate.diagnose as dg
+
+    real_screen, real_try = dg._screen, dg._Confirmation.try_candidate
+    rank = {"stray_light": 50.0, "angle_offset": 80.0, "beam_halo": 500.0}
+
+    def screen(problem, current, exts, *a, **kw):
+        real_screen(problem, current, exts, *a, **kw)
+        return scores(exts)
+
+    def try_candidate(self, name, rnd, start, *a, **kw):
+        entry, fit = real_try(self, name, rnd, start, *a, **kw)
+        entry.update(delta_bic=1e3, delta_bic_independent=rank[name], magnitude_sigma=50.0, no_harm=True,
+                     heldout_ok=True)
+        return entry, fit
+
+    monkeypatch.setattr(dg, "_screen", screen)
+    monkeypatch.setattr(dg._Confirmation, "try_candidate", try_candidate)
+
+
 def test_the_first_round_compares_its_flagged_candidates_and_later_rounds_take_the_first_that_passes(monkeypatch):
     """Round 1 refits both flagged candidates though the first passes, and adds the one the
     independent renders rank higher (confusable effects screen in either order at the base
@@ -720,24 +744,14 @@ def test_the_first_round_compares_its_flagged_candidates_and_later_rounds_take_t
     from estimate.screening import CandidateScore
 
     monkeypatch.setattr(dg, "EXPLAINED_REDUCED_CHI2", 0.0)      # always look for a second effect
-    real_screen, real_try = dg._screen, dg._Confirmation.try_candidate
     order = {1: ["stray_light", "angle_offset"], 2: ["stray_light", "beam_halo"]}
-    rank = {"stray_light": 50.0, "angle_offset": 80.0, "beam_halo": 500.0}
     rounds_screened: list[int] = []
 
-    def screen(problem, current, exts, *a, **kw):
-        real_screen(problem, current, exts, *a, **kw)            # its side records, as the real one
+    def scores(exts):
         rounds_screened.append(len(exts) + 1)
         return [CandidateScore(n, 1e3, 1, 0.0, -200.0, 1.0) for n in order[len(exts) + 1]]
 
-    def try_candidate(self, name, rnd, start, *a, **kw):
-        entry, fit = real_try(self, name, rnd, start, *a, **kw)
-        entry.update(delta_bic=1e3, delta_bic_independent=rank[name], magnitude_sigma=50.0, no_harm=True,
-                     heldout_ok=True)
-        return entry, fit
-
-    monkeypatch.setattr(dg, "_screen", screen)
-    monkeypatch.setattr(dg._Confirmation, "try_candidate", try_candidate)
+    _every_refit_passes(monkeypatch, scores)
     rec = record({"stray_light.offset": 0.01})
     pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
     d = diagnose_channel(pb, BaseFit(dict(TRUE), 1e4, "hg"), make_model,
@@ -756,25 +770,11 @@ def test_the_first_round_also_refits_a_third_candidate_that_screens_in_a_near_ti
     """Round 1 refits its two flagged candidates and, where the next flagged one's statistic
     is within `NEAR_TIE` of the second's, that one too, which can then be the one added (the
     screening cannot order near ties); below the share it is left to later rounds."""
-    import estimate.diagnose as dg
     from estimate.screening import CandidateScore
 
-    real_screen, real_try = dg._screen, dg._Confirmation.try_candidate
     stats = {"stray_light": 2e3, "angle_offset": 1e3, "beam_halo": third}
-    rank = {"stray_light": 50.0, "angle_offset": 80.0, "beam_halo": 500.0}
-
-    def screen(problem, current, exts, *a, **kw):
-        real_screen(problem, current, exts, *a, **kw)
-        return [CandidateScore(n, v, 1, 0.0, -200.0, 1.0) for n, v in stats.items()]
-
-    def try_candidate(self, name, rnd, start, *a, **kw):
-        entry, fit = real_try(self, name, rnd, start, *a, **kw)
-        entry.update(delta_bic=1e3, delta_bic_independent=rank[name], magnitude_sigma=50.0, no_harm=True,
-                     heldout_ok=True)
-        return entry, fit
-
-    monkeypatch.setattr(dg, "_screen", screen)
-    monkeypatch.setattr(dg._Confirmation, "try_candidate", try_candidate)
+    _every_refit_passes(monkeypatch, lambda exts: [CandidateScore(n, v, 1, 0.0, -200.0, 1.0)
+                                                   for n, v in stats.items()])
     rec = record({"stray_light.offset": 0.01})
     pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
     d = diagnose_channel(pb, BaseFit(dict(TRUE), 1e4, "hg"), make_model, candidates=list(stats), spp=64,
