@@ -227,9 +227,10 @@ FIRST_PASS_ROUNDS_FROM = 2
 #: estimate run of the same recording to the next: on the light bench's n = 1.5 boundary
 #: (session 73) the screening ranked the halo 185 077, the blur 182 281 and the boundary
 #: 171 944 (94 % of the second); round 1 refitted the first two and only a second round, 140 s
-#: more (its screening 50 s, control 41 s, the boundary's refit 49 s), found the boundary alone. In the 143 significant light-bench runs recorded in
-#: sessions 65-73 such a tie (within 10 %) came up 11 times: on the n = 1.5 boundary in 6 of
-#: 10, the n = 1.33 boundary 2 of 7, the larger halo 3 of 8, and never on the other 17 cases.
+#: more (its screening 50 s, control 41 s, the boundary's refit 49 s), found the boundary
+#: alone. In the 143 significant light-bench runs recorded in sessions 65-73 such a tie (within
+#: 10 %) came up 11 times: on the n = 1.5 boundary in 6 of 10, the n = 1.33 boundary 2 of 7,
+#: the larger halo 3 of 8, and never on the other 17 cases.
 NEAR_TIE = 0.9
 #: At most this many effects are added.
 MAX_EFFECTS = 2

@@ -584,9 +584,11 @@ def refit(model: ProfileModel, problem: ProfileRecording, start: Mapping[str, fl
             lam *= 4.0
         if _log.isEnabledFor(logging.DEBUG):
             _log.debug("LM iteration %d: chi2 %.3f (%s), lambda %.1e, at %s", it, chi2,
-                       "step" if improved else "settled" if settled else "no step", lam, ", ".join(f"{n} {theta[n]:.5g}" for n in free))
+                       "step" if improved else "settled" if settled else "no step", lam,
+                       ", ".join(f"{n} {theta[n]:.5g}" for n in free))
         history.append(chi2)
-        if not improved or rel < 1e-4 or settled:
+        # A settled iteration accepted no step, so `not improved` ends the refit there too.
+        if not improved or rel < 1e-4:
             break
         if it >= iterations and not still_descending(history):
             break
