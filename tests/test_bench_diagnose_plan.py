@@ -67,6 +67,53 @@ def test_material_fallback_bars_named_cases_by_the_clean_sessions_largest_errors
     assert bd.material_fallback(rows[:2]) is None  # nothing named
 
 
+def _signed(id_: str, concealed: list[str], named: list[str], after: tuple[float, float],
+            unc: tuple[float, float] | None) -> dict:
+    e = {"sigma_t_rel": after[0], "albedo_abs": after[1],
+         "sigma_t_rel_unc": unc[0] if unc else None, "albedo_abs_unc": unc[1] if unc else None}
+    return {"id": id_, "concealed": concealed, "named": named, "material_signed": {"before": e, "after": e}}
+
+
+def test_material_consistency_holds_named_cases_against_the_clean_mean_within_their_intervals():
+    # the clean sessions' errors +0.2 .. +0.4 %: the estimator's own bias at this setting
+    rows = [_signed(f"clean-{k}", [], [], (e, 0.0), (0.003, 0.0003)) for k, e in enumerate((0.002, 0.003, 0.004))]
+    rows += [_signed("a-1", ["a"], ["a"], (0.006, 0.0002), (0.003, 0.0003)),       # 1 sigma above: at the level
+             _signed("b-1", ["b"], ["b"], (0.003, 0.0012), (0.003, 0.0003)),       # the albedo 4 sigma off
+             _signed("c-1", ["c"], ["c"], (-0.006, 0.0), (0.002, 0.0003)),         # sigma_t 4.2 sigma below
+             _signed("d-1", ["d"], [], (0.2, 0.05), (0.003, 0.0003))]               # named nothing: not counted
+    mc = bd.material_consistency(rows)
+    assert mc["named_cases"] == 3 and mc["clean_cases"] == 3 and not mc["clean_intervals_proxied"]
+    st = mc["sigma_t_rel"]
+    assert st["clean_mean"] == pytest.approx(0.003) and st["clean_se"] == pytest.approx(0.003 / math.sqrt(3))
+    assert mc["z"]["a-1"]["sigma_t_rel"] == pytest.approx(0.003 / math.sqrt(0.003 ** 2 + 0.003 ** 2 / 3))
+    assert mc["beyond"] == ["b-1", "c-1"] and mc["fraction"] == pytest.approx(1 / 3)
+    assert st["named_mean"] == pytest.approx(0.001)
+    # clean fits recorded without intervals take the named cases' median, and say so
+    old = [_signed(r["id"], r["concealed"], r["named"], (r["material_signed"]["after"]["sigma_t_rel"],
+                                                         r["material_signed"]["after"]["albedo_abs"]),
+                   None if not r["concealed"] else (0.003, 0.0003)) for r in rows]
+    mc_old = bd.material_consistency(old)
+    assert mc_old["clean_intervals_proxied"] and mc_old["sigma_t_rel"]["clean_se"] == pytest.approx(0.003 / math.sqrt(3))
+    # a named case without its interval cannot be judged; nothing to compare without clean cases
+    assert bd.material_consistency(rows[:3] + [_signed("e-1", ["e"], ["e"], (0.0, 0.0), None)]) is None
+    assert bd.material_consistency(rows[3:]) is None
+    # end to end from the diagnoses' JSON (`score`, `report`): the base fits' intervals are
+    # `material_uncertainty_before`, a refit's `material_uncertainty_after`
+    def res(named: list[str], err: tuple[float, float]) -> dict:
+        mat = {"sigma_t": 2.0 * (1 + err[0]), "albedo": 0.9 + err[1]}
+        unc = {"sigma_t": 0.006, "albedo": 0.0003}
+        return {**_result(named), "material_before": mat, "material_after": mat,
+                "material_uncertainty_before": unc, "material_uncertainty_after": unc if named else {}}
+
+    scored = [bd.score({"id": r["id"], "effects": {c: {} for c in r["concealed"]}},
+                       res(r["named"], (r["material_signed"]["after"]["sigma_t_rel"],
+                                        r["material_signed"]["after"]["albedo_abs"])), "bench") for r in rows]
+    text, summary = bd.report(scored, "bench", 7, 7)
+    assert summary["material_consistency"]["beyond"] == ["b-1", "c-1"]
+    assert "33 % of 3 named cases; beyond: b-1 (z +3.5), c-1 (z -2.6)" in text
+    assert "c-1 sigma_t -2.60, c-1 albedo +0.00" in text
+
+
 def test_a_base_fit_from_another_recording_is_refused_in_one_line(tmp_path):
     """`--base-from` takes each case's base fit from another run's cache: one made on other
     recordings (another excess noise or window) is refused, naming the setting to give.

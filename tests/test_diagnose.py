@@ -2605,14 +2605,16 @@ def test_no_second_effect_is_looked_for_once_the_first_explains_the_mismatch(mon
         assert "a second effect looked for" in text and "no second effect looked for" not in text
 
 
-@pytest.mark.parametrize("final_chi2, reported", [(1.44, "refit"), (1.15, "final fit")])
+@pytest.mark.parametrize("final_chi2, lm_chi2, reported", [
+    (1.44, 1.13, "refit"), (1.17, 1.13, "refit"), (1.15, 1.13, "final fit"), (0.99, 0.95, "final fit")])
 def test_a_final_fit_that_stops_short_of_the_refit_leaves_the_refit_reported_and_names_as_it_needs(
-        monkeypatch, final_chi2, reported):
+        monkeypatch, final_chi2, lm_chi2, reported):
     """The bench's 3 % halo (session 65): the estimator's final fit, started at the LM refit,
     ended at reduced chi^2 1.44 at the floor where the refit had 1.13. Both are the same
-    model rendered at the same seeds, so the refit is reported (`REFIT_PREFERRED_MARGIN`);
-    the effect named is the one the final fit's own check keeps. Within the margin, the
-    final fit is reported as before."""
+    model rendered at the same seeds, so the refit is reported (`REFIT_PREFERRED_MARGIN`, 3 %:
+    1.17 against 1.13 too); the effect named is the one the final fit's own check keeps.
+    Within the margin, or at the noise floor (0.99 against 0.95: no fit stopped short there),
+    the final fit is reported as before."""
     import estimate.diagnose as dg
     from estimate.diagnose import ChannelDiagnosis, refine_channel, summary_text
 
@@ -2639,7 +2641,7 @@ def test_a_final_fit_that_stops_short_of_the_refit_leaves_the_refit_reported_and
                           reduced_chi2_adjusted=12.2, reduced_chi2=22.0, dof=100, summary=lambda: {})
     before = SimpleNamespace(residuals=res, parameters={"sigma_t": 2.06}, scale=1.0)
     lm = SimpleNamespace(extensions=["beam_halo"], parameters=params, scale=1.0,
-                         residuals=SimpleNamespace(reduced_chi2_adjusted=1.13, reduced_chi2=1.5, significant=False,
+                         residuals=SimpleNamespace(reduced_chi2_adjusted=lm_chi2, reduced_chi2=1.5, significant=False,
                                                    summary=lambda: {}))
     region = {"reduced_chi2_adjusted": 1.0}
     loc = {"summary": "at the peak", **{k: region for k in ("front", "back", "grazing", "normal", "peak", "tails")},
@@ -2655,7 +2657,7 @@ def test_a_final_fit_that_stops_short_of_the_refit_leaves_the_refit_reported_and
     if reported == "refit":
         assert fr is None and d.after is lm and d.lm_after is None
         assert d.final_fit["reported"] == "refit" and d.uncertainties_after == unc
-        assert "1.44" in d.final_fit["reason"] and "1.13" in d.final_fit["reason"]
+        assert f"{final_chi2:.3g}" in d.final_fit["reason"] and f"{lm_chi2:.3g}" in d.final_fit["reason"]
     else:
         assert fr is not None and d.after is not lm and d.lm_after is lm and "reported" not in d.final_fit
         assert d.uncertainties_after["sigma_t"] == 0.001
