@@ -710,15 +710,15 @@ def test_where_the_estimators_fit_leaves_a_mismatch_the_next_round_starts_from_i
     assert (fr is calls[0].fit) == (d.final_fit.get("reported") != "refit")
 
 
-def _every_refit_passes(monkeypatch, scores):
+def _every_refit_passes(monkeypatch, scores, rank=None):
     """Stub the screening with `scores(exts)` (the ranked CandidateScores at the model with
     extensions `exts`, after the real screening ran for its side records) and make every
-    refit pass its tests, its independently rendered gain ranking stray light < angle offset
-    < beam halo: the round's control flow is what is left to test."""
+    refit pass its tests, its independently rendered gain (`rank`) ranking stray light <
+    angle offset < beam halo: the round's control flow is what is left to test."""
     import estimate.diagnose as dg
 
     real_screen, real_try = dg._screen, dg._Confirmation.try_candidate
-    rank = {"stray_light": 50.0, "angle_offset": 80.0, "beam_halo": 500.0}
+    rank = rank or {"stray_light": 50.0, "angle_offset": 80.0, "beam_halo": 500.0}
 
     def screen(problem, current, exts, *a, **kw):
         real_screen(problem, current, exts, *a, **kw)
@@ -763,6 +763,36 @@ def test_the_first_round_compares_its_flagged_candidates_and_later_rounds_take_t
     assert d.confirmed_order == ["angle_offset", "stray_light"]
     assert "not_refitted" not in d.rounds[0] and d.rounds[1]["not_refitted"] == ["beam_halo"]
     assert json.loads(json.dumps(d.as_dict()["rounds"]))[1]["not_refitted"] == ["beam_halo"]
+
+
+@pytest.mark.parametrize("first_round", [True, False])
+def test_a_later_round_confirms_only_a_candidate_that_also_gains_rendered_independently(monkeypatch, first_round):
+    """lens_blur-2 on the light bench (session 75): a second round's halo passed on its paired
+    gain (11.4) with 2.6 rendered independently, and its refit, worse than the blur's own,
+    became the model. From round 2 (`INDEPENDENT_GAIN_ROUNDS_FROM`) the independent gain must
+    pass the bar too, so the next flagged candidate is refitted and added; in round 1 the same
+    gain still confirms (its candidates' refits are compared with each other there)."""
+    import estimate.diagnose as dg
+    from estimate.screening import CandidateScore
+
+    monkeypatch.setattr(dg, "EXPLAINED_REDUCED_CHI2", 0.0)      # always look for a second effect
+    order = ({1: ["stray_light"], 2: ["angle_offset", "beam_halo"]} if first_round
+             else {1: ["angle_offset"], 2: ["stray_light", "beam_halo"]})
+    _every_refit_passes(monkeypatch, lambda exts: [CandidateScore(n, 1e3, 1, 0.0, -200.0, 1.0)
+                                                   for n in order[len(exts) + 1]],
+                        rank={"stray_light": 2.6, "angle_offset": 80.0, "beam_halo": 500.0})
+    rec = record({"stray_light.offset": 0.01})
+    pb = FittableRecording(**vars(rec), valid=np.ones(rec.measured.shape, bool))
+    d = diagnose_channel(pb, BaseFit(dict(TRUE), 1e4, "hg"), make_model,
+                         candidates=["stray_light", "angle_offset", "beam_halo"], spp=64, repeats=2, iterations=2)
+    tried = [(e["round"], e["effect"], e["confirmed"]) for e in d.confirmations]
+    if first_round:
+        assert tried == [(1, "stray_light", True), (2, "angle_offset", True)]
+        assert d.confirmed_order == ["stray_light", "angle_offset"]
+    else:
+        assert tried == [(1, "angle_offset", True), (2, "stray_light", False), (2, "beam_halo", True)]
+        assert d.confirmed_order == ["angle_offset", "beam_halo"]
+        assert d.confirmations[1]["independent_gain_short"]
 
 
 @pytest.mark.parametrize(("third", "refitted"), [(920.0, True), (880.0, False)])
