@@ -25,7 +25,9 @@
    noise, which every refit partly fits, cancels in the difference), and the candidate's
    fit, rendered independently, must not be worse than the current fit by more than that
    chi^2's standard deviation. Of the confirmed candidates of a round, the one whose BIC
-   gain is largest on that independently rendered chi^2 joins the model (`_rank_key`).
+   gain is largest on that independently rendered chi^2 joins the model (`_rank_key`); from
+   the second round (`INDEPENDENT_GAIN_ROUNDS_FROM`) that independent gain must exceed
+   `BIC_STRONG` too.
    After one confirmed effect the fit is tested again: where the model with it leaves a
    reduced chi^2 at the noise floor above `EXPLAINED_REDUCED_CHI2` (the better of the
    estimator's fit of that model and the candidate's refit in `rig diagnose`, at the
