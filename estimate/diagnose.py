@@ -1839,9 +1839,10 @@ def _passes(entry: Mapping[str, Any], checks_decide: bool = True) -> bool:
 
 
 def _gains_independently(entry: Mapping[str, Any]) -> bool:
-    """The refit's BIC gain rendered independently beyond `BIC_STRONG` (or not measured)."""
+    """The refit's BIC gain rendered independently beyond `BIC_STRONG`, or not measured (None;
+    a NaN, a failed evaluation, does not pass)."""
     ind = entry.get("delta_bic_independent")
-    return ind is None or not math.isfinite(float(ind)) or float(ind) > BIC_STRONG
+    return ind is None or float(ind) > BIC_STRONG
 
 
 def _short_of_the_bar(entry: Mapping[str, Any]) -> bool:
