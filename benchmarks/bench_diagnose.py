@@ -526,22 +526,20 @@ def score(case: dict[str, Any], res: dict[str, Any], source: str = "synthetic") 
     named = list((res.get("confirmed_effects") or {}).keys())
     cands = [c["name"] for c in res.get("candidates") or []]
     truth = res["truth"]
-    err = {}
-    for when in ("before", "after"):
-        mat = res[f"material_{when}"]
-        err[when] = {"sigma_t_rel": abs(mat["sigma_t"] - truth["sigma_t"]) / truth["sigma_t"],
-                     "albedo_abs": abs(mat["albedo"] - truth["albedo"])}
     # Signed errors and their reported 1-sigma intervals, in the same units (sigma_t relative,
     # the albedo absolute), for `material_consistency`. "after" is the base fit's where nothing
     # was named; cases recorded before session 75 lack the base fit's intervals (None).
     unc_b = res.get("material_uncertainty_before") or {}
     unc_a = (res.get("material_uncertainty_after") or {}) if named else unc_b
     signed: dict[str, dict[str, float | None]] = {}
+    err: dict[str, dict[str, float]] = {}
     for when, unc in (("before", unc_b), ("after", unc_a)):
         mat = res[f"material_{when}"]
+        e_st = (mat["sigma_t"] - truth["sigma_t"]) / truth["sigma_t"]
+        e_al = mat["albedo"] - truth["albedo"]
+        err[when] = {"sigma_t_rel": abs(e_st), "albedo_abs": abs(e_al)}
         u_st, u_al = unc.get("sigma_t"), unc.get("albedo")
-        signed[when] = {"sigma_t_rel": (mat["sigma_t"] - truth["sigma_t"]) / truth["sigma_t"],
-                        "albedo_abs": mat["albedo"] - truth["albedo"],
+        signed[when] = {"sigma_t_rel": e_st, "albedo_abs": e_al,
                         "sigma_t_rel_unc": u_st / truth["sigma_t"] if u_st else None,
                         "albedo_abs_unc": u_al if u_al else None}
     concealed = sorted(case["effects"])
