@@ -2125,8 +2125,7 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
     says why. Where the final fit fits better than the base fit but more than
     `REFIT_PREFERRED_MARGIN` worse than the LM refit, its check still decides the names, and
     the LM refit is reported (`d.final_fit["reported"]` = "refit"; not with `prefer_refit`
-    False: the second pass compares final fits with each other), with each interval the larger
-    of its own and the final fit's (`_widen_refit_intervals`). Returns the estimator's
+    False: the second pass compares final fits with each other). Returns the estimator's
     `FitResult` when kept and reported, else None. Costs one fit at the default settings on
     2 cores: 146 s on the bench's stray-light session, 504 s with the
     refractive boundary, whose renders are the slowest. `progress` and `on_stage` go to
@@ -2207,13 +2206,7 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
                           f"{refit_name(d.refit_objective)}'s {lm.residuals.reduced_chi2_adjusted:.3g} of the same "
                           "model: the refit is reported, with the effects the estimator's fit needs named")
         say(f"  {info['reason']}")
-        # `d.after` stays the refit's; its intervals take the larger of the two fits' own.
-        widened = _widen_refit_intervals(d, fr.uncertainties)
-        if widened:
-            info["uncertainties_widened"] = widened
-            say("  the refit's intervals widened to the final fit's where those are wider (one render seed's "
-                "Gauss-Newton bound leaves out the render noise): " + ", ".join(
-                    f"{k} {v['refit']:.2g} -> {v['reported']:.2g}" for k, v in widened.items()))
+        # `d.after` and its uncertainties stay the refit's.
         d.verdict = _verdict(d.before, d.localisation, d.candidates, d.confirmed, lm,
                              [e["effect"] for e in d.pruned if e["dropped"]], d.partial)
         return None
@@ -2227,39 +2220,6 @@ def refine_channel(problem: Any, d: ChannelDiagnosis, make_model: ModelFactory, 
         f"(refit {lm.residuals.reduced_chi2_adjusted:.3f}); "
         + ", ".join(f"{k} {fr.parameters[k]:.4g}" for k in ("sigma_t", "albedo")) + f" ({info['time_s']:.0f} s)")
     return fr
-
-
-def _widen_refit_intervals(d: ChannelDiagnosis, final: Mapping[str, float]) -> dict[str, dict[str, float]]:
-    """Where the LM refit is reported in place of the final fit (`refine_channel`), each of its
-    1-sigma intervals becomes the larger of its own and the final fit's for that parameter;
-    the covariance is rescaled to match, its correlations kept. Returns what was widened
-    (parameter -> refit's and reported interval).
-
-    The refit's interval is the Gauss-Newton bound of chi^2 at one fixed render seed: it
-    counts the recording's noise only, while the refit's optimum also moves with the render
-    noise of that seed. The estimator's fit of the same model reports that part too (the
-    sandwich from independent renders, the iterates' drift; `estimate.uncertainties`). Its
-    point stopped short, not its error budget: on the light bench's 1.2 px lens blur the
-    refit gave the blur's core +-0.007 px and the final fit +-0.05 px (session 75)."""
-    widened: dict[str, dict[str, float]] = {}
-    factors: dict[str, float] = {}
-    for k, own in d.uncertainties_after.items():
-        other = final.get(k)
-        if other is None or not math.isfinite(other) or not math.isfinite(own) or other <= own:
-            continue
-        widened[k] = {"refit": float(own), "reported": float(other)}
-        factors[k] = other / own if own > 0 else float("nan")
-        d.uncertainties_after[k] = float(other)
-    for a, row in d.covariance_after.items():
-        for b in row:
-            fa, fb = factors.get(a, 1.0), factors.get(b, 1.0)
-            if a == b and a in widened:
-                row[b] = widened[a]["reported"] ** 2
-            elif math.isfinite(fa * fb):
-                row[b] *= fa * fb
-            else:
-                row[b] = 0.0
-    return widened
 
 
 def _explains_enough(d: ChannelDiagnosis, after: Evaluation, min_share: float, stage: str,

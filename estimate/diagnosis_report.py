@@ -269,12 +269,6 @@ def summary_text(doc: Mapping[str, Any]) -> str:
                       + ")", file=out)
             elif ff:
                 print(f"  ({ff['reason']})", file=out)
-                wide = ff.get("uncertainties_widened") or {}
-                if wide:
-                    print("  (its intervals are the final fit's where those are wider, as they include the render "
-                          "noise one seed's bound leaves out: " + ", ".join(
-                              f"{k} +-{v['refit']:.2g} -> +-{v['reported']:.2g}" for k, v in wide.items()) + ")",
-                          file=out)
             fixed = d.get("material_fixed_seed_after") or {}
             if not ff.get("kept") and fixed:
                 print("  (sigma_t, albedo and the phase after: one Gauss-Newton step on the decorrelated chi^2 of "
