@@ -180,7 +180,7 @@ from estimate.uncertainties import (
 
 # evaluate, fisher_uncertainties, sandwich_uncertainties and secant_steps live in estimate.evaluation,
 # estimate.uncertainties and estimate.gauss_newton; they are re-exported here, where callers met them first.
-__all__ = ["FitResult", "FitSettings", "evaluate", "fisher_uncertainties", "fit_channel", "model_phase",
+__all__ = ["FitResult", "FitSettings", "evaluate", "fisher_uncertainties", "fit_channel", "forward_model", "model_phase",
            "sandwich_uncertainties", "secant_steps"]
 
 
@@ -444,6 +444,14 @@ def model_phase(model: str, degree: int = 3) -> str:
     raise ModelParameterError(f"unknown model {model!r}; use exp, exp<M>, tthg or hg")
 
 
+def forward_model(problem: Problem, phase: str, extensions: Sequence[str] = (), engine: str = "light") -> ForwardModel:
+    """The forward model of `problem`'s rig, slab and recording for a phase model name
+    ("exp<M>", "tthg", "hg") and extensions, rendering with `engine`."""
+    return ForwardModel(problem.geometry, problem.beam, phase=phase, extensions=extensions,
+                        profile_y_shape=problem.y_shapes(), engine=engine,
+                        profile_merge_fill=problem.merge_fills(), beam_fill=problem.beam_fill)
+
+
 class _Adam:
     def __init__(self, lrs: np.ndarray, b1: float = 0.9, b2: float = 0.999, eps: float = 1e-8) -> None:
         self.lr = lrs.astype(float)
@@ -523,9 +531,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         on_stage(STAGES[0])
     phase = model_phase(model)
     check_engine(st.engine)   # a hand-edited results.yaml's too, before any work
-    fm = forward or ForwardModel(problem.geometry, problem.beam, phase=phase, extensions=extensions,
-                                 profile_y_shape=problem.y_shapes(), engine=st.engine,
-                                 profile_merge_fill=problem.merge_fills(), beam_fill=problem.beam_fill)
+    fm = forward or forward_model(problem, phase, extensions, st.engine)
     fixed = dict(fixed or {})
     fm.validate(fixed)
     if st.scale not in ("free", "calibrated"):
@@ -865,8 +871,6 @@ def loss_at(problem: Problem, model: str, params: Mapping[str, float], *, extens
     unless `fixed_scale`. Rendered with `engine` (default: the fit's, `FitSettings.engine`),
     so that a fit's loss and the floor carry the same engine's render noise (up to session
     61 the floor took the camera engine's while the fits rendered with the light engine)."""
-    fm = forward or ForwardModel(problem.geometry, problem.beam, phase=model_phase(model), extensions=extensions,
-                                 profile_y_shape=problem.y_shapes(), engine=engine or FitSettings().engine,
-                                 profile_merge_fill=problem.merge_fills(), beam_fill=problem.beam_fill)
+    fm = forward or forward_model(problem, model_phase(model), extensions, engine or FitSettings().engine)
     return evaluate(fm, problem, params, spp=spp, seed=seed, delta_rel=reference_delta(delta_range),
                     fixed_scale=fixed_scale)

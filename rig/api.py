@@ -103,10 +103,11 @@ def info(session: str | Path) -> dict:
     return _invoke(["info", str(session), "--json"], ok_codes=(0, 1))
 
 
-def estimate(session: str | Path, *, model: str = "exp", degree: int = 3, channels: str | None = None,
+def estimate(session: str | Path, *, model: str = "exp", degree: int | str = 3, channels: str | None = None,
              extra_args: Sequence[str] = ()) -> dict:
     """Fit the scattering parameters per channel (``rig estimate --json``); a new run is written
-    into the session and its results are returned."""
+    into the session and its results are returned. `degree`: of the exponential phase
+    function, or "auto" (the recording chooses, `estimate.phase_degree`)."""
     argv = ["estimate", str(session), "--model", model, "--degree", str(degree), "--json"]
     if channels:
         argv += ["--channels", channels]

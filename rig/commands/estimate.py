@@ -1,6 +1,6 @@
 """`rig estimate SESSION/`: fit sigma_t, albedo and the phase function per channel.
 
-    rig estimate SESSION/ [--model exp|tthg|both] [--degree 3] [--channels rgb]
+    rig estimate SESSION/ [--model exp|tthg|both] [--degree 3|auto] [--channels rgb]
                           [--columns 256] [--allow-partial] [--max-iterations N] [--seed S]
                           [--extensions a,b] [--scale calibrated|free] [--json] [--diagnose]
 
@@ -34,7 +34,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("session", metavar="SESSION", help="session directory written by rig capture")
     p.add_argument("--model", choices=("exp", "tthg", "both"), default="exp",
                    help="phase model: exponential (exp, default), two-term HG (tthg) or both")
-    p.add_argument("--degree", type=int, default=3, help="degree M of the exponential phase function (3)")
+    p.add_argument("--degree", default="3",
+                   help="degree M of the exponential phase function (3, the paper's), or auto: fit degrees 3, 4, ... "
+                        "and keep the one the recording supports (estimate/phase_degree.py; a few fits a channel)")
     p.add_argument("--channels", default=None, help="filters to fit, e.g. rgb or r,g (default: all of the plan)")
     p.add_argument("--columns", type=int, default=None, help="profile window width in pixels (256)")
     p.add_argument("--extensions", default="", help="forward-model extensions to include, comma separated")
@@ -83,8 +85,15 @@ def run(args: argparse.Namespace) -> int:
     from rig.fit_progress import FitProgress
 
     session = Path(args.session)
-    if args.degree < 0 or args.degree > 12:
-        raise UsageError(f"--degree {args.degree}: use 0..12")
+    auto = str(args.degree).strip().lower() == "auto"
+    degree = 3
+    if not auto:
+        try:
+            degree = int(str(args.degree))
+        except ValueError:
+            raise UsageError(f"--degree {args.degree}: use a whole number 0..12 or auto") from None
+        if degree < 0 or degree > 12:
+            raise UsageError(f"--degree {args.degree}: use 0..12 or auto")
     if args.max_iterations is not None and args.max_iterations < 1:
         raise UsageError("--max-iterations must be >= 1")
     if args.polish_steps is not None and not 0 <= args.polish_steps <= 20:
@@ -132,20 +141,35 @@ def run(args: argparse.Namespace) -> int:
         print(f"rendering with Mitsuba's {variant}; the polish and final evaluation at "
               f"{settings.final_spp} spp", file=sys.stderr, flush=True)
     for m in models:
-        phase = model_phase(m, args.degree)
+        by_degree = auto and m == "exp"
+        phase = "expauto" if by_degree else model_phase(m, degree)
         fits = []
+        choices: dict[str, Any] = {}
         with FitProgress(enabled=not (args.json or args.no_progress)) as live:
             for c in channels:
-                if not args.json:
-                    print(f"fitting channel {c} ({phase}) ...", file=sys.stderr, flush=True)
-                progress, on_stage = live.channel(c, phase)
-                f = fit_channel(problems[c], phase, extensions=exts, settings=settings,
-                                scale_calibration=scales.get(c), progress=progress, on_stage=on_stage)
-                fits.append(f)
-                if not args.json:
-                    steps = sum(1 for e in f.polish if e.get("accepted"))
-                    print(f"  {c}: {sum(f.stage_times_s.values()):.0f} s, {f.iterations} iterations "
-                          f"+ {steps} polish steps, {f.stop_reason}", file=sys.stderr, flush=True)
+                def fit_one(ph: str, start: Any, _c: str = c) -> Any:
+                    if not args.json:
+                        print(f"fitting channel {_c} ({ph}) ...", file=sys.stderr, flush=True)
+                    progress, on_stage = live.channel(_c, ph)
+                    f = fit_channel(problems[_c], ph, extensions=exts, settings=settings, start=start,
+                                    scale_calibration=scales.get(_c), progress=progress, on_stage=on_stage)
+                    if not args.json:
+                        steps = sum(1 for e in f.polish if e.get("accepted"))
+                        print(f"  {_c}: {sum(f.stage_times_s.values()):.0f} s, {f.iterations} iterations "
+                              f"+ {steps} polish steps, {f.stop_reason}", file=sys.stderr, flush=True)
+                    return f
+
+                if by_degree:
+                    from estimate.phase_degree import choose_degree
+
+                    log = None if args.json else (lambda s: print(s, file=sys.stderr, flush=True))
+                    choice = choose_degree(problems[c], fit_one, settings, extensions=exts, log=log)
+                    choices[c] = choice
+                    fits.append(choice.fit)
+                    if not args.json:
+                        print(f"  {c}: kept exp{choice.chosen} ({choice.stopped})", file=sys.stderr, flush=True)
+                else:
+                    fits.append(fit_one(phase, None))
         run_dir = new_run_dir(session, phase)
         write_run(run_dir, session, fits, problems,
                   {"columns": int(problems[channels[0]].n_px), "iterations": settings.max_iterations,
@@ -154,15 +178,18 @@ def run(args: argparse.Namespace) -> int:
                    "seed": settings.seed, "scale": args.scale,
                    "scale_calibration": {c: sc.to_dict() for c, sc in scales.items()},
                    "loss": "mean (log(I_meas/scale + delta) - log(I_model + delta))^2",
-                   "fit": settings.to_dict()})
+                   "fit": settings.to_dict(),
+                   **({"model": phase, "degree": "auto", "degree_choice": {c: ch.to_dict() for c, ch in choices.items()}}
+                      if by_degree else {})})
         out["runs"].append({"run_id": run_dir.name, "path": str(run_dir), "model": phase,
-                            "channels": {f.channel: f.summary() for f in fits}})
+                            "channels": {f.channel: f.summary() for f in fits},
+                            **({"degree_choice": {c: ch.to_dict() for c, ch in choices.items()}} if by_degree else {})})
         if not args.json:
             print(f"run {run_dir}")
             for f in fits:
                 p = f.parameters
                 u = f.uncertainties
-                print(f"  {f.channel}: sigma_t {p['sigma_t']:.4g} +- {u.get('sigma_t', float('nan')):.2g} /mm, "
+                print(f"  {f.channel}{f' ({f.model})' if by_degree else ''}: sigma_t {p['sigma_t']:.4g} +- {u.get('sigma_t', float('nan')):.2g} /mm, "
                       f"albedo {p['albedo']:.4f} +- {u.get('albedo', float('nan')):.2g}, "
                       + ", ".join(f"{k[6:]} {v:.4g}" for k, v in p.items() if k.startswith("phase."))
                       + f"; reduced chi2 {f.reduced_chi2:.3g} ({f.iterations} it, {f.time_s:.0f} s, {f.stop_reason})")
