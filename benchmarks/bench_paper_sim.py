@@ -181,7 +181,16 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
             continue
         st = settings_with(OVERRIDES, seed=seed, scale=SCALE)
         t0 = time.monotonic()
-        r = fit_channel(pb, model, settings=st)
+        extra: dict = {}
+        if model == "expauto":
+            # `rig estimate --degree auto`: exp3, exp4, ... and the degree the BIC rule keeps.
+            from estimate.phase_degree import choose_degree
+
+            choice = choose_degree(pb, lambda ph, start: fit_channel(pb, ph, settings=st, start=start), st)
+            r = choice.fit
+            extra = {"degree_choice": choice.to_dict()}
+        else:
+            r = fit_channel(pb, model, settings=st)
         wall = time.monotonic() - t0
         floor = loss_at(pb, mat.model, truth, spp=st.final_spp,
                         fixed_scale=r.scale if SCALE == "calibrated" else None)["loss"]
@@ -194,10 +203,11 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
                "scale_mode": SCALE, "optimizer": st.optimizer, "load_average_1min_at_end": os.getloadavg()[0],
                "iterations": r.iterations, "spp_schedule": r.spp_schedule, "time_s": wall,
                "parameters": r.parameters, "uncertainties": r.uncertainties, "true_model": mat.model,
-               "setting_overrides": OVERRIDES, "variant": init_mitsuba().variant()}
+               "setting_overrides": OVERRIDES, "variant": init_mitsuba().variant(), "requested_model": model,
+               **extra}
         f.write_text(json.dumps(row, indent=1, default=float))
         rows.append(row)
-        print(f"{name} {model}: sigma_t {row['sigma_t']:.4g} albedo {row['albedo']:.4f} loss/floor "
+        print(f"{name} {model}{' -> ' + r.model if r.model != model else ''}: sigma_t {row['sigma_t']:.4g} albedo {row['albedo']:.4f} loss/floor "
               f"{row['loss_ratio']:.3f} time {wall:.0f} s", flush=True)
     return rows
 
@@ -244,7 +254,7 @@ def unbiased_losses(row: dict, seed: int = 4242) -> dict:
                   fixed_scale=fs if fs is not None else fit["scale"])
     row.update({"loss_unbiased": fit["loss_unbiased"], "loss_unbiased_at_truth": tru["loss_unbiased"],
                 "loss_unbiased_ratio": fit["loss_unbiased"] / tru["loss_unbiased"], "unbiased_spp": UNBIASED_SPP})
-    fit_cache(cdir, row["model"]).write_text(json.dumps(row, indent=1, default=float))
+    fit_cache(cdir, row.get("requested_model", row["model"])).write_text(json.dumps(row, indent=1, default=float))
     print(f"{row['case']} {row['model']}: unbiased loss / floor {row['loss_unbiased_ratio']:.3f} "
           f"(plain {row['loss_ratio']:.3f})", flush=True)
     return row
@@ -312,7 +322,7 @@ def truth_check(d: float, s: float, model: str, seed: int) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--cases", default=None, help="comma list like d0.5_s2 (default: all 8)")
-    ap.add_argument("--models", default="exp3,tthg", help="comma list of models to fit (exp3,tthg); '' fits none "
+    ap.add_argument("--models", default="exp3,tthg", help="comma list of models to fit (exp<M>, tthg, or expauto: the degree `rig estimate --degree auto` keeps); '' fits none "
                     "(the cases are still captured: e.g. with --noise-check alone)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--table-only", action="store_true", help="print / write the cached fits only, compute nothing")

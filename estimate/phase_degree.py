@@ -12,11 +12,11 @@ is then the first thing to try; this module does it with a stated rule rather th
 The degrees are nested (exp<M> is exp<M+1> with b_{M+1} = 0), so each fit starts from the
 previous degree's optimum with the new coefficient at 0 and needs no coarse search. Each
 degree's fit is compared on the same footing: its parameters are rendered at `EVAL_SEEDS`
-pairs of seeds (the same seeds for every degree, so most of the render noise is common to
-all and cancels in their differences), and its chi^2 is taken in the noise-floor metric of
-`estimate.residuals` (the HDR variance scaled per angle by the empirical white-noise factor
-f of the degree-3 fit's residuals, one f for all degrees: what the recording's pixel noise
-is does not depend on the model). The Bayesian information criterion
+pairs of independent seeds (the same seeds for every degree), its chi^2 is the product of
+the pair's residuals (no render-variance term: `degree_chi2`), taken in the noise-floor
+metric of `estimate.residuals` (the HDR variance scaled per angle by the empirical
+white-noise factor f of the degree-3 fit's residuals, one f for all degrees: what the
+recording's pixel noise is does not depend on the model). The Bayesian information criterion
 
     BIC_M = chi^2_adjusted(M) + (free parameters of M) ln(pixels)
 
@@ -38,14 +38,13 @@ from typing import Any
 import numpy as np
 
 from estimate.errors import ModelParameterError
-from estimate.evaluation import evaluate
 from estimate.fit import FitResult, FitSettings, forward_model
-from estimate.loss import reference_delta
+from estimate.loss import profile_scale, reference_delta
 from estimate.problem import Problem
-from estimate.residuals import noise_floor, normalised_residuals
+from estimate.residuals import noise_floor
 
-__all__ = ["BIC_MARGIN", "EVAL_SEEDS", "MAX_DEGREE", "MIN_DEGREE", "PATIENCE", "DegreeChoice", "DegreeStep",
-           "choose_degree", "degree_chi2"]
+__all__ = ["BIC_MARGIN", "EVAL_SEEDS", "EVAL_SPP_FACTOR", "MAX_DEGREE", "MIN_DEGREE", "PATIENCE", "DegreeChoice", "DegreeStep",
+           "Metric", "choose_degree", "degree_chi2"]
 
 #: The first degree tried (the paper's) and the largest (the largest the paper evaluated).
 MIN_DEGREE = 3
@@ -55,8 +54,12 @@ MAX_DEGREE = 7
 BIC_MARGIN = 10.0
 #: ... plus this many standard errors of the difference over the seed pairs.
 SE_MULTIPLE = 2.0
-#: Seed pairs each degree's parameters are rendered at for the comparison.
+#: Seed pairs each degree's parameters are rendered at for the comparison, each render at
+#: this many times the fits' final spp: the comparison's render noise is what limits the
+#: gains the rule can resolve (at sigma_t 6 on the paper simulation, +-30-170 of chi^2 at
+#: 1 x 1024 spp), and these renders cost far less than the fits.
 EVAL_SEEDS = 4
+EVAL_SPP_FACTOR = 2
 #: Stop after this many degrees in a row that do not beat the best so far.
 PATIENCE = 2
 #: Base seed of the comparison renders (apart from the fits' own).
@@ -149,32 +152,60 @@ def _free_count(fit: FitResult) -> int:
     return len(fit.free) + (1 if fit.scale_mode == "free" else 0)
 
 
+@dataclass(frozen=True)
+class Metric:
+    """The weights every degree's chi^2 is taken with: 1 / (f^2 (var + s^2 v_render)) per
+    pixel (0 where unused), from the first degree's renders; f per angle."""
+
+    weights: np.ndarray
+    noise_scale: np.ndarray
+
+
 def degree_chi2(problem: Problem, fit: FitResult, settings: FitSettings, *, seeds: int = EVAL_SEEDS,
-                extensions: Sequence[str] = (), noise_scale: np.ndarray | None = None
-                ) -> tuple[list[float], np.ndarray]:
-    """chi^2 of a fit in the noise-floor metric at `seeds` seed pairs common to every degree.
+                extensions: Sequence[str] = (), metric: Metric | None = None) -> tuple[list[float], Metric]:
+    """chi^2 of a fit without its renders' noise, at `seeds` seed pairs common to every degree.
 
     The fit's parameters (extensions' too) are rendered with its own phase model at
-    `settings.final_spp`, its scale as fitted when calibrated and profiled otherwise.
-    `noise_scale`: f per angle (None: estimated from this fit's first pair, `noise_floor`).
-    Returns (chi^2 per seed pair, f).
+    `EVAL_SPP_FACTOR` x `settings.final_spp`, twice per pair with independent seeds A and B, and
+
+        chi^2 = sum_valid w (m - s I_A) (m - s I_B)
+
+    with m the recording and s the fit's scale (calibrated) or the one profiled on the pair's
+    mean (free). The product of two independent residuals has no render-variance term (the
+    decorrelated loss of `estimate.loss`, in chi^2 form), so each degree is judged by how far
+    its model is from the recording rather than by how noisy its renders are. The weights w
+    are the same for every degree (`metric`; None: made from this fit's renders): the HDR
+    variance var plus the render variance v_render of one render's mean (the sample variance
+    of all 2 x `seeds` renders, smoothed along the row), scaled per angle by the noise-floor
+    factor f (`estimate.residuals.noise_floor` of the residuals in that variance). Without
+    the render variance in them the pixels where the render noise dominates (the peaks at
+    sigma_t 6) weigh most, and their noise made the chi^2 of the paper simulation's
+    d 0.01 um / sigma_t 6 scatter by +-700 between seed pairs. Returns (chi^2 per seed pair,
+    the metric).
     """
     delta = reference_delta(settings.delta_range)
     fm = forward_model(problem, fit.model, extensions, settings.engine)
-    fixed_scale = fit.scale if fit.scale_mode == "calibrated" else None
-    f = noise_scale
-    row = []
+    reqs = []
     for k in range(seeds):
-        ev = evaluate(fm, problem, fit.parameters, spp=settings.final_spp, seed=_EVAL_SEED + 1_000 * k,
-                      delta_rel=delta, fixed_scale=fixed_scale)
-        r = normalised_residuals(problem.measured, problem.variance, ev["profiles"], ev["scale"],
-                                 ev["model_variance"])
-        r = np.where(problem.valid, r, np.nan)
-        if f is None:
-            f, _ = noise_floor(r)
-        row.append(float(np.nansum((r / f[:, None]) ** 2)))
-    assert f is not None
-    return row, f
+        sa = _EVAL_SEED + 1_000 * k
+        reqs += [(fit.parameters, sa), (fit.parameters, sa + 7_777)]
+    renders = np.stack(fm.render_profiles_many(reqs, problem.angles_deg, spp=EVAL_SPP_FACTOR * settings.final_spp))
+    m, var, valid = problem.measured, problem.variance, problem.valid
+    scales = [fit.scale if fit.scale_mode == "calibrated"
+              else profile_scale(m, 0.5 * (renders[2 * k] + renders[2 * k + 1]), valid, delta) for k in range(seeds)]
+    if metric is None:
+        # The variance of one pair's mean (what the recording is compared with), smoothed:
+        # one pixel's sample variance over a few renders is itself noisy.
+        v1 = np.var(renders, axis=0, ddof=1)
+        vr = np.stack([np.convolve(r, np.ones(5) / 5.0, mode="same") for r in v1]) / 2.0
+        s0 = float(np.mean(scales))
+        den = np.where(valid & (var > 0), var + s0 ** 2 * vr, np.inf)
+        mean = renders.mean(axis=0)
+        f, _ = noise_floor(np.where(valid, (m - s0 * mean) / np.sqrt(den), np.nan))
+        metric = Metric(np.where(np.isfinite(den), 1.0 / den, 0.0) / (f ** 2)[:, None], f)
+    row = [float(np.sum(metric.weights * (m - sk * renders[2 * k]) * (m - sk * renders[2 * k + 1])))
+           for k, sk in enumerate(scales)]
+    return row, metric
 
 
 def choose_degree(problem: Problem, fit: FitFn, settings: FitSettings, *, extensions: Sequence[str] = (),
@@ -189,14 +220,14 @@ def choose_degree(problem: Problem, fit: FitFn, settings: FitSettings, *, extens
         raise ModelParameterError(f"{seeds} seed pairs: the comparison's standard error needs at least 2")
     steps: list[DegreeStep] = []
     best: DegreeStep | None = None
-    f_ref: np.ndarray | None = None
+    metric: Metric | None = None
     pixels = int(np.sum(problem.valid))
     misses = 0
     stopped = f"reached exp{max_degree}, the largest tried"
     start: dict[str, float] | None = None
     for m in range(min_degree, max_degree + 1):
         res = fit(f"exp{m}", start)
-        chi, f_ref = degree_chi2(problem, res, settings, seeds=seeds, extensions=extensions, noise_scale=f_ref)
+        chi, metric = degree_chi2(problem, res, settings, seeds=seeds, extensions=extensions, metric=metric)
         free = _free_count(res)
         step = DegreeStep(m, res, float(np.mean(chi)), chi, free, float(np.mean(chi)) + free * math.log(pixels))
         if best is None:
@@ -222,6 +253,6 @@ def choose_degree(problem: Problem, fit: FitFn, settings: FitSettings, *, extens
             break
         start = dict(res.parameters)
         start[f"phase.b{m + 1}"] = 0.0
-    assert best is not None and f_ref is not None
-    return DegreeChoice(best.degree, steps, pixels, [float(x) for x in f_ref], stopped, seeds)
+    assert best is not None and metric is not None
+    return DegreeChoice(best.degree, steps, pixels, [float(x) for x in metric.noise_scale], stopped, seeds)
 

@@ -103,6 +103,8 @@ def test_report_cells_round_floats_wherever_they_are():
     (["--polish-steps", "-1"], "--polish-steps -1: use 0..20"),
     (["--spp-max", "0"], "--spp-max 0: use a positive number"),
     (["--final-spp", "1"], "--final-spp 1: use at least 2 samples per pixel"),
+    (["--degree", "three"], "--degree three: use a whole number 0..12 or auto"),
+    (["--degree", "13"], "--degree 13: use 0..12 or auto"),
 ])
 def test_bad_input_one_line_exit_2(session, capsys, extra, message):
     assert main(["estimate", str(session), "--max-iterations", "1", *extra]) == 2
@@ -196,3 +198,22 @@ def test_python_dash_m_rig_is_the_rig_command():
     bad = subprocess.run([sys.executable, "-m", "rig", "estimate", "/nonexistent/session"], capture_output=True,
                          text=True, timeout=120)
     assert bad.returncode == 2 and "Traceback" not in bad.stderr
+
+
+def test_degree_auto_keeps_the_lowest_degree_the_recording_supports(session, capsys):
+    """The truth's phase is exp1 (b1 = 3), which exp3 holds: no higher degree gains more than
+    the margin, so exp3 is kept after two degrees in a row that do not; the run records
+    every degree's comparison and is named for the search."""
+    assert main(["estimate", str(session), "--channels", "g", "--columns", "32", "--max-iterations", "4",
+                 "--spp-max", "128", "--polish-steps", "2", "--degree", "auto", "--json"]) == 0
+    (run,) = json.loads(capsys.readouterr().out)["runs"]
+    assert run["model"] == "expauto" and run["path"].endswith("_expauto")
+    assert run["channels"]["g"]["model"] == "exp3"
+    choice = run["degree_choice"]["g"]
+    assert choice["chosen"] == 3 and [s["degree"] for s in choice["steps"]] == [3, 4, 5]
+    assert [s["accepted"] for s in choice["steps"]] == [True, False, False]
+    for s in choice["steps"][1:]:
+        assert s["gain"] <= 10.0 + 2.0 * s["gain_se"]
+    doc = yaml.safe_load((Path(run["path"]) / "results.yaml").read_text())
+    assert doc["settings"]["degree"] == "auto" and doc["settings"]["degree_choice"]["g"]["chosen"] == 3
+    assert doc["channels"]["g"]["model"] == "exp3"

@@ -1,0 +1,122 @@
+"""estimate.phase_degree: the rule that picks the exponential function's degree.
+
+The fits and the renders are replaced by stand-ins with given chi^2 per seed pair, so the
+tests see the rule alone: nested warm starts, the BIC margin and its standard error, and
+the stop after `PATIENCE` degrees that do not gain.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from estimate import phase_degree
+from estimate.errors import ModelParameterError
+from estimate.phase_degree import BIC_MARGIN, PATIENCE, choose_degree
+
+PIXELS = 400
+
+
+@dataclass
+class FakeFit:
+    model: str
+    parameters: dict[str, float]
+    scale_mode: str = "calibrated"
+    fixed: dict[str, float] = field(default_factory=dict)
+    reduced_chi2: float = 1.0
+    loss_unbiased: float = 1.0
+    time_s: float = 0.0
+
+    @property
+    def free(self) -> list[str]:
+        return [k for k in self.parameters if k not in self.fixed]
+
+
+def _run(chi2_by_degree: dict[int, list[float]], monkeypatch, **kw):
+    """choose_degree with fits that take their start and chi^2 that come from the table."""
+    starts: list[tuple[str, dict | None]] = []
+
+    def fit(phase: str, start):
+        starts.append((phase, None if start is None else dict(start)))
+        m = int(phase[3:])
+        p = {"sigma_t": 2.0, "albedo": 0.9, **{f"phase.b{i}": 0.1 * i for i in range(1, m + 1)}}
+        return FakeFit(phase, p)
+
+    def chi2(problem, res, settings, *, seeds, extensions, metric):
+        return list(chi2_by_degree[int(res.model[3:])]), metric or phase_degree.Metric(np.ones((2, 1)), np.ones(2))
+
+    monkeypatch.setattr(phase_degree, "degree_chi2", chi2)
+    problem = SimpleNamespace(valid=np.ones((2, PIXELS // 2), bool))
+    return choose_degree(problem, fit, SimpleNamespace(), **kw), starts
+
+
+def _flat(value: float, jitter: float = 0.0, n: int = 4) -> list[float]:
+    return [value + jitter * (-1) ** k for k in range(n)]
+
+
+def test_a_degree_that_removes_a_large_misfit_is_kept_and_the_search_stops_after_two_that_do_not(monkeypatch):
+    # exp4 removes 450 of chi^2 (the near-Rayleigh phase's mu^4 term); exp5 and exp6 a unit or two.
+    table = {3: _flat(3600.0, 3.0), 4: _flat(3150.0, 3.0), 5: _flat(3148.0, 3.0), 6: _flat(3147.0, 3.0),
+             7: _flat(3000.0)}
+    choice, starts = _run(table, monkeypatch)
+    assert choice.chosen == 4
+    assert [s.degree for s in choice.steps] == [3, 4, 5, 6]      # exp7 never fitted: PATIENCE = 2
+    assert PATIENCE == 2 and "in a row" in choice.stopped
+    assert [s.accepted for s in choice.steps] == [True, True, False, False]
+    ln = math.log(PIXELS)
+    assert choice.steps[1].gain == pytest.approx(450.0 - ln)
+    assert choice.steps[2].gain == pytest.approx(2.0 - ln)      # against exp4, the best so far
+    # Nested warm starts: each degree from the one before, its new coefficient at 0.
+    assert starts[0] == ("exp3", None)
+    assert starts[1][0] == "exp4" and starts[1][1]["phase.b4"] == 0.0
+    assert starts[1][1]["phase.b3"] == pytest.approx(0.3) and starts[1][1]["sigma_t"] == 2.0
+    assert starts[2][0] == "exp5" and starts[2][1]["phase.b5"] == 0.0 and starts[2][1]["phase.b4"] == pytest.approx(0.4)
+    assert choice.fit.model == "exp4"
+    d = choice.to_dict()
+    assert d["chosen"] == 4 and len(d["steps"]) == 4 and d["pixels"] == PIXELS
+
+
+def test_a_model_that_already_holds_the_phase_stays_at_degree_3(monkeypatch):
+    # Each higher degree lowers chi^2 by about one per parameter (noise fitted): the BIC rises.
+    table = {3: _flat(400.0, 2.0), 4: _flat(399.0, 2.0), 5: _flat(398.5, 2.0)}
+    choice, _ = _run(table, monkeypatch)
+    assert choice.chosen == 3 and [s.degree for s in choice.steps] == [3, 4, 5]
+    assert all(s.gain < 0 for s in choice.steps[1:])
+
+
+def test_a_gain_within_the_render_noise_of_the_comparison_is_not_taken(monkeypatch):
+    ln = math.log(PIXELS)
+    # exp4's mean gain is 15 beyond the BIC penalty, above the margin of 10, but the seed
+    # pairs scatter by +-20: twice its standard error (20) more than covers it.
+    table = {3: [500.0, 500.0, 500.0, 500.0], 4: [485.0 - ln + 20, 485.0 - ln - 20, 485.0 - ln + 20, 485.0 - ln - 20],
+             5: _flat(500.0), 6: _flat(500.0)}
+    choice, _ = _run(table, monkeypatch)
+    step = choice.steps[1]
+    assert step.gain == pytest.approx(15.0) and step.gain > BIC_MARGIN
+    assert step.gain_se == pytest.approx(40.0 / math.sqrt(3) / 2.0)
+    assert not step.accepted and choice.chosen == 3
+    # The same mean gain with quiet seed pairs is taken.
+    table[4] = _flat(485.0 - ln)
+    choice, _ = _run(table, monkeypatch)
+    assert choice.steps[1].accepted and choice.chosen == 4
+
+
+def test_a_degree_after_one_that_gains_little_is_still_tried(monkeypatch):
+    # The forward-peaked d 0.5 um media: exp4 follows the peak little better than exp3, exp5
+    # much better. One miss does not stop the search.
+    table = {3: _flat(5000.0), 4: _flat(4995.0), 5: _flat(4000.0), 6: _flat(3990.0), 7: _flat(3700.0)}
+    choice, _ = _run(table, monkeypatch)
+    assert [s.degree for s in choice.steps] == [3, 4, 5, 6, 7]
+    assert choice.chosen == 7 and "reached exp7" in choice.stopped
+    assert [s.accepted for s in choice.steps] == [True, False, True, False, True]
+
+
+def test_degree_range_and_seed_count_are_checked(monkeypatch):
+    with pytest.raises(ModelParameterError, match="degrees 5..4"):
+        _run({}, monkeypatch, min_degree=5, max_degree=4)
+    with pytest.raises(ModelParameterError, match="at least 2"):
+        _run({}, monkeypatch, seeds=1)
