@@ -31,7 +31,7 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--session")
     ap.add_argument("--channel", default="g")
-    ap.add_argument("--model", default="exp3")
+    ap.add_argument("--model", default="exp3", help="exp<M>, tthg, or expauto (rig estimate --degree auto)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--truth-spp", type=int, default=32768,
                     help="samples per pixel of the synthetic session's renders (their Monte Carlo noise is "
@@ -98,7 +98,17 @@ def main() -> int:
         c0 = time.process_time()
         pb = load_problem(session, args.channel)
         t_load = time.monotonic() - t0
-        r = fit_channel(pb, args.model, settings=settings)
+        extra: dict = {}
+        if args.model == "expauto":
+            # `rig estimate --degree auto`: on this exp3 truth every higher degree should be
+            # turned away (the rule's false-positive side).
+            from estimate.phase_degree import choose_degree
+
+            choice = choose_degree(pb, lambda ph, st: fit_channel(pb, ph, settings=settings, start=st), settings)
+            r = choice.fit
+            extra = {"degree_choice": choice.to_dict()}
+        else:
+            r = fit_channel(pb, args.model, settings=settings)
         wall = time.monotonic() - t0
         cpu = time.process_time() - c0  # all threads; / 2 ~ the wall time on 2 free cores
         load = os.getloadavg()[0]
@@ -112,18 +122,19 @@ def main() -> int:
                "uncertainties": r.uncertainties, "loss": r.loss, "reduced_chi2": r.reduced_chi2,
                "start": r.start, "loss_curve": r.loss_curve, "gn_trace": r.gn_trace,
                "drift": r.drift, "still_drifting": r.drifting, "polish": r.polish,
-               "stage_times_s": r.stage_times_s}
+               "stage_times_s": r.stage_times_s, **extra}
         if truth:
             fs = r.scale if args.scale == "calibrated" else None
-            ev = loss_at(pb, args.model, truth, spp=r.settings["final_spp"], fixed_scale=fs)
+            truth_model = "exp3" if args.model == "expauto" else args.model   # TRUTH's phase
+            ev = loss_at(pb, truth_model, truth, spp=r.settings["final_spp"], fixed_scale=fs)
             out["truth"] = truth
             out["truth_spp"] = args.truth_spp
             out["loss_at_truth"] = ev["loss"]
             out["reduced_chi2_at_truth"] = ev["chi2"] / r.dof
             # Fit vs truth without the renders' Monte Carlo variance (which grows with sigma_t
             # and the albedo and biases the plain loss): decorrelated losses, same seeds, 4096 spp.
-            u_fit = loss_at(pb, args.model, r.parameters, spp=4096, seed=777, fixed_scale=fs)["loss_unbiased"]
-            u_truth = loss_at(pb, args.model, truth, spp=4096, seed=777, fixed_scale=fs)["loss_unbiased"]
+            u_fit = loss_at(pb, r.model, r.parameters, spp=4096, seed=777, fixed_scale=fs)["loss_unbiased"]
+            u_truth = loss_at(pb, truth_model, truth, spp=4096, seed=777, fixed_scale=fs)["loss_unbiased"]
             out["loss_unbiased"] = u_fit
             out["loss_unbiased_at_truth"] = u_truth
             out["loss_unbiased_ratio"] = u_fit / u_truth
