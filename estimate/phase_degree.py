@@ -13,9 +13,9 @@ The degrees are nested (exp<M> is exp<M+1> with b_{M+1} = 0), so each fit starts
 previous degree's optimum with the new coefficient at 0 and needs no coarse search. Each
 degree's fit is compared on the same footing: its parameters are rendered at `EVAL_SEEDS`
 pairs of independent seeds (the same seeds for every degree), its chi^2 is the product of
-the pair's residuals (no render-variance term: `degree_chi2`), taken in the noise-floor
-metric of `estimate.residuals` (the HDR variance scaled per angle by the empirical
-white-noise factor f of the degree-3 fit's residuals, one f for all degrees: what the
+the pair's residuals (no render-variance term: `degree_chi2`), weighted by one
+metric for all degrees: the HDR variance plus the first degree's render variance, scaled per
+angle by the empirical white-noise factor f of its residuals (`estimate.residuals`; what the
 recording's pixel noise is does not depend on the model). The Bayesian information criterion
 
     BIC_M = chi^2_adjusted(M) + (free parameters of M) ln(pixels)
@@ -25,7 +25,7 @@ then decides: a degree replaces the best one so far only when it lowers the BIC 
 noise the common seeds leave). The search stops after `PATIENCE` degrees in a row that do
 not, or at `MAX_DEGREE` (the largest the paper evaluated). On the paper simulation's
 recordings (`benchmarks/bench_paper_sim.py --models expauto`) and on recordings of an exp3
-truth (`benchmarks/bench_estimate.py --degree auto`) the figures are in the README.
+truth (`benchmarks/bench_estimate.py --model expauto`) the figures are in the README.
 """
 
 from __future__ import annotations
@@ -43,8 +43,8 @@ from estimate.loss import profile_scale, reference_delta
 from estimate.problem import Problem
 from estimate.residuals import noise_floor
 
-__all__ = ["BIC_MARGIN", "EVAL_SEEDS", "EVAL_SPP_FACTOR", "MAX_DEGREE", "MIN_DEGREE", "PATIENCE", "DegreeChoice", "DegreeStep",
-           "Metric", "choose_degree", "degree_chi2"]
+__all__ = ["BIC_MARGIN", "EVAL_SEEDS", "EVAL_SPP_FACTOR", "MAX_DEGREE", "MIN_DEGREE", "PATIENCE", "DegreeChoice",
+           "DegreeStep", "Metric", "choose_degree", "degree_chi2"]
 
 #: The first degree tried (the paper's) and the largest (the largest the paper evaluated).
 MIN_DEGREE = 3
