@@ -104,7 +104,7 @@ def main() -> int:
             # turned away (the rule's false-positive side).
             from estimate.phase_degree import choose_degree
 
-            choice = choose_degree(pb, lambda ph, st: fit_channel(pb, ph, settings=settings, start=st), settings)
+            choice = choose_degree(pb, settings)
             r = choice.fit
             extra = {"degree_choice": choice.to_dict()}
         else:

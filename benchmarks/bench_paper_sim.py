@@ -186,7 +186,7 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
             # `rig estimate --degree auto`: exp3, exp4, ... and the degree the BIC rule keeps.
             from estimate.phase_degree import choose_degree
 
-            choice = choose_degree(pb, lambda ph, start: fit_channel(pb, ph, settings=st, start=start), st)
+            choice = choose_degree(pb, st)
             r = choice.fit
             extra = {"degree_choice": choice.to_dict()}
         else:
@@ -207,7 +207,8 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
                **extra}
         f.write_text(json.dumps(row, indent=1, default=float))
         rows.append(row)
-        print(f"{name} {model}{' -> ' + r.model if r.model != model else ''}: sigma_t {row['sigma_t']:.4g} albedo {row['albedo']:.4f} loss/floor "
+        kept = f" -> {r.model}" if r.model != model else ""
+        print(f"{name} {model}{kept}: sigma_t {row['sigma_t']:.4g} albedo {row['albedo']:.4f} loss/floor "
               f"{row['loss_ratio']:.3f} time {wall:.0f} s", flush=True)
     return rows
 
@@ -322,7 +323,8 @@ def truth_check(d: float, s: float, model: str, seed: int) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--cases", default=None, help="comma list like d0.5_s2 (default: all 8)")
-    ap.add_argument("--models", default="exp3,tthg", help="comma list of models to fit (exp<M>, tthg, or expauto: the degree `rig estimate --degree auto` keeps); '' fits none "
+    ap.add_argument("--models", default="exp3,tthg", help="comma list of models to fit (exp<M>, tthg, or expauto: the degree "
+                    "`rig estimate --degree auto` keeps); '' fits none "
                     "(the cases are still captured: e.g. with --noise-check alone)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--table-only", action="store_true", help="print / write the cached fits only, compute nothing")

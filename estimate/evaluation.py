@@ -22,7 +22,14 @@ from estimate.loss import (
 )
 from estimate.problem import Problem
 
-__all__ = ["evaluate", "jacobian_columns", "solve_additive"]
+__all__ = ["evaluate", "jacobian_columns", "smoothed_along_rows", "solve_additive"]
+
+
+def smoothed_along_rows(v: np.ndarray, width: int = 5) -> np.ndarray:
+    """A per-pixel variance estimate (angles, pixels) averaged over `width` pixels along each
+    row: one pixel's estimate from a few renders is itself very noisy."""
+    k = np.ones(width) / width
+    return np.stack([np.convolve(r, k, mode="same") for r in np.atleast_2d(v)])
 
 
 def evaluate(fm: ForwardModel, problem: Problem, params: Mapping[str, float], *, spp: int, seed: int,
@@ -39,10 +46,7 @@ def evaluate(fm: ForwardModel, problem: Problem, params: Mapping[str, float], *,
         shift = solve_additive(fm, problem, params, additive, 0.5 * (p1 + p2), delta_rel, fixed_scale)
         p1, p2 = p1 + shift, p2 + shift
     prof = 0.5 * (p1 + p2)
-    mvar = 0.25 * (p1 - p2) ** 2
-    # One pixel's two-sample variance estimate is itself very noisy: smooth it along x.
-    k = np.ones(5) / 5.0
-    mvar = np.stack([np.convolve(r, k, mode="same") for r in mvar])
+    mvar = smoothed_along_rows(0.25 * (p1 - p2) ** 2)
     s = fixed_scale if fixed_scale is not None else profile_scale(problem.measured, prof, problem.valid, delta_rel)
     loss = log_loss(problem.measured, prof, problem.valid, s, delta_rel)[0]
     unbiased = decorrelated_loss(problem.measured, p1, p2, problem.valid, s, delta_rel)

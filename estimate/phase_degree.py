@@ -38,7 +38,8 @@ from typing import Any
 import numpy as np
 
 from estimate.errors import ModelParameterError
-from estimate.fit import FitResult, FitSettings, forward_model
+from estimate.evaluation import smoothed_along_rows
+from estimate.fit import FitResult, FitSettings, fit_channel, forward_model
 from estimate.loss import profile_scale, reference_delta
 from estimate.problem import Problem
 from estimate.residuals import noise_floor
@@ -196,8 +197,7 @@ def degree_chi2(problem: Problem, fit: FitResult, settings: FitSettings, *, seed
     if metric is None:
         # The variance of one pair's mean (what the recording is compared with), smoothed:
         # one pixel's sample variance over a few renders is itself noisy.
-        v1 = np.var(renders, axis=0, ddof=1)
-        vr = np.stack([np.convolve(r, np.ones(5) / 5.0, mode="same") for r in v1]) / 2.0
+        vr = smoothed_along_rows(np.var(renders, axis=0, ddof=1)) / 2.0
         s0 = float(np.mean(scales))
         den = np.where(valid & (var > 0), var + s0 ** 2 * vr, np.inf)
         mean = renders.mean(axis=0)
@@ -208,12 +208,16 @@ def degree_chi2(problem: Problem, fit: FitResult, settings: FitSettings, *, seed
     return row, metric
 
 
-def choose_degree(problem: Problem, fit: FitFn, settings: FitSettings, *, extensions: Sequence[str] = (),
-                  min_degree: int = MIN_DEGREE, max_degree: int = MAX_DEGREE, seeds: int = EVAL_SEEDS,
-                  log: Callable[[str], None] | None = None) -> DegreeChoice:
+def choose_degree(problem: Problem, settings: FitSettings, *, fit: FitFn | None = None,
+                  extensions: Sequence[str] = (), min_degree: int = MIN_DEGREE, max_degree: int = MAX_DEGREE,
+                  seeds: int = EVAL_SEEDS, log: Callable[[str], None] | None = None) -> DegreeChoice:
     """Fit exp<min_degree>, exp<min_degree + 1>, ... and keep the degree the BIC rule picks
-    (module docstring). `fit(phase, start)` fits one degree; each starts from the previous
-    degree's parameters with the new coefficient at 0."""
+    (module docstring). `fit(phase, start)` fits one degree (None: `fit_channel` with
+    `settings` and `extensions`); each starts from the previous degree's parameters with the
+    new coefficient at 0."""
+    if fit is None:
+        def fit(phase: str, start: Mapping[str, float] | None) -> FitResult:
+            return fit_channel(problem, phase, extensions=extensions, start=start, settings=settings)
     if not 0 <= min_degree <= max_degree:
         raise ModelParameterError(f"degrees {min_degree}..{max_degree}: need 0 <= first <= last")
     if seeds < 2:

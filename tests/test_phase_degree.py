@@ -51,7 +51,7 @@ def _run(chi2_by_degree: dict[int, list[float]], monkeypatch, **kw):
 
     monkeypatch.setattr(phase_degree, "degree_chi2", chi2)
     problem = SimpleNamespace(valid=np.ones((2, PIXELS // 2), bool))
-    return choose_degree(problem, fit, SimpleNamespace(), **kw), starts
+    return choose_degree(problem, SimpleNamespace(), fit=fit, **kw), starts
 
 
 def _flat(value: float, jitter: float = 0.0, n: int = 4) -> list[float]:

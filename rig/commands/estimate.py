@@ -163,13 +163,14 @@ def run(args: argparse.Namespace) -> int:
                     from estimate.phase_degree import choose_degree
 
                     log = None if args.json else (lambda s: print(s, file=sys.stderr, flush=True))
-                    choice = choose_degree(problems[c], fit_one, settings, extensions=exts, log=log)
+                    choice = choose_degree(problems[c], settings, fit=fit_one, extensions=exts, log=log)
                     choices[c] = choice
                     fits.append(choice.fit)
                     if not args.json:
                         print(f"  {c}: kept exp{choice.chosen} ({choice.stopped})", file=sys.stderr, flush=True)
                 else:
                     fits.append(fit_one(phase, None))
+        choice_docs = {c: ch.to_dict() for c, ch in choices.items()}
         run_dir = new_run_dir(session, phase)
         write_run(run_dir, session, fits, problems,
                   {"columns": int(problems[channels[0]].n_px), "iterations": settings.max_iterations,
@@ -179,17 +180,17 @@ def run(args: argparse.Namespace) -> int:
                    "scale_calibration": {c: sc.to_dict() for c, sc in scales.items()},
                    "loss": "mean (log(I_meas/scale + delta) - log(I_model + delta))^2",
                    "fit": settings.to_dict(),
-                   **({"model": phase, "degree": "auto", "degree_choice": {c: ch.to_dict() for c, ch in choices.items()}}
-                      if by_degree else {})})
+                   **({"model": phase, "degree": "auto", "degree_choice": choice_docs} if by_degree else {})})
         out["runs"].append({"run_id": run_dir.name, "path": str(run_dir), "model": phase,
                             "channels": {f.channel: f.summary() for f in fits},
-                            **({"degree_choice": {c: ch.to_dict() for c, ch in choices.items()}} if by_degree else {})})
+                            **({"degree_choice": choice_docs} if by_degree else {})})
         if not args.json:
             print(f"run {run_dir}")
             for f in fits:
                 p = f.parameters
                 u = f.uncertainties
-                print(f"  {f.channel}{f' ({f.model})' if by_degree else ''}: sigma_t {p['sigma_t']:.4g} +- {u.get('sigma_t', float('nan')):.2g} /mm, "
+                label = f"{f.channel} ({f.model})" if by_degree else f.channel
+                print(f"  {label}: sigma_t {p['sigma_t']:.4g} +- {u.get('sigma_t', float('nan')):.2g} /mm, "
                       f"albedo {p['albedo']:.4f} +- {u.get('albedo', float('nan')):.2g}, "
                       + ", ".join(f"{k[6:]} {v:.4g}" for k, v in p.items() if k.startswith("phase."))
                       + f"; reduced chi2 {f.reduced_chi2:.3g} ({f.iterations} it, {f.time_s:.0f} s, {f.stop_reason})")
