@@ -10,8 +10,9 @@ exp3 and tthg. Steps are cached per case under benchmarks/results/paper_sim/<cas
 (calibration, session, fit_<model>.json): re-running resumes.
 
 Reported per case and model: fitting error = final loss / loss at the true parameters
-(the world's rendering model, an exp8 fit of the Mie table, at the same spp and reference
-delta: the noise floor), |sigma_t error| (relative), |albedo error|, time; and the relative
+(the world's rendering model at the same spp and reference delta: the noise floor; an exp8
+fit of the Mie table, or with `--truth-phase table` the Mie table itself, ln p linear in the
+angle: for 0.5-um particles the exp8 fit is 9 % rms off the table), |sigma_t error| (relative), |albedo error|, time; and the relative
 errors of sigma_a = sigma_t (1 - albedo) and sigma_s' = sigma_t albedo (1 - g), which the
 diffuse profiles of an optically thick slab determine even where sigma_t and g trade.
 Targets for exp3: sigma_t within 3 %, albedo within 0.01, loss within 10 % of the floor.
@@ -73,6 +74,12 @@ effects: {{}}
 render: {{mie_degree: 8{render_extra}}}
 """
 
+#: How the simulated camera renders the Mie phase (`--truth-phase`; the world's
+#: `render.mie_phase`): "exp8", the exponential function of degree 8 fitted to the table (the
+#: default, as all recorded runs up to session 77), or "table", the table itself. Worlds and
+#: caches of the table are kept apart.
+TRUTH_PHASE = "exp8"
+
 #: Samples per pixel of the simulated camera's profile rows (`sim_devices.world.RenderSettings`
 #: spp_profile; `--truth-spp`). The recording's scatter is this render's frozen Monte Carlo noise
 #: plus the sensor's; the paper's experiment has sensor noise only. The world files and caches
@@ -92,7 +99,8 @@ def case_name(d: float, s: float) -> str:
 def case_key(d: float, s: float) -> str:
     """The case's world and cache name: `case_name`, and the truth's spp where not the default."""
     return (case_name(d, s) + ("" if TRUTH_SPP == DEFAULT_TRUTH_SPP else f"_spp{TRUTH_SPP}")
-            + ("" if TRUTH_ENGINE == "camera" else f"_{TRUTH_ENGINE}"))
+            + ("" if TRUTH_ENGINE == "camera" else f"_{TRUTH_ENGINE}")
+            + ("" if TRUTH_PHASE == "exp8" else "_mietable"))
 
 
 def world_file(d: float, s: float) -> Path:
@@ -101,6 +109,7 @@ def world_file(d: float, s: float) -> Path:
     if not p.exists():
         extra = "" if TRUTH_SPP == DEFAULT_TRUTH_SPP else f", spp_profile: {TRUTH_SPP}"
         extra += "" if TRUTH_ENGINE == "camera" else f", engine: {TRUTH_ENGINE}"
+        extra += "" if TRUTH_PHASE == "exp8" else ", mie_phase: table"
         p.write_text(WORLD_TEMPLATE.format(d=d, s=s, a=ALBEDO, render_extra=extra), encoding="utf-8")
     return p
 
@@ -163,6 +172,25 @@ def case_inputs(d: float, s: float) -> tuple[Any, Any]:
     return load_problem(ses, "g"), load_world(world).materials["g"]
 
 
+def truth_forward(pb: Any, mat: Any, engine: str | None = None) -> Any:
+    """The forward model of the case's true material (its world's phase: an exp8 fit or the
+    Mie table itself), rendering with `engine` (default: the fits')."""
+    from estimate.fit import FitSettings, forward_model
+
+    return forward_model(pb, mat.model, engine=engine or FitSettings().engine, phase_table=mat.phase_table)
+
+
+def truth_derived(mat: Any) -> dict[str, float]:
+    """sigma_a, sigma_s' and g of the case's true material (g of its rendered phase)."""
+    from estimate.derived import derived_quantities
+
+    if mat.phase_table is None:
+        return {k: float(v["value"]) for k, v in derived_quantities(mat.model, mat.parameters()).items()}
+    g = float(mat.phase_table.g)
+    return {"sigma_a": mat.sigma_t * (1.0 - mat.albedo), "sigma_s_reduced": mat.sigma_t * mat.albedo * (1.0 - g),
+            "g": g}
+
+
 def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
     from fit_overrides import settings_with
 
@@ -192,9 +220,10 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
         else:
             r = fit_channel(pb, model, settings=st)
         wall = time.monotonic() - t0
-        floor = loss_at(pb, mat.model, truth, spp=st.final_spp,
+        floor = loss_at(pb, mat.model, truth, spp=st.final_spp, forward=truth_forward(pb, mat, st.engine),
                         fixed_scale=r.scale if SCALE == "calibrated" else None)["loss"]
-        row = {"case": name, "truth_spp": TRUTH_SPP, "truth_engine": TRUTH_ENGINE, "diameter_um": d,
+        row = {"case": name, "truth_spp": TRUTH_SPP, "truth_engine": TRUTH_ENGINE, "truth_phase": TRUTH_PHASE,
+               "diameter_um": d,
                "sigma_t_true": s, "albedo_true": ALBEDO,
                "model": r.model,
                "sigma_t": r.parameters["sigma_t"], "albedo": r.parameters["albedo"],
@@ -223,13 +252,13 @@ def derived_errors(row: dict) -> dict:
     d, s = row["diameter_um"], row["sigma_t_true"]
     mat = load_world(world_file(d, s)).materials["g"]
     fit = derived_quantities(row["model"], row["parameters"])
-    tru = derived_quantities(mat.model, mat.parameters())
+    tru = truth_derived(mat)
 
     def rel(k: str) -> float:
-        return abs(float(fit[k]["value"]) / float(tru[k]["value"]) - 1.0)  # type: ignore[arg-type]
+        return abs(float(fit[k]["value"]) / tru[k] - 1.0)  # type: ignore[arg-type]
 
     return {"sigma_a_rel_error": rel("sigma_a"), "reduced_scattering_rel_error": rel("sigma_s_reduced"),
-            "g_fit": fit["g"]["value"], "g_true": tru["g"]["value"]}
+            "g_fit": fit["g"]["value"], "g_true": tru["g"]}
 
 
 UNBIASED_SPP = 4096
@@ -251,7 +280,7 @@ def unbiased_losses(row: dict, seed: int = 4242) -> dict:
     pb, mat = case_inputs(d, s)
     fs = calibrated_scale(pb.session_path, "g", pb.beam.power()).scale if row.get("scale_mode") == "calibrated" else None
     fit = loss_at(pb, row["model"], row["parameters"], spp=UNBIASED_SPP, seed=seed, fixed_scale=fs)
-    tru = loss_at(pb, mat.model, mat.parameters(), spp=UNBIASED_SPP, seed=seed,
+    tru = loss_at(pb, mat.model, mat.parameters(), spp=UNBIASED_SPP, seed=seed, forward=truth_forward(pb, mat),
                   fixed_scale=fs if fs is not None else fit["scale"])
     row.update({"loss_unbiased": fit["loss_unbiased"], "loss_unbiased_at_truth": tru["loss_unbiased"],
                 "loss_unbiased_ratio": fit["loss_unbiased"] / tru["loss_unbiased"], "unbiased_spp": UNBIASED_SPP})
@@ -274,7 +303,8 @@ def recording_noise(d: float, s: float, spp: int = 16384, seed: int = 11) -> dic
     from estimate.refit import best_scale, recording_variance
 
     pb, mat = case_inputs(d, s)
-    fm = ForwardModel(pb.geometry, pb.beam, phase=mat.model, profile_y_shape=pb.y_shapes())
+    fm = ForwardModel(pb.geometry, pb.beam, phase=mat.model, profile_y_shape=pb.y_shapes(),
+                      phase_table=mat.phase_table)
     angles = [float(a) for a in pb.angles_deg]
     meas = np.asarray(pb.measured, dtype=float)
     var = recording_variance(pb)
@@ -344,6 +374,9 @@ def main() -> int:
     ap.add_argument("--truth-engine", choices=("camera", "light"), default="camera",
                     help="the simulated camera's render engine (the world's render.engine; worlds and caches of "
                          "the light engine are kept apart)")
+    ap.add_argument("--truth-phase", choices=("exp8", "table"), default="exp8",
+                    help="how the simulated camera renders the Mie phase: its exp8 fit (default) or the table itself "
+                         "(the world's render.mie_phase; worlds and caches of the table are kept apart)")
     ap.add_argument("--setting", action="append", default=[], metavar="KEY=VALUE",
                     help="a FitSettings field to change for the fits, e.g. final_spp=8192 (JSON values; "
                          "repeatable; such fits are cached apart)")
@@ -352,10 +385,11 @@ def main() -> int:
     args = ap.parse_args()
     if args.truth_spp < 1:
         ap.error(f"--truth-spp {args.truth_spp}: samples per pixel must be at least 1")
-    global SCALE, TRUTH_SPP, TRUTH_ENGINE, OVERRIDES
+    global SCALE, TRUTH_SPP, TRUTH_ENGINE, TRUTH_PHASE, OVERRIDES
     SCALE = args.scale
     TRUTH_SPP = args.truth_spp
     TRUTH_ENGINE = args.truth_engine
+    TRUTH_PHASE = args.truth_phase
     from fit_overrides import parse_overrides, settings_with
 
     from estimate.errors import ModelParameterError

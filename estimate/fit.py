@@ -158,6 +158,7 @@ from estimate.loss import (
     profile_scale,
     reference_delta,
 )
+from estimate.phase_tabulated import TabulatedPhase
 from estimate.polish import (
     averaged_point_count,
     first_averaged_point,
@@ -444,12 +445,15 @@ def model_phase(model: str, degree: int = 3) -> str:
     raise ModelParameterError(f"unknown model {model!r}; use exp, exp<M>, tthg or hg")
 
 
-def forward_model(problem: Problem, phase: str, extensions: Sequence[str] = (), engine: str = "light") -> ForwardModel:
+def forward_model(problem: Problem, phase: str, extensions: Sequence[str] = (), engine: str = "light",
+                  phase_table: TabulatedPhase | None = None) -> ForwardModel:
     """The forward model of `problem`'s rig, slab and recording for a phase model name
-    ("exp<M>", "tthg", "hg") and extensions, rendering with `engine`."""
+    ("exp<M>", "tthg", "hg"; "table" with `phase_table`, a simulated truth) and extensions,
+    rendering with `engine`."""
     return ForwardModel(problem.geometry, problem.beam, phase=phase, extensions=extensions,
                         profile_y_shape=problem.y_shapes(), engine=engine,
-                        profile_merge_fill=problem.merge_fills(), beam_fill=problem.beam_fill)
+                        profile_merge_fill=problem.merge_fills(), beam_fill=problem.beam_fill,
+                        phase_table=phase_table)
 
 
 class _Adam:

@@ -46,9 +46,10 @@ from estimate.extensions.lens_blur import core_line_spread, psf_2d
 from estimate.extensions.refractive_boundary import INTERNAL_REFLECTIONS
 from estimate.extensions.sensor_nonlinearity import decompressed_map
 from estimate.geometry import PixelWindow, RigGeometry
-from estimate.light_paths import LightPaths
+from estimate.light_paths import TABLE, LightPaths
 from estimate.mitsuba_env import init_mitsuba
-from estimate.mitsuba_phase import exp_phase_dict, tthg_phase_dict
+from estimate.mitsuba_phase import exp_phase_dict, tabulated_phase_dict, tthg_phase_dict
+from estimate.phase_tabulated import TabulatedPhase
 
 __all__ = ["BASE_SPECS", "CAMERA", "ENGINES", "LIGHT", "ForwardModel", "Linearization", "check_engine",
            "phase_specs", "render_seed"]
@@ -128,7 +129,10 @@ BASE_SPECS: dict[str, ParameterSpec] = {
 
 
 def phase_specs(phase: str) -> dict[str, ParameterSpec]:
-    """Parameter specs of a phase model name: "exp<M>" (M >= 0), "hg" or "tthg"."""
+    """Parameter specs of a phase model name: "exp<M>" (M >= 0), "hg" or "tthg" ("table", a
+    tabulated truth, has none)."""
+    if phase == TABLE:
+        return {}
     m = re.fullmatch(r"exp(\d+)", phase)
     if m:
         return {f"phase.b{i}": ParameterSpec(f"b{i}", 0.0, -1000.0, 1000.0, "", "ad", 0.05,
@@ -161,7 +165,8 @@ class ForwardModel:
         geometry: slab and camera geometry.
         beam: calibrated beam map for this channel.
         phase: "exp<M>" (exponential plugin, monomial basis, degree M), "hg" (built-in
-            Henyey-Greenstein) or "tthg" (two built-in `hg` lobes in `blendphase`).
+            Henyey-Greenstein) or "tthg" (two built-in `hg` lobes in `blendphase`); or
+            "table" with `phase_table` (no phase parameters: the simulated bench's Mie truth).
         extensions: names of the extensions to include (see `estimate.extensions`).
         variant: Mitsuba variant; None = automatic (`estimate.mitsuba_env`).
         max_depth: path length limit of `prbvolpath`.
@@ -187,6 +192,7 @@ class ForwardModel:
             (`estimate.light_paths`: tens of times less Monte Carlo noise a second on the
             profile row, derivatives by score functions in the same pass). With "light",
             `spp` means spp x the window's width light paths per stage angle.
+        phase_table: the tabulated phase function of phase "table" (`estimate.phase_tabulated`).
     """
 
     def __init__(self, geometry: RigGeometry, beam: BeamProfile, *, phase: str = "exp3",
@@ -194,8 +200,11 @@ class ForwardModel:
                  max_depth: int = 64, rr_depth: int = 16,
                  profile_y_shape: Mapping[float, np.ndarray] | None = None, engine: str = CAMERA,
                  profile_merge_fill: Mapping[float, np.ndarray] | None = None,
-                 beam_fill: BeamFill | None = None) -> None:
+                 beam_fill: BeamFill | None = None, phase_table: TabulatedPhase | None = None) -> None:
         self.engine = check_engine(engine)
+        if (phase == TABLE) != (phase_table is not None):
+            raise ModelParameterError('a tabulated phase function goes with phase "table", and only with it')
+        self.phase_table = phase_table
         self.beam_fill = beam_fill
         self.geometry = geometry
         self.profile_y_shape: dict[float, np.ndarray] = {
@@ -274,7 +283,8 @@ class ForwardModel:
         self._refractive = "refractive_boundary" in self.extensions
         self._light: LightPaths | None = None
         if engine == LIGHT:
-            self._light = LightPaths(geometry, phase, self.mi, max_depth=self.max_depth, rr_depth=self.rr_depth)
+            self._light = LightPaths(geometry, phase, self.mi, max_depth=self.max_depth, rr_depth=self.rr_depth,
+                                     table=phase_table)
         else:
             self._bundle(1)
 
@@ -1053,6 +1063,8 @@ class _SceneBundle:
                                     ps["phase.w_forward"].neutral)
         elif model.phase == "hg":
             phase = {"type": "hg", "g": model.specs["phase.g"].neutral}
+        elif model.phase_table is not None:
+            phase = tabulated_phase_dict(model.phase_table.log_p)
         else:
             phase = exp_phase_dict([0.0] * sum(1 for k in model.specs if k.startswith("phase.b")))
         refractive = model._refractive

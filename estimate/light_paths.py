@@ -62,10 +62,11 @@ import numpy as np
 from estimate.beam import BeamProfile
 from estimate.errors import ModelParameterError
 from estimate.geometry import PixelWindow, RigGeometry
-from estimate.mitsuba_phase import inverse_cdf_table
+from estimate.mitsuba_phase import inverse_cdf_of, inverse_cdf_table
 from estimate.phase_exponential import ExponentialPhase
+from estimate.phase_tabulated import TabulatedPhase
 
-__all__ = ["CHUNK_PATHS", "LightPaths", "MAX_ROWS", "SourceTables", "phase_parameter_names"]
+__all__ = ["CHUNK_PATHS", "LightPaths", "MAX_ROWS", "SourceTables", "TABLE", "phase_parameter_names"]
 
 #: Windows of more rows than this are refused: each vertex adds to every row of the window.
 MAX_ROWS = 64
@@ -75,10 +76,16 @@ CHUNK_PATHS = 2 ** 22
 
 #: The camera engine's sampling table size (`estimate.mitsuba_phase`), reused here.
 _TABLE_SIZE = 2048
+#: Phase model name of a tabulated phase function (`estimate.phase_tabulated`): a truth
+#: the simulated bench renders, with no parameters to fit.
+TABLE = "table"
 
 
 def phase_parameter_names(phase: str, degree: int | None = None) -> list[str]:
-    """The model's phase parameter names for a phase model name (`exp<M>`, `hg`, `tthg`)."""
+    """The model's phase parameter names for a phase model name (`exp<M>`, `hg`, `tthg`;
+    `table`, a tabulated truth, has none)."""
+    if phase == TABLE:
+        return []
     if phase == "hg":
         return ["phase.g"]
     if phase == "tthg":
@@ -134,18 +141,23 @@ class LightPaths:
 
     Args:
         geometry: slab and camera (`RigGeometry`; the thickness is given per render).
-        phase: "exp<M>", "hg" or "tthg" (the parameter names of `estimate.forward`).
+        phase: "exp<M>", "hg" or "tthg" (the parameter names of `estimate.forward`), or
+            "table" with `table`.
         mi: the Mitsuba module with its variant set (its Dr.Jit types are used, so the
             engine runs on the variant's backend, CPU or GPU).
         max_depth: most collisions a path makes.
         rr_depth: collisions after which Russian roulette may end a path (survival
             probability its weight relative to its start, at most 0.95).
+        table: the tabulated phase function of phase "table".
     """
 
     def __init__(self, geometry: RigGeometry, phase: str, mi: Any, *, max_depth: int = 64,
-                 rr_depth: int = 16) -> None:
+                 rr_depth: int = 16, table: TabulatedPhase | None = None) -> None:
+        if (phase == TABLE) != (table is not None):
+            raise ModelParameterError('a tabulated phase function goes with phase "table", and only with it')
         self.geometry = geometry
         self.phase = phase
+        self.table = table
         self.phase_names = phase_parameter_names(phase)
         self.mi = mi
         import drjit as dr
@@ -230,7 +242,7 @@ class LightPaths:
         n_px = H * n_ang * W
         image = dr.zeros(Float, n_px)
         d_img = {name: dr.zeros(Float, n_px) for name in scores}
-        phase = _PhaseOps(self.phase, values, mi, dr)
+        phase = _PhaseOps(self.phase, values, mi, dr, self.table)
         rows = [(-(window.row0 + r - cy) * pitch - pitch, -(window.row0 + r - cy) * pitch) for r in range(H)]
         names = list(scores)
         phase_scored = [nm for nm in names if nm in self.phase_names]
@@ -476,12 +488,18 @@ class _PhaseOps:
     arrays; mu is the cosine between the incoming and outgoing directions of travel
     (forward scattering at mu = 1), densities per steradian."""
 
-    def __init__(self, phase: str, values: Mapping[str, float], mi: Any, dr: Any) -> None:
+    def __init__(self, phase: str, values: Mapping[str, float], mi: Any, dr: Any,
+                 tabulated: TabulatedPhase | None = None) -> None:
         self.phase = phase
         self.mi = mi
         self.dr = dr
         Float = mi.Float
-        if phase.startswith("exp"):
+        if phase == TABLE and tabulated is not None:
+            grid = np.linspace(0.0, math.pi, tabulated.nodes)
+            self.n_log_p = tabulated.nodes
+            self.log_p = Float(tabulated.log_p.astype(np.float32))
+            self.table = Float(inverse_cdf_of(lambda mu: np.interp(np.arccos(mu), grid, tabulated.log_p)))
+        elif phase.startswith("exp"):
             m = int(phase[3:])
             self.b = [float(values[f"phase.b{i}"]) for i in range(1, m + 1)]
             ep = ExponentialPhase(self.b)
@@ -510,6 +528,14 @@ class _PhaseOps:
         """log p(mu) and d log p / d theta for the phase parameters among `wanted`."""
         dr = self.dr
         out: dict[str, Any] = {}
+        if self.phase == TABLE:
+            # ln p linear in the scattering angle between equally spaced entries.
+            Float = self.mi.Float
+            x = dr.acos(dr.clip(mu, -1.0, 1.0)) * ((self.n_log_p - 1) / math.pi)
+            i = self.mi.UInt32(dr.clip(dr.floor(x), 0, self.n_log_p - 2))
+            lp0 = dr.gather(Float, self.log_p, i)
+            lp1 = dr.gather(Float, self.log_p, i + 1)
+            return dr.lerp(lp0, lp1, dr.clip(x - Float(i), 0.0, 1.0)), out
         if self.phase.startswith("exp"):
             poly = self.mi.Float(0.0)
             for bi in reversed(self.b_dev):
@@ -548,7 +574,7 @@ class _PhaseOps:
         is exact)."""
         dr, mi = self.dr, self.mi
         Float, UInt32 = mi.Float, mi.UInt32
-        if self.phase.startswith("exp"):
+        if self.phase == TABLE or self.phase.startswith("exp"):
             # The camera engine's table (`estimate.mitsuba_phase`): mu linear in the
             # probability between its entries, so the proposal is piecewise constant.
             k = _TABLE_SIZE - 1

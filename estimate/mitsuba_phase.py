@@ -1,4 +1,5 @@
-"""The exponential phase function as a Mitsuba 3 plugin, and the two-term HG baseline.
+"""The exponential phase function as a Mitsuba 3 plugin, the two-term HG baseline, and a
+tabulated phase function (the simulated bench's Mie truth, `estimate.phase_tabulated`).
 
 p(mu) = exp(b_0 + sum_{i=1..M} b_i mu^i)  (monomial basis, the paper's Q_i = mu^i), with
 mu the cosine of the scattering angle (mu = +1: straight on) and b_0 = -log(2 pi int
@@ -17,13 +18,18 @@ importance sampling weights against area emitters, and the rig's beam is a delta
 Mitsuba's convention: ``mi.wi`` points back towards where the light came from, so the
 scattering cosine is mu = -dot(wo, wi).
 
+The tabulated plugin (`tabulated_phase`) evaluates ln p linearly interpolated in the
+scattering angle between equally spaced entries (given as the string property ``log_p``,
+comma-separated, normalised by `TabulatedPhase`) and samples the same way as the
+exponential one; it has no parameters.
+
 Call `register_plugins()` after `mi.set_variant` (done by `estimate.mitsuba_env.init_mitsuba`).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -33,13 +39,18 @@ from estimate.errors import ModelParameterError
 __all__ = [
     "MAX_ABS_B",
     "PLUGIN_NAME",
+    "TABULATED_PLUGIN_NAME",
     "exp_normalisation_nodes",
     "exp_phase_dict",
+    "inverse_cdf_of",
+    "inverse_cdf_table",
     "register_plugins",
+    "tabulated_phase_dict",
     "tthg_phase_dict",
 ]
 
 PLUGIN_NAME = "exponential_phase"
+TABULATED_PLUGIN_NAME = "tabulated_phase"
 #: Simpson nodes in the scattering angle for b_0 (odd); 1025 keeps b_0 to ~1e-7 for b_1 ~ 300.
 _NORM_NODES = 1025
 #: Entries of the tabulated inverse CDF.
@@ -67,14 +78,13 @@ def exp_normalisation_nodes(n: int = _NORM_NODES) -> tuple[np.ndarray, np.ndarra
     return np.cos(theta), weights
 
 
-def inverse_cdf_table(b: Sequence[float], size: int = _INV_CDF_SIZE) -> np.ndarray:
-    """mu at probabilities 0, 1/(size-1), ..., 1 of exp(sum b_i mu^i) (increasing)."""
+def inverse_cdf_of(log_density: Callable[[np.ndarray], np.ndarray], size: int = _INV_CDF_SIZE) -> np.ndarray:
+    """mu at probabilities 0, 1/(size-1), ..., 1 of a density on mu in [-1, 1] given by its
+    log (up to a constant; a function of a numpy array of mu), increasing."""
     theta = np.linspace(math.pi, 0.0, _CDF_NODES)
     mu = np.cos(theta)
-    poly = np.zeros_like(mu)
-    for bi in reversed(list(b)):
-        poly = (poly + bi) * mu
-    w = np.exp(poly - poly.max())
+    log_w = np.asarray(log_density(mu), dtype=np.float64)
+    w = np.exp(log_w - log_w.max())
     # Trapezoid CDF in mu; the theta-uniform nodes resolve peaks at mu = +-1.
     seg = 0.5 * (w[1:] + w[:-1]) * np.diff(mu)
     cdf = np.concatenate(([0.0], np.cumsum(seg)))
@@ -85,6 +95,19 @@ def inverse_cdf_table(b: Sequence[float], size: int = _INV_CDF_SIZE) -> np.ndarr
     table = np.interp(u, cdf, mu)
     table[0], table[-1] = -1.0, 1.0
     return table
+
+
+def inverse_cdf_table(b: Sequence[float], size: int = _INV_CDF_SIZE) -> np.ndarray:
+    """mu at probabilities 0, 1/(size-1), ..., 1 of exp(sum b_i mu^i) (increasing)."""
+    coeffs = list(b)
+
+    def log_w(mu: np.ndarray) -> np.ndarray:
+        poly = np.zeros_like(mu)
+        for bi in reversed(coeffs):
+            poly = (poly + bi) * mu
+        return poly
+
+    return inverse_cdf_of(log_w, size)
 
 
 def _check_b(b: Sequence[float]) -> list[float]:
@@ -106,6 +129,15 @@ def exp_phase_dict(b: Sequence[float]) -> dict[str, Any]:
     return d
 
 
+def tabulated_phase_dict(log_p: Sequence[float] | np.ndarray) -> dict[str, Any]:
+    """Mitsuba dict of a tabulated phase function: ln p [1/sr] on equally spaced scattering
+    angles over [0, pi], normalised (`estimate.phase_tabulated.TabulatedPhase.log_p`)."""
+    values = np.asarray(log_p, dtype=np.float64)
+    if values.ndim != 1 or values.size < 2 or not np.all(np.isfinite(values)):
+        raise ModelParameterError("a tabulated phase needs at least two finite ln p values")
+    return {"type": TABULATED_PLUGIN_NAME, "log_p": ",".join(f"{v:.9g}" for v in values)}
+
+
 def tthg_phase_dict(g_forward: float, g_backward: float, w_forward: float) -> dict[str, Any]:
     """Two-term HG from built-in `hg` lobes: w * HG(g_forward) + (1 - w) * HG(g_backward).
 
@@ -122,6 +154,69 @@ def tthg_phase_dict(g_forward: float, g_backward: float, w_forward: float) -> di
         "phase1": {"type": "hg", "g": float(g_forward)},
         "phase2": {"type": "hg", "g": float(g_backward)},
     }
+
+
+def _sample_inverse_cdf(mi: Any, dr: Any, inv_cdf: Any, value: Callable[[Any], Any], mei: Any, sample2: Any,
+                        active: Any) -> tuple[Any, Any, Any]:
+    """A direction from a tabulated inverse CDF of mu (`inverse_cdf_of`), its weight
+    value / proposal density and that density (piecewise constant in mu, per steradian)."""
+    k = _INV_CDF_SIZE - 1
+    x = dr.clip(sample2.x, 0.0, 1.0) * k
+    i = mi.UInt32(dr.clip(dr.floor(x), 0, k - 1))
+    f = x - mi.Float(i)
+    mu0 = dr.gather(mi.Float, inv_cdf, i, active)
+    mu1 = dr.gather(mi.Float, inv_cdf, i + 1, active)
+    mu = dr.clip(dr.lerp(mu0, mu1, f), -1.0, 1.0)
+    pdf = dr.rcp(k * dr.maximum(mu1 - mu0, 1e-7) * (2.0 * math.pi))
+    sin_t = dr.safe_sqrt(1.0 - mu * mu)
+    s, c = dr.sincos(2.0 * math.pi * sample2.y)
+    wo = mi.Frame3f(-mei.wi).to_world(mi.Vector3f(sin_t * c, sin_t * s, mu))
+    ok = active & (pdf > 0.0)
+    weight = dr.select(ok, value(mu) / pdf, 0.0)
+    return wo, mi.Spectrum(weight), dr.select(ok, pdf, 0.0)
+
+
+def _make_tabulated_class(mi: Any, dr: Any) -> type:
+    """The tabulated plugin class for the current variant."""
+
+    class TabulatedPhaseFunction(mi.PhaseFunction):
+        """p from ln p linear in the scattering angle; no parameters."""
+
+        def __init__(self, props: Any) -> None:
+            mi.PhaseFunction.__init__(self, props)
+            try:
+                log_p = np.array([float(x) for x in str(props.get("log_p", "")).split(",")], dtype=np.float64)
+            except ValueError:
+                raise ModelParameterError("tabulated_phase: log_p must be comma-separated numbers") from None
+            if log_p.size < 2 or not np.all(np.isfinite(log_p)):
+                raise ModelParameterError("tabulated_phase: log_p needs at least two finite values")
+            self.m_flags = mi.PhaseFunctionFlags.Anisotropic
+            self.n = int(log_p.size)
+            self.log_p = mi.Float(log_p.astype(np.float32))
+            dr.make_opaque(self.log_p)
+            grid = np.linspace(0.0, math.pi, self.n)
+            self.inv_cdf = mi.Float(inverse_cdf_of(lambda mu: np.interp(np.arccos(mu), grid, log_p)).astype(np.float32))
+            dr.make_opaque(self.inv_cdf)
+
+        def _value(self, mu: Any) -> Any:
+            x = dr.acos(dr.clip(mu, -1.0, 1.0)) * ((self.n - 1) / math.pi)
+            i = mi.UInt32(dr.clip(dr.floor(x), 0, self.n - 2))
+            lp0 = dr.gather(mi.Float, self.log_p, i)
+            lp1 = dr.gather(mi.Float, self.log_p, i + 1)
+            return dr.exp(dr.lerp(lp0, lp1, dr.clip(x - mi.Float(i), 0.0, 1.0)))
+
+        def eval_pdf(self, ctx: Any, mei: Any, wo: Any, active: Any = True) -> tuple[Any, Any]:
+            mu = dr.clip(-dr.dot(wo, mei.wi), -1.0, 1.0)
+            value = dr.select(active, self._value(mu), 0.0)
+            return mi.Spectrum(value), value
+
+        def sample(self, ctx: Any, mei: Any, sample1: Any, sample2: Any, active: Any = True) -> tuple[Any, Any, Any]:
+            return _sample_inverse_cdf(mi, dr, self.inv_cdf, self._value, mei, sample2, active)
+
+        def to_string(self) -> str:
+            return f"TabulatedPhaseFunction[entries={self.n}]"
+
+    return TabulatedPhaseFunction
 
 
 def _make_plugin_class(mi: Any, dr: Any) -> type:
@@ -203,21 +298,7 @@ def _make_plugin_class(mi: Any, dr: Any) -> type:
             return mi.Spectrum(value), dr.detach(value)
 
         def sample(self, ctx: Any, mei: Any, sample1: Any, sample2: Any, active: Any = True) -> tuple[Any, Any, Any]:
-            k = _INV_CDF_SIZE - 1
-            x = dr.clip(sample2.x, 0.0, 1.0) * k
-            i = mi.UInt32(dr.clip(dr.floor(x), 0, k - 1))
-            f = x - mi.Float(i)
-            mu0 = dr.gather(mi.Float, self.inv_cdf, i, active)
-            mu1 = dr.gather(mi.Float, self.inv_cdf, i + 1, active)
-            mu = dr.clip(dr.lerp(mu0, mu1, f), -1.0, 1.0)
-            pdf = dr.rcp(k * dr.maximum(mu1 - mu0, 1e-7) * (2.0 * math.pi))
-            sin_t = dr.safe_sqrt(1.0 - mu * mu)
-            s, c = dr.sincos(2.0 * math.pi * sample2.y)
-            wo = mi.Frame3f(-mei.wi).to_world(mi.Vector3f(sin_t * c, sin_t * s, mu))
-            value = self._value(mu)
-            ok = active & (pdf > 0.0)
-            weight = dr.select(ok, value / pdf, 0.0)
-            return wo, mi.Spectrum(weight), dr.select(ok, pdf, 0.0)
+            return _sample_inverse_cdf(mi, dr, self.inv_cdf, self._value, mei, sample2, active)
 
         def to_string(self) -> str:
             return f"ExponentialPhaseFunction[degree={self.degree}]"
@@ -226,7 +307,8 @@ def _make_plugin_class(mi: Any, dr: Any) -> type:
 
 
 def register_plugins() -> None:
-    """Register `exponential_phase` for the current Mitsuba variant (idempotent)."""
+    """Register `exponential_phase` and `tabulated_phase` for the current Mitsuba variant
+    (idempotent)."""
     import drjit as dr
     import mitsuba as mi
 
@@ -235,4 +317,6 @@ def register_plugins() -> None:
         return
     cls = _make_plugin_class(mi, dr)
     mi.register_phase(PLUGIN_NAME, lambda props: cls(props))
+    tab = _make_tabulated_class(mi, dr)
+    mi.register_phase(TABULATED_PLUGIN_NAME, lambda props: tab(props))
     _registered.add(variant)

@@ -189,8 +189,9 @@ class RenderedScene:
                                magnification=self.magnification, image_center_px=self.axis_px)
             beam = self.beam_profile()
             exts = [e for e in w.effects if e not in ("lens_blur", "stray_light", "sensor_nonlinearity")]
-            m = ForwardModel(geom, beam, phase=w.materials[filter_name].model, extensions=exts,
-                             max_depth=w.render.max_depth, engine=w.render.engine)
+            mat = w.materials[filter_name]
+            m = ForwardModel(geom, beam, phase=mat.model, extensions=exts, max_depth=w.render.max_depth,
+                             engine=w.render.engine, phase_table=mat.phase_table)
             self._models[filter_name] = m
         return m
 

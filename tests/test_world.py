@@ -71,6 +71,33 @@ def test_mie_phase_is_fitted_by_an_exponential_of_the_set_degree():
     assert w.materials["r"].phase_params["phase.b1"] > 0  # forward scattering
 
 
+def test_mie_phase_can_be_rendered_from_its_table():
+    """`render.mie_phase: table` renders the Mie table itself (model "table", no phase
+    parameters); the truth hash tells it from the exp fit, and `mie_phase: exp` (the default)
+    keeps the hash of worlds written before the key existed."""
+    phase = {"type": "mie", "dispersion": "poly", "diameter_um": 0.5, "spread": 0.1, "wavelength_nm": 600}
+    d = _with(("materials", "r", "phase"), phase)
+    d["render"] = {"mie_phase": "table"}
+    w = parse_world(d, "mie.yaml")
+    m = w.materials["r"]
+    assert m.model == "table" and m.phase_params == {} and m.parameters() == {"sigma_t": 2.0, "albedo": 0.9}
+    assert m.phase_table is not None and m.phase_table.g == pytest.approx(0.846, abs=0.002)
+    plain = _with(("materials", "r", "phase"), phase)
+    fitted = parse_world(plain, "mie.yaml")
+    assert fitted.materials["r"].model == "exp8" and fitted.materials["r"].phase_table is None
+    assert fitted.truth_hash() != w.truth_hash()
+    plain["render"] = {"mie_phase": "exp"}
+    assert parse_world(plain, "mie.yaml").truth_hash() == fitted.truth_hash()
+
+
+def test_unknown_mie_phase_is_one_line_naming_the_key():
+    d = _with(("render",), {"mie_phase": "tabel"})
+    with pytest.raises(WorldError) as e:
+        parse_world(d, "w.yaml")
+    msg = str(e.value)
+    assert "\n" not in msg and "mie_phase" in msg and "table" in msg and "w.yaml" in msg
+
+
 def test_effects_take_defaults_and_hash_changes_with_truth():
     a = parse_world(MINIMAL, "a.yaml")
     b = parse_world(_with(("effects",), {"lens_blur": {"core_sigma_px": 1.0}}), "b.yaml")
