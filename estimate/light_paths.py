@@ -62,7 +62,7 @@ import numpy as np
 from estimate.beam import BeamProfile
 from estimate.errors import ModelParameterError
 from estimate.geometry import PixelWindow, RigGeometry
-from estimate.mitsuba_phase import inverse_cdf_of, inverse_cdf_table
+from estimate.mitsuba_phase import inverse_cdf_table, tabulated_inverse_cdf, tabulated_log_p
 from estimate.phase_exponential import ExponentialPhase
 from estimate.phase_tabulated import TabulatedPhase
 
@@ -495,10 +495,9 @@ class _PhaseOps:
         self.dr = dr
         Float = mi.Float
         if phase == TABLE and tabulated is not None:
-            grid = np.linspace(0.0, math.pi, tabulated.nodes)
             self.n_log_p = tabulated.nodes
             self.log_p = Float(tabulated.log_p.astype(np.float32))
-            self.table = Float(inverse_cdf_of(lambda mu: np.interp(np.arccos(mu), grid, tabulated.log_p)))
+            self.table = Float(tabulated_inverse_cdf(tabulated.log_p))
         elif phase.startswith("exp"):
             m = int(phase[3:])
             self.b = [float(values[f"phase.b{i}"]) for i in range(1, m + 1)]
@@ -529,13 +528,7 @@ class _PhaseOps:
         dr = self.dr
         out: dict[str, Any] = {}
         if self.phase == TABLE:
-            # ln p linear in the scattering angle between equally spaced entries.
-            Float = self.mi.Float
-            x = dr.acos(dr.clip(mu, -1.0, 1.0)) * ((self.n_log_p - 1) / math.pi)
-            i = self.mi.UInt32(dr.clip(dr.floor(x), 0, self.n_log_p - 2))
-            lp0 = dr.gather(Float, self.log_p, i)
-            lp1 = dr.gather(Float, self.log_p, i + 1)
-            return dr.lerp(lp0, lp1, dr.clip(x - Float(i), 0.0, 1.0)), out
+            return tabulated_log_p(self.mi, dr, self.log_p, self.n_log_p, mu), out
         if self.phase.startswith("exp"):
             poly = self.mi.Float(0.0)
             for bi in reversed(self.b_dev):

@@ -45,6 +45,8 @@ __all__ = [
     "inverse_cdf_of",
     "inverse_cdf_table",
     "register_plugins",
+    "tabulated_inverse_cdf",
+    "tabulated_log_p",
     "tabulated_phase_dict",
     "tthg_phase_dict",
 ]
@@ -176,6 +178,25 @@ def _sample_inverse_cdf(mi: Any, dr: Any, inv_cdf: Any, value: Callable[[Any], A
     return wo, mi.Spectrum(weight), dr.select(ok, pdf, 0.0)
 
 
+def tabulated_log_p(mi: Any, dr: Any, log_p: Any, n: int, mu: Any) -> Any:
+    """ln p at scattering cosines mu (Dr.Jit) from `n` entries `log_p` (a device array) on
+    equally spaced angles over [0, pi], linear in the angle between them: the tabulated
+    plugin's and the light engine's evaluation."""
+    x = dr.acos(dr.clip(mu, -1.0, 1.0)) * ((n - 1) / math.pi)
+    i = mi.UInt32(dr.clip(dr.floor(x), 0, n - 2))
+    lp0 = dr.gather(mi.Float, log_p, i)
+    lp1 = dr.gather(mi.Float, log_p, i + 1)
+    return dr.lerp(lp0, lp1, dr.clip(x - mi.Float(i), 0.0, 1.0))
+
+
+def tabulated_inverse_cdf(log_p: np.ndarray, size: int = _INV_CDF_SIZE) -> np.ndarray:
+    """`inverse_cdf_of` the density whose ln p is `log_p` on equally spaced angles over
+    [0, pi], linear in the angle between them."""
+    values = np.asarray(log_p, dtype=np.float64)
+    grid = np.linspace(0.0, math.pi, values.size)
+    return inverse_cdf_of(lambda mu: np.interp(np.arccos(np.clip(mu, -1.0, 1.0)), grid, values), size)
+
+
 def _make_tabulated_class(mi: Any, dr: Any) -> type:
     """The tabulated plugin class for the current variant."""
 
@@ -194,16 +215,11 @@ def _make_tabulated_class(mi: Any, dr: Any) -> type:
             self.n = int(log_p.size)
             self.log_p = mi.Float(log_p.astype(np.float32))
             dr.make_opaque(self.log_p)
-            grid = np.linspace(0.0, math.pi, self.n)
-            self.inv_cdf = mi.Float(inverse_cdf_of(lambda mu: np.interp(np.arccos(mu), grid, log_p)).astype(np.float32))
+            self.inv_cdf = mi.Float(tabulated_inverse_cdf(log_p).astype(np.float32))
             dr.make_opaque(self.inv_cdf)
 
         def _value(self, mu: Any) -> Any:
-            x = dr.acos(dr.clip(mu, -1.0, 1.0)) * ((self.n - 1) / math.pi)
-            i = mi.UInt32(dr.clip(dr.floor(x), 0, self.n - 2))
-            lp0 = dr.gather(mi.Float, self.log_p, i)
-            lp1 = dr.gather(mi.Float, self.log_p, i + 1)
-            return dr.exp(dr.lerp(lp0, lp1, dr.clip(x - mi.Float(i), 0.0, 1.0)))
+            return dr.exp(tabulated_log_p(mi, dr, self.log_p, self.n, mu))
 
         def eval_pdf(self, ctx: Any, mei: Any, wo: Any, active: Any = True) -> tuple[Any, Any]:
             mu = dr.clip(-dr.dot(wo, mei.wi), -1.0, 1.0)
