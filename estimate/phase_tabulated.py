@@ -60,12 +60,11 @@ class TabulatedPhase:
         """
         th = np.asarray(table.theta_deg, dtype=np.float64)
         p = np.asarray(table.p, dtype=np.float64)
+        name = f"phase table {table.label}" if table.label else "the phase table"
         if th.size < 2 or abs(th[0]) > 1e-9 or abs(th[-1] - 180.0) > 1e-9:
-            raise ModelParameterError(
-                f"phase table {table.label or ''!s} must span 0 to 180 deg to be rendered, "
-                f"got {th[0]:g} to {th[-1]:g} deg")
+            raise ModelParameterError(f"{name} must span 0 to 180 deg to be rendered, got {th[0]:g} to {th[-1]:g} deg")
         if not np.all(np.isfinite(p)) or np.any(p <= 0.0):
-            raise ModelParameterError(f"phase table {table.label or ''!s} has a value that is not a positive number")
+            raise ModelParameterError(f"{name} has a value that is not a positive number")
         grid = np.linspace(0.0, 180.0, int(nodes))
         log_p = np.interp(grid, th, np.log(p))
         return cls.normalised(log_p, label=table.label)
