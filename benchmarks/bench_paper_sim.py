@@ -184,11 +184,11 @@ def truth_derived(mat: Any) -> dict[str, float]:
     """sigma_a, sigma_s' and g of the case's true material (g of its rendered phase)."""
     from estimate.derived import derived_quantities
 
-    if mat.phase_table is None:
-        return {k: float(v["value"]) for k, v in derived_quantities(mat.model, mat.parameters()).items()}
-    g = float(mat.phase_table.g)
-    return {"sigma_a": mat.sigma_t * (1.0 - mat.albedo), "sigma_s_reduced": mat.sigma_t * mat.albedo * (1.0 - g),
-            "g": g}
+    model, params = mat.model, mat.parameters()
+    if mat.phase_table is not None:
+        # The derived quantities see the phase only through g: an HG lobe of the table's g.
+        model, params = "hg", {**params, "phase.g": float(mat.phase_table.g)}
+    return {k: float(v["value"]) for k, v in derived_quantities(model, params).items()}  # type: ignore[arg-type]
 
 
 def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:

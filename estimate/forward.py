@@ -46,7 +46,7 @@ from estimate.extensions.lens_blur import core_line_spread, psf_2d
 from estimate.extensions.refractive_boundary import INTERNAL_REFLECTIONS
 from estimate.extensions.sensor_nonlinearity import decompressed_map
 from estimate.geometry import PixelWindow, RigGeometry
-from estimate.light_paths import TABLE, LightPaths
+from estimate.light_paths import TABLE, LightPaths, check_phase_table
 from estimate.mitsuba_env import init_mitsuba
 from estimate.mitsuba_phase import exp_phase_dict, tabulated_phase_dict, tthg_phase_dict
 from estimate.phase_tabulated import TabulatedPhase
@@ -202,8 +202,7 @@ class ForwardModel:
                  profile_merge_fill: Mapping[float, np.ndarray] | None = None,
                  beam_fill: BeamFill | None = None, phase_table: TabulatedPhase | None = None) -> None:
         self.engine = check_engine(engine)
-        if (phase == TABLE) != (phase_table is not None):
-            raise ModelParameterError('a tabulated phase function goes with phase "table", and only with it')
+        check_phase_table(phase, phase_table)
         self.phase_table = phase_table
         self.beam_fill = beam_fill
         self.geometry = geometry

@@ -66,7 +66,8 @@ from estimate.mitsuba_phase import inverse_cdf_table, tabulated_inverse_cdf, tab
 from estimate.phase_exponential import ExponentialPhase
 from estimate.phase_tabulated import TabulatedPhase
 
-__all__ = ["CHUNK_PATHS", "LightPaths", "MAX_ROWS", "SourceTables", "TABLE", "phase_parameter_names"]
+__all__ = ["CHUNK_PATHS", "LightPaths", "MAX_ROWS", "SourceTables", "TABLE", "check_phase_table",
+           "phase_parameter_names"]
 
 #: Windows of more rows than this are refused: each vertex adds to every row of the window.
 MAX_ROWS = 64
@@ -79,6 +80,13 @@ _TABLE_SIZE = 2048
 #: Phase model name of a tabulated phase function (`estimate.phase_tabulated`): a truth
 #: the simulated bench renders, with no parameters to fit.
 TABLE = "table"
+
+
+def check_phase_table(phase: str, table: TabulatedPhase | None) -> None:
+    """`ModelParameterError` unless a tabulated phase function comes with phase "table" and
+    only with it (`LightPaths`, `estimate.forward.ForwardModel`)."""
+    if (phase == TABLE) != (table is not None):
+        raise ModelParameterError('a tabulated phase function goes with phase "table", and only with it')
 
 
 def phase_parameter_names(phase: str, degree: int | None = None) -> list[str]:
@@ -153,8 +161,7 @@ class LightPaths:
 
     def __init__(self, geometry: RigGeometry, phase: str, mi: Any, *, max_depth: int = 64,
                  rr_depth: int = 16, table: TabulatedPhase | None = None) -> None:
-        if (phase == TABLE) != (table is not None):
-            raise ModelParameterError('a tabulated phase function goes with phase "table", and only with it')
+        check_phase_table(phase, table)
         self.geometry = geometry
         self.phase = phase
         self.table = table
