@@ -132,7 +132,24 @@ def fit_cache(cdir: Path, model: str) -> Path:
     # A GPU's fits start from other defaults (FitSettings.for_variant): cached apart.
     variant = default_variant()
     vtag = "" if variant.startswith("llvm") else f"_{variant}"
-    return cdir / f"fit_{model}_{SCALE}_{FitSettings().optimizer}_{RECIPE}{vtag}{overrides_tag(OVERRIDES)}.json"
+    return cdir / (f"fit_{model}_{SCALE}_{FitSettings().optimizer}_{RECIPE}{lm_tag(model)}{vtag}"
+                   f"{overrides_tag(OVERRIDES)}.json")
+
+
+def lm_tag(model: str) -> str:
+    """"-lmdeg<N>" for a model whose fits end with the Levenberg-Marquardt polish by degree
+    (`estimate.fit.lm_plan`; since session 79, degree N and more), else "": earlier fits of
+    those degrees are kept apart, and the others' caches stay valid."""
+    from fit_overrides import settings_with
+
+    from estimate.fit import lm_plan
+    from estimate.phase_degree import MAX_DEGREE
+
+    st = settings_with(OVERRIDES)
+    if st.lm_iterations > 0 or st.lm_from_degree is None:
+        return ""
+    phase = f"exp{MAX_DEGREE}" if model == "expauto" else model
+    return f"-lmdeg{st.lm_from_degree}" if lm_plan(st, phase)[0] > 0 else ""
 
 
 def check_cache(cdir: Path, model: str) -> Path:

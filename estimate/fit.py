@@ -87,11 +87,18 @@ result and the loop; the stages' parts live beside it: `estimate.start` (1),
    benchmark seeds 0-3 82-143 s, sigma_t +1.8, -2.1, -0.3, -2.2 % (the session-25 recipe
    on the same session: 146 s, +2.4 % at seed 0; session 25: 110-155 s). Optionally (`polish_settled_spp` > 1, off by default; session
    19) a step after a noise-sized one keeps the matrix and renders its gradient at that
-   many times the spp. An optional
-   Levenberg-Marquardt polish (`lm_iterations`, off by default) on the log residuals at one
-   fixed seed follows: with common random numbers the renders are not smooth in the
-   parameters (free flights crossing the slab boundary flip), its finite-difference
-   Jacobian is noisy, and in tests it gained < 10 % of the loss for ~45 s;
+   many times the spp. A Levenberg-Marquardt polish (`lm_polish`) on the log residuals at
+   one fixed seed may follow (`lm_plan`): on request (`lm_iterations`), and by default for
+   exponential phases of degree 5 and more (`lm_from_degree`: 60 steps at most at 4 x
+   `final_spp`). With common random numbers the renders are not smooth in the parameters
+   (free flights crossing the slab boundary flip) and its finite-difference Jacobian is
+   noisy: on exp3 fits it gained < 10 % of the loss for ~45 s (session 79: nothing on four
+   paper-simulation cases). But the coefficients of a higher-degree phase have a long,
+   ill-conditioned optimum that the polish's averaged stochastic steps only crawl down, and
+   there the deterministic steps walk it (session 79, d 0.5 um / sigma_t 2 on its Mie
+   table: exp7 from 2.2 x to 1.08 x the noise floor's loss, sigma_t from -2.5 % to
+   -0.5 %). After it, the result is the LM's point: its uncertainties take fresh Jacobians
+   there and its last step as the drift, not the polish points' scatter;
 6. final evaluation at `final_spp` with two seeds: fitted profiles (their mean), the model's
    own Monte Carlo variance per pixel ((p1 - p2)^2 / 4, the variance of the mean of two),
    scale, loss at the reference delta, chi^2 with var_meas + s^2 var_model;
@@ -181,8 +188,8 @@ from estimate.uncertainties import (
 
 # evaluate, fisher_uncertainties, sandwich_uncertainties and secant_steps live in estimate.evaluation,
 # estimate.uncertainties and estimate.gauss_newton; they are re-exported here, where callers met them first.
-__all__ = ["FitResult", "FitSettings", "evaluate", "fisher_uncertainties", "fit_channel", "forward_model", "model_phase",
-           "sandwich_uncertainties", "secant_steps"]
+__all__ = ["FitResult", "FitSettings", "evaluate", "fisher_uncertainties", "fit_channel", "forward_model", "lm_plan",
+           "model_phase", "sandwich_uncertainties", "secant_steps"]
 
 
 def _finite_number(x: Any) -> bool:
@@ -263,6 +270,17 @@ class FitSettings:
     #: instead of stepping them (decorrelated mode only; see fit_channel)
     profile_additive: bool = True
     lm_spp: int = 1024
+    #: exp<M> fits of degree M >= this end the polish with the fixed-seed Levenberg-Marquardt
+    #: (`lm_polish`) when `lm_iterations` is 0: `lm_degree_iterations` steps at most, at
+    #: `lm_degree_spp_factor` x `final_spp` (None: never). From degree 5 on, the optimum of
+    #: the phase's coefficients lies along a long, ill-conditioned valley that the stochastic
+    #: polish only crawls down (session 79, paper simulation d 0.5 um / sigma_t 2 on the Mie
+    #: table itself: exp7 ended at 2.2 x the noise floor's loss, with it at 1.08 x; on four
+    #: exp3 cases it gained nothing). At 1024 spp the same LM stalled at 1.28 x on the
+    #: renders' noise.
+    lm_from_degree: int | None = 5
+    lm_degree_iterations: int = 60
+    lm_degree_spp_factor: int = 4
     uncertainties: bool = True
     scale: str = "free"              # "free": fitted (profiled) per channel; "calibrated": from the beam power
     #: the forward model's render engine (`estimate.forward.ENGINES`): "light" (paths from
@@ -312,6 +330,9 @@ class FitSettings:
             elif f.name == "polish_max_steps":
                 if v is not None and not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
                     raise bad("a whole number >= 0 or null")
+            elif f.name == "lm_from_degree":
+                if v is not None and not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
+                    raise bad("a whole number >= 0 or null (null: no Levenberg-Marquardt by degree)")
             elif f.name == "iterations_before_polish":
                 if v is not None and not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
                     raise bad("a whole number >= 1 or null (null: until the loss flattens)")
@@ -443,6 +464,19 @@ def model_phase(model: str, degree: int = 3) -> str:
     if model in ("tthg", "hg"):
         return model
     raise ModelParameterError(f"unknown model {model!r}; use exp, exp<M>, tthg or hg")
+
+
+def lm_plan(settings: FitSettings, phase: str) -> tuple[int, int]:
+    """The Levenberg-Marquardt polish a fit of `phase` ("exp<M>", "tthg", ...) gets: (steps at
+    most, samples per pixel); (0, 0) for none. An explicit `lm_iterations` wins; otherwise
+    exp<M> with M >= `lm_from_degree` gets `lm_degree_iterations` steps at
+    `lm_degree_spp_factor` x `final_spp`."""
+    if settings.lm_iterations > 0:
+        return settings.lm_iterations, settings.lm_spp
+    if settings.lm_from_degree is not None and phase.startswith("exp") and phase[3:].isdigit() \
+            and int(phase[3:]) >= settings.lm_from_degree:
+        return settings.lm_degree_iterations, settings.lm_degree_spp_factor * settings.final_spp
+    return 0, 0
 
 
 def forward_model(problem: Problem, phase: str, extensions: Sequence[str] = (), engine: str = "light",
@@ -773,10 +807,20 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             n_polish_avg = max(1, len(accepted) - first + 1)
     moving: list[str] = []
     lm_losses: list[float] = []
-    if st.lm_iterations > 0:
-        final, lm_losses = lm_polish(fm, problem, final, stepped, tr, spp=st.lm_spp,
-                                     seed=st.seed * 100_003 + 40_000, delta_rel=d_ref, iterations=st.lm_iterations,
-                                     fixed_scale=fixed_scale)
+    lm_iterations, lm_spp = lm_plan(st, phase)
+    lm_steps: list[dict[str, float]] = []
+    if lm_iterations > 0 and stepped:
+        final, lm_losses = lm_polish(fm, problem, final, stepped, tr, spp=lm_spp,
+                                     seed=st.seed * 100_003 + 40_000, delta_rel=d_ref, iterations=lm_iterations,
+                                     fixed_scale=fixed_scale, steps_out=lm_steps)
+    if lm_steps:
+        # The result is the LM's optimum, not the polish's: the polish points' scatter and
+        # their Jacobians describe another point (on the paper simulation's d 0.5 um case exp7
+        # moved sigma_t by 2 % and b3 from 5 to 14), so the uncertainties below take fresh
+        # Jacobians at the final point, and the LM's last step is the drift.
+        polish_se, polish_sd, n_polish_avg = {}, {}, 0
+        drift = dict(lm_steps[-1])
+        polished = st.uncertainties
     stage_done("polish")
     ev = evaluate(fm, problem, final, spp=st.final_spp, seed=st.seed * 100_003 + 50_000, delta_rel=d_ref,
                   fixed_scale=fixed_scale, additive=solved)
@@ -822,7 +866,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         unc, s_unc, _ = sandwich_uncertainties(problem, final, names, ev["scale"], ev["profiles"],
                                                ev["model_variance"], jac, delta_rel=d_ref,
                                                fit_scale=fixed_scale is None,
-                                               render_variance_factor=2.0 * st.final_spp / max(1, st.lm_spp),
+                                               render_variance_factor=2.0 * st.final_spp / max(1, lm_spp or st.lm_spp),
                                                covariance_out=sandwich_cov, jac_more=more, data_meat=data_meat,
                                                meat_cross=st.uncertainty_meat_cross,
                                                render_correlation_out=(step_corr if st.uncertainty_polish_correlation
@@ -839,7 +883,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         # iterates' spread is left out. Handed over after 10 Adam iterations (session 28),
         # the iterates still walk from the coarse start, and their scatter about their
         # trend (sigma_t 0.16-0.26 /mm on the benchmark, truth 2.0) swamped the fit's own.
-        xs = window_scatter(x_history[-n_avg:], trend) if not accepted else np.zeros((0, len(names)))
+        xs = window_scatter(x_history[-n_avg:], trend) if not (accepted or lm_steps) \
+            else np.zeros((0, len(names)))
         it_cov = np.cov(xs, rowvar=False, ddof=2 if trend else 1).reshape(len(names), len(names)) \
             if len(xs) > 2 else np.zeros((len(names), len(names)))
         for i, n in enumerate(names):

@@ -45,14 +45,17 @@ def _chi2(dz: np.ndarray, cov: np.ndarray) -> float:
 
 def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], names: Sequence[str],
               tr: Sequence[Transform], *, spp: int, seed: int, delta_rel: float, iterations: int,
-              fixed_scale: float | None = None) -> tuple[dict[str, float], list[float]]:
+              fixed_scale: float | None = None,
+              steps_out: list[dict[str, float]] | None = None) -> tuple[dict[str, float], list[float]]:
     """Levenberg-Marquardt on the log residuals at the reference delta, one fixed seed.
 
-    With the seed fixed (common random numbers) the loss is a smooth deterministic function
-    of the parameters, so Gauss-Newton steps converge where Adam on fresh noise each
-    iteration only hovers. The Jacobian is `ForwardModel.jacobian` (central differences);
-    unknowns are the transformed variables z plus log scale (unless `fixed_scale`). Returns
-    the parameters and the loss after each accepted step.
+    With the seed fixed (common random numbers) the loss is a deterministic function of the
+    parameters, so Gauss-Newton steps converge where Adam on fresh noise each iteration only
+    hovers (it is not quite smooth: free flights that cross the slab's faces flip). The
+    Jacobian is `ForwardModel.jacobian` (central differences); unknowns are the transformed
+    variables z plus log scale (unless `fixed_scale`). Parameters outside `names` (e.g. the
+    additive ones the polish solved) stay as given. Returns the parameters and the loss
+    after each accepted step; `steps_out` receives each accepted step in parameter units.
     """
     valid = problem.valid
     meas = problem.measured
@@ -105,6 +108,8 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
                 continue
             r_n, prof_n, sc_n, dlt_n, loss_n = residual(p_new)
             if loss_n < loss:
+                if steps_out is not None:
+                    steps_out.append({n: float(p_new[n] - p[n]) for n in names})
                 p, z, r, prof, sc, dlt = p_new, z_new, r_n, prof_n, sc_n, dlt_n
                 rel = (loss - loss_n) / loss
                 loss = loss_n

@@ -1163,3 +1163,79 @@ def test_a_later_polish_step_counts_the_noise_its_start_point_carries(problem):
                             one_sided=True, chi2_continue=math.inf, start_point_noise=False)
     assert all(e["step_chi2"] == pytest.approx(e["step_chi2_own"]) for e in trace)
 
+
+
+def test_lm_plan_by_phase_degree():
+    """The fixed-seed LM runs on request, else for exponential phases from `lm_from_degree` on,
+    at `lm_degree_spp_factor` x the final spp; never for HG families or with the degree rule off."""
+    from estimate.fit import lm_plan
+
+    st = FitSettings(final_spp=512)
+    assert lm_plan(st, "exp3") == (0, 0) and lm_plan(st, "exp4") == (0, 0) and lm_plan(st, "tthg") == (0, 0)
+    assert lm_plan(st, "exp5") == (st.lm_degree_iterations, 4 * 512) == lm_plan(st, "exp7")[:1] + (2048,)
+    assert lm_plan(FitSettings(final_spp=512, lm_from_degree=None), "exp9") == (0, 0)
+    assert lm_plan(FitSettings(final_spp=512, lm_from_degree=3), "exp3") == (60, 2048)
+    # An explicit request wins, for any model, at its own spp.
+    assert lm_plan(FitSettings(lm_iterations=4, lm_spp=256), "tthg") == (4, 256)
+    assert lm_plan(FitSettings(lm_iterations=4, lm_spp=256), "exp7") == (4, 256)
+    assert FitSettings.from_dict({"lm_from_degree": None}).lm_from_degree is None
+    assert FitSettings.from_dict({}).lm_from_degree == 5
+    for bad in (-1, 2.5, "five", True):
+        with pytest.raises(ModelParameterError, match="lm_from_degree"):
+            FitSettings.from_dict({"lm_from_degree": bad}, where="results.yaml")
+    with pytest.raises(ModelParameterError, match="lm_degree_spp_factor"):
+        FitSettings.from_dict({"lm_degree_spp_factor": 0})
+
+
+def test_lm_polish_reports_each_accepted_step(problem):
+    """`steps_out` holds every accepted step in parameter units: they add up to the way from
+    the start to the result, one fewer than the losses, which fall."""
+    from estimate.fit import forward_model
+    from estimate.loss import reference_delta
+    from estimate.polish import lm_polish
+    from estimate.transforms import transform_for
+
+    fm = forward_model(problem, "exp3")
+    names = ["sigma_t", "albedo", "phase.b1"]
+    start = {**fm.default_parameters(), **TRUTH, "sigma_t": 2.2, "albedo": 0.8, "phase.b1": 2.0}
+    steps: list[dict[str, float]] = []
+    p, losses = lm_polish(fm, problem, start, names, [transform_for(n, fm.specs[n]) for n in names], spp=256, seed=7,
+                          delta_rel=reference_delta(FitSettings().delta_range), iterations=3, fixed_scale=2e5,
+                          steps_out=steps)
+    assert len(steps) == len(losses) - 1 >= 1
+    assert all(b < a for a, b in zip(losses, losses[1:]))
+    for n in names:
+        assert start[n] + sum(s[n] for s in steps) == pytest.approx(p[n], rel=1e-12, abs=1e-12)
+    assert abs(p["sigma_t"] - 3.0) < abs(start["sigma_t"] - 3.0)
+
+
+def test_a_high_degree_fit_ends_at_the_lm_point_and_takes_its_uncertainties_there(problem, monkeypatch):
+    """exp5 (from `lm_from_degree`) runs the LM after the polish at the degree's spp; exp3 does
+    not. The result is the LM's point: the drift is its last step, the polish points' scatter
+    is not carried over, and the uncertainties render fresh Jacobians at that point."""
+    import estimate.fit as fit_mod
+
+    calls: list[dict] = []
+
+    def fake_lm(fm, pb, params, names, tr, *, spp, seed, delta_rel, iterations, fixed_scale=None, steps_out=None):
+        calls.append({"spp": spp, "iterations": iterations, "names": list(names)})
+        moved = {**params, "sigma_t": params["sigma_t"] * 1.01}
+        steps_out.append({n: moved[n] - params[n] for n in names})
+        return moved, [1.0, 0.9]
+
+    central: list[dict] = []
+    real_jac = fit_mod.gn_jacobian
+    monkeypatch.setattr(fit_mod, "lm_polish", fake_lm)
+    monkeypatch.setattr(fit_mod, "gn_jacobian", lambda fm, pb, p, *a, **k: central.append(dict(p)) or real_jac(fm, pb, p, *a, **k))
+    st = FitSettings(seed=5, max_iterations=4, spp_start=16, spp_max=16, final_spp=32, window=3, scale="calibrated",
+                     uncertainty_spp=32, iterations_before_polish=3, polish_steps=2, polish_max_steps=2,
+                     polish_average_from=1, lm_degree_iterations=3, lm_degree_spp_factor=2)
+    start = {"sigma_t": 3.0, "albedo": 0.85, "phase.b1": 3.0}
+    r3 = fit_channel(problem, "exp3", start=start, settings=st)
+    assert not calls and r3.polish_se and not central
+    r5 = fit_channel(problem, "exp5", start=start, settings=st)
+    assert calls == [{"spp": 64, "iterations": 3, "names": list(r5.uncertainties)}]
+    assert r5.drift["sigma_t"] == pytest.approx(r5.parameters["sigma_t"] / 1.01 * 0.01, rel=1e-9)
+    assert r5.drift["albedo"] == 0.0 and not r5.polish_se
+    assert len(central) == 2 and all(c["sigma_t"] == r5.parameters["sigma_t"] for c in central)
+    assert all(math.isfinite(v) and v > 0 for v in r5.uncertainties.values())
