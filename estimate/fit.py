@@ -866,7 +866,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         unc, s_unc, _ = sandwich_uncertainties(problem, final, names, ev["scale"], ev["profiles"],
                                                ev["model_variance"], jac, delta_rel=d_ref,
                                                fit_scale=fixed_scale is None,
-                                               render_variance_factor=2.0 * st.final_spp / max(1, lm_spp or st.lm_spp),
+                                               render_variance_factor=2.0 * st.final_spp / max(1, lm_spp if lm_steps else st.lm_spp),
                                                covariance_out=sandwich_cov, jac_more=more, data_meat=data_meat,
                                                meat_cross=st.uncertainty_meat_cross,
                                                render_correlation_out=(step_corr if st.uncertainty_polish_correlation

@@ -155,8 +155,10 @@ def run(args: argparse.Namespace) -> int:
                                     scale_calibration=scales.get(_c), progress=progress, on_stage=on_stage)
                     if not args.json:
                         steps = sum(1 for e in f.polish if e.get("accepted"))
+                        lm = (f" + {len(f.lm_losses) - 1} Levenberg-Marquardt steps at one seed"
+                              if len(f.lm_losses) > 1 else "")
                         print(f"  {_c}: {sum(f.stage_times_s.values()):.0f} s, {f.iterations} iterations "
-                              f"+ {steps} polish steps, {f.stop_reason}", file=sys.stderr, flush=True)
+                              f"+ {steps} polish steps{lm}, {f.stop_reason}", file=sys.stderr, flush=True)
                     return f
 
                 if by_degree:
