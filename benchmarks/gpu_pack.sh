@@ -60,6 +60,21 @@ if [ "${GPU_PACK:-all}" = light ]; then
     | xz -T0 -6 > .gpu/light.tar.xz
   du -sh .gpu/site.tar.xz .gpu/light.tar.xz; exit 0
 fi
+# GPU_PACK=mietable packs the packages and the paper simulation's Mie-table recordings
+# MIETABLE_CASES (default d0.5_s2; bench_paper_sim.py --truth-engine light --truth-phase table
+# made them here), without raw frames or fits: gpu_run.sh's mietable job (session 79).
+if [ "${GPU_PACK:-all}" = mietable ]; then
+  dirs=()
+  for c in $(echo "${MIETABLE_CASES:-d0.5_s2}" | tr , ' '); do
+    d=${c}_light_mietable
+    [ -f benchmarks/results/paper_sim/$d/session/session.yaml ] || { echo "$d: no captured session (run bench_paper_sim.py --truth-engine light --truth-phase table --cases $c)"; exit 2; }
+    dirs+=("$d")
+  done
+  (cd benchmarks/results/paper_sim && tar cf - --exclude='fit_*' --exclude='check_*' --exclude=session.lock \
+     --exclude='session/raw' --exclude='cal/raw' --exclude='cal/beam_g.exr' --exclude='session/estimates' "${dirs[@]}") \
+    | xz -T0 -9 > .gpu/mietable.tar.xz
+  du -sh .gpu/site.tar.xz .gpu/mietable.tar.xz; exit 0
+fi
 if [ ! -d .gpu/est_session ]; then
   .venv/bin/python benchmarks/bench_estimate.py --keep-session .gpu/est_session --out "$tmp/cpu.json"
 fi

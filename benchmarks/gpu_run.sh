@@ -174,6 +174,20 @@ lightbench)
      -not -path '*/session/*' -print0 | tar cf "$OUT/lightbench.tar" --null -T -)
   rm -f "$OUT/.start"
   ;;
-*) echo "unknown job $job (estimate, paper, diagnose256, bench, light or lightbench)"; exit 2 ;;
+mietable)
+  # The fits of degree 5 and more with their fixed-seed Levenberg-Marquardt (session 79) on a
+  # GPU: bench_paper_sim.py on the Mie-table recordings .gpu/mietable.tar.xz holds (gpu_pack.sh
+  # GPU_PACK=mietable), the models MIETABLE_MODELS (exp7,exp3) at the GPU's defaults (the
+  # polish at 8192 spp, the LM at 4 x that), each case under MIETABLE_LIMIT_S (420).
+  mkdir -p benchmarks/results/paper_sim && tar xJf .gpu/mietable.tar.xz -C benchmarks/results/paper_sim || exit 5
+  cases=$(cd benchmarks/results/paper_sim && ls -d *_light_mietable | sed 's/_light_mietable//' | paste -sd,)
+  t=$(date +%s)
+  timeout "${MIETABLE_LIMIT_S:-420}" python3 benchmarks/bench_paper_sim.py --truth-engine light --truth-phase table \
+    --cases "$cases" --models "${MIETABLE_MODELS:-exp7,exp3}" --unbiased --out "$OUT/mietable_gpu.json" 2>&1 \
+    | tee "$OUT/mietable.log"
+  echo "mietable: wall $(( $(date +%s) - t )) s"
+  (cd benchmarks/results/paper_sim && tar cf "$OUT/mietable_fits.tar" */fit_*.json)
+  ;;
+*) echo "unknown job $job (estimate, paper, diagnose256, bench, light, lightbench or mietable)"; exit 2 ;;
 esac
 echo "total $(( $(date +%s) - t0 )) s"
