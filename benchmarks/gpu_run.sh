@@ -45,6 +45,11 @@
 # benchmarks/results/gpu_session67/.
 # Session 68's call on an H200: `LB_CASES=... LB_LABEL=gpu68 bash benchmarks/gpu_run.sh lightbench` carrying
 # [".gpu/site.tar.xz"]; results in benchmarks/results/gpu_session68/.
+# Session 79's calls on an H200 (after GPU_PACK=mietable gpu_pack.sh; MIETABLE_CASES for more than d0.5_s2, and
+# at most six cases beside site.tar.xz in 64 MiB): `bash benchmarks/gpu_run.sh mietable` (10 s), then
+# `MIETABLE_MODELS=expauto` on the two d 0.5 um cases (28 s) and `MIETABLE_MODELS=expauto,exp3` on the other six
+# (67 s; the warm machine kept the first cases' fits), carrying [".gpu/site.tar.xz", ".gpu/mietable.tar.xz"];
+# results in benchmarks/results/gpu_session79/.
 set -uo pipefail
 job=${1:-estimate}
 OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT"
