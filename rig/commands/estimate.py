@@ -205,9 +205,13 @@ def run(args: argparse.Namespace) -> int:
                     print("     " + ", ".join(f"{k} {p[k]:.4g} +- {u.get(k, float('nan')):.2g}"
                                            + (" (solved each iteration)" if k in f.solved else "") for k in ext))
                 if f.drifting:
+                    # After the fixed-seed LM (degree 5 and more) the drift is its last step;
+                    # its samples follow --final-spp, and the iterations' flags do not reach it.
+                    more = ("samples per pixel for the polish and its Levenberg-Marquardt (--final-spp)"
+                            if len(f.lm_losses) > 1 else
+                            "samples per pixel (--spp-max) or iterations (--max-iterations)")
                     print(f"     warning: {', '.join(f.drifting)} still drifting when the fit stopped "
-                          "(uncertainties include the last drift); more samples per pixel "
-                          "(--spp-max) or iterations (--max-iterations) move it further")
+                          f"(uncertainties include the last drift); more {more} move it further")
             if not args.diagnose and any(f.reduced_chi2 > CHI2_HINT for f in fits):
                 print(f"  note: the reduced chi2 counts only the HDR variance; pixel noise it does not hold "
                       f"(fixed-pattern noise, dust; on the simulated rig the recording's frozen render noise) "
