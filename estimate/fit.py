@@ -398,7 +398,7 @@ class FitResult:
     fitted: np.ndarray               # (N, W) rendered profiles (model units, not scaled)
     model_variance: np.ndarray       # (N, W) MC variance of `fitted`
     start: dict[str, float]
-    lm_losses: list[float] = field(default_factory=list)   # loss after each accepted LM step
+    lm_losses: list[float] = field(default_factory=list)   # LM loss at its start, then after each accepted step
     settings: dict[str, Any] = field(default_factory=dict)
     scale_mode: str = "free"
     scale_calibration: dict[str, Any] | None = None   # ScaleCalibration.to_dict() when calibrated
@@ -435,6 +435,12 @@ class FitResult:
     @property
     def free(self) -> list[str]:
         return [k for k in self.parameters if k not in self.fixed]
+
+    @property
+    def lm_steps(self) -> int:
+        """Accepted steps of the fixed-seed Levenberg-Marquardt (0: none ran, or it moved
+        nothing, and the result is the polish's)."""
+        return max(0, len(self.lm_losses) - 1)
 
     def summary(self) -> dict[str, Any]:
         """JSON-safe per-channel summary (the `--json` shape)."""

@@ -155,8 +155,7 @@ def run(args: argparse.Namespace) -> int:
                                     scale_calibration=scales.get(_c), progress=progress, on_stage=on_stage)
                     if not args.json:
                         steps = sum(1 for e in f.polish if e.get("accepted"))
-                        lm = (f" + {len(f.lm_losses) - 1} Levenberg-Marquardt steps at one seed"
-                              if len(f.lm_losses) > 1 else "")
+                        lm = f" + {f.lm_steps} Levenberg-Marquardt steps at one seed" if f.lm_steps else ""
                         print(f"  {_c}: {sum(f.stage_times_s.values()):.0f} s, {f.iterations} iterations "
                               f"+ {steps} polish steps{lm}, {f.stop_reason}", file=sys.stderr, flush=True)
                     return f
@@ -208,7 +207,7 @@ def run(args: argparse.Namespace) -> int:
                     # After the fixed-seed LM (degree 5 and more) the drift is its last step;
                     # its samples follow --final-spp, and the iterations' flags do not reach it.
                     more = ("samples per pixel for the polish and its Levenberg-Marquardt (--final-spp)"
-                            if len(f.lm_losses) > 1 else
+                            if f.lm_steps else
                             "samples per pixel (--spp-max) or iterations (--max-iterations)")
                     print(f"     warning: {', '.join(f.drifting)} still drifting when the fit stopped "
                           f"(uncertainties include the last drift); more {more} move it further")
