@@ -147,6 +147,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
+from estimate.deadline import Deadline
 from estimate.errors import ModelParameterError
 from estimate.evaluation import evaluate, solve_additive
 from estimate.forward import ENGINES, ForwardModel, check_engine
@@ -227,7 +228,7 @@ class FitSettings:
     lr_decay: float = 0.85
     delta_range: tuple[float, float] = DEFAULT_DELTA_RANGE
     seed: int = 0
-    time_limit_s: float | None = None
+    time_limit_s: float | None = None  # wall-clock budget (s) of the iterations and polishes (estimate.deadline)
     lm_iterations: int = 0           # LM polish steps at most (stops when a step gains < 0.1 % or none is accepted)
     optimizer: str = "adam+gn"       # "adam": Adam throughout; "adam+gn": Adam first, then Gauss-Newton steps
     gn_step: float = 0.3             # fraction of the Gauss-Newton step taken per iteration
@@ -561,6 +562,10 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     """
     st = settings or FitSettings.for_variant()
     t0 = time.monotonic()
+    # The budget covers the iterations and both polishes; the final evaluation and the
+    # uncertainties always run (up to session 79 it stopped the iterations alone, and an
+    # exp7 fit's LM could run 60 steps past it).
+    deadline = Deadline.after(st.time_limit_s, t0)
     stage_times: dict[str, float] = {}
     t_stage = t0
 
@@ -751,7 +756,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         since_change += 1
         if progress:
             progress(it, curve_loss, spp)
-        if st.time_limit_s is not None and time.monotonic() - t0 > st.time_limit_s:
+        if deadline.passed("iterations"):
             stop = "time_limit"
             break
         if hand_over is not None and it >= hand_over:
@@ -793,7 +798,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
                                      chi2_continue=float(chi2_dist.isf(st.polish_continue_p, len(stepped))),
                                      keep_last=averaged_point_count(st.polish_steps, st.polish_average_from),
                                      settled_spp_factor=st.polish_settled_spp, one_sided=st.polish_one_sided,
-                                     jacobians_out=polish_jacobians, damped=st.polish_damped)
+                                     jacobians_out=polish_jacobians, damped=st.polish_damped,
+                                     deadline=deadline)
     # After the polish, the drift is its last step: what the fit still moved by at the end
     # (and `drifting` those parameters whose last step exceeds their uncertainty); when its
     # later points are averaged, their mean step and the mean's standard error instead.
@@ -818,7 +824,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     if lm_iterations > 0 and stepped:
         final, lm_losses = lm_polish(fm, problem, final, stepped, tr, spp=lm_spp,
                                      seed=st.seed * 100_003 + 40_000, delta_rel=d_ref, iterations=lm_iterations,
-                                     fixed_scale=fixed_scale, steps_out=lm_steps)
+                                     fixed_scale=fixed_scale, steps_out=lm_steps, deadline=deadline)
     if lm_steps:
         # The result is the LM's optimum, not the polish's: the polish points' scatter and
         # their Jacobians describe another point (on the paper simulation's d 0.5 um case exp7
@@ -827,6 +833,10 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         polish_se, polish_sd, n_polish_avg = {}, {}, 0
         drift = dict(lm_steps[-1])
         polished = st.uncertainties
+    cut = [{"polish": "the Gauss-Newton polish", "lm": "the Levenberg-Marquardt steps"}[h]
+           for h in deadline.hit if h != "iterations"]
+    if cut:
+        stop = f"{stop}; the time limit cut {' and '.join(cut)}"
     stage_done("polish")
     ev = evaluate(fm, problem, final, spp=st.final_spp, seed=st.seed * 100_003 + 50_000, delta_rel=d_ref,
                   fixed_scale=fixed_scale, additive=solved)

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from estimate.deadline import Deadline
 from estimate.errors import ModelParameterError
 from estimate.evaluation import solve_additive
 from estimate.forward import ForwardModel
@@ -46,7 +47,8 @@ def _chi2(dz: np.ndarray, cov: np.ndarray) -> float:
 def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], names: Sequence[str],
               tr: Sequence[Transform], *, spp: int, seed: int, delta_rel: float, iterations: int,
               fixed_scale: float | None = None,
-              steps_out: list[dict[str, float]] | None = None) -> tuple[dict[str, float], list[float]]:
+              steps_out: list[dict[str, float]] | None = None,
+              deadline: Deadline | None = None) -> tuple[dict[str, float], list[float]]:
     """Levenberg-Marquardt on the log residuals at the reference delta, one fixed seed.
 
     With the seed fixed (common random numbers) the loss is a deterministic function of the
@@ -56,6 +58,7 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
     variables z plus log scale (unless `fixed_scale`). Parameters outside `names` (e.g. the
     additive ones the polish solved) stay as given. Returns the parameters and the loss
     after each accepted step; `steps_out` receives each accepted step in parameter units.
+    Once `deadline` has passed no further step is started (stage name "lm").
     """
     valid = problem.valid
     meas = problem.measured
@@ -76,6 +79,8 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
     losses = [loss]
     lam = 1e-3
     for _ in range(iterations):
+        if deadline is not None and deadline.passed("lm"):
+            break
         jac = fm.jacobian(p, angles, list(names), spp=spp, seed=seed)
         cols = [np.where(valid, -jac[n] / (np.clip(prof, 0, None) + dlt), 0.0).ravel() * t.dx_dz(float(zz))
                 for n, t, zz in zip(names, tr, z)]
@@ -206,7 +211,8 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
               cross: bool = False, max_steps: int | None = None, chi2_continue: float = math.inf,
               keep_last: int = 3, settled_spp_factor: int = 1, one_sided: bool = False,
               jacobians_out: list[list[dict[str, np.ndarray]]] | None = None, damped: bool = False,
-              start_point_noise: bool = True) -> tuple[dict[str, float], list[dict[str, Any]], tuple[np.ndarray, np.ndarray] | None]:
+              start_point_noise: bool = True,
+              deadline: Deadline | None = None) -> tuple[dict[str, float], list[dict[str, Any]], tuple[np.ndarray, np.ndarray] | None]:
     """Full Gauss-Newton steps on the delta-averaged log loss at high samples per pixel, from
     the end of the stochastic iterations.
 
@@ -268,6 +274,7 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
     ran to 8 steps whenever one of three in a row passed 20.5; with the start point's noise
     they read 3-23 (session 27, seeds 0-3). The trace keeps both (`step_chi2`, `step_chi2_own`);
     `start_point_noise=False` tests against the step's own noise alone, as before.
+    Once `deadline` has passed no further step is started (stage name "polish").
     Still about twice the parameter count: the matrix's own noise (a valley eigenvalue off by
     its noise scales the correction of the start point's noise) stays out of the model.
 
@@ -395,6 +402,8 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
     lam = GN_DAMPING
     c_point: np.ndarray | None = None
     for k in range(max_steps):
+        if deadline is not None and deadline.passed("polish"):
+            break
         if k >= steps:
             recent = [e for e in trace if e["accepted"]][-max(1, keep_last):]
             if all(e["step_chi2"] <= chi2_continue for e in recent):

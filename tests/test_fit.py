@@ -1217,7 +1217,8 @@ def test_a_high_degree_fit_ends_at_the_lm_point_and_takes_its_uncertainties_ther
 
     calls: list[dict] = []
 
-    def fake_lm(fm, pb, params, names, tr, *, spp, seed, delta_rel, iterations, fixed_scale=None, steps_out=None):
+    def fake_lm(fm, pb, params, names, tr, *, spp, seed, delta_rel, iterations, fixed_scale=None, steps_out=None,
+                deadline=None):
         calls.append({"spp": spp, "iterations": iterations, "names": list(names)})
         moved = {**params, "sigma_t": params["sigma_t"] * 1.01}
         steps_out.append({n: moved[n] - params[n] for n in names})
@@ -1239,3 +1240,46 @@ def test_a_high_degree_fit_ends_at_the_lm_point_and_takes_its_uncertainties_ther
     assert r5.drift["albedo"] == 0.0 and not r5.polish_se
     assert len(central) == 2 and all(c["sigma_t"] == r5.parameters["sigma_t"] for c in central)
     assert all(math.isfinite(v) and v > 0 for v in r5.uncertainties.values())
+
+
+def test_deadline_passes_once_its_budget_is_spent_and_names_each_stage_once():
+    from estimate.deadline import Deadline
+
+    none = Deadline.after(None)
+    assert not none.passed("iterations") and none.hit == []
+    assert not Deadline.after(3600.0).passed("polish")
+    spent = Deadline.after(0.0, start=0.0)      # monotonic time 0 is long past
+    assert spent.passed("polish") and spent.passed("polish") and spent.passed("lm")
+    assert spent.hit == ["polish", "lm"]
+
+
+def test_lm_polish_starts_no_step_after_its_deadline(problem):
+    from estimate.deadline import Deadline
+    from estimate.fit import forward_model
+    from estimate.loss import reference_delta
+    from estimate.polish import lm_polish
+    from estimate.transforms import transform_for
+
+    fm = forward_model(problem, "exp3")
+    names = ["sigma_t", "albedo"]
+    start = {**fm.default_parameters(), **TRUTH, "sigma_t": 2.2}
+    spent = Deadline.after(0.0, start=0.0)
+    steps: list[dict[str, float]] = []
+    p, losses = lm_polish(fm, problem, start, names, [transform_for(n, fm.specs[n]) for n in names], spp=64, seed=7,
+                          delta_rel=reference_delta(FitSettings().delta_range), iterations=3, fixed_scale=2e5,
+                          steps_out=steps, deadline=spent)
+    assert p == start and len(losses) == 1 and not steps and spent.hit == ["lm"]
+
+
+def test_the_time_limit_covers_the_polishes_and_the_result_is_still_evaluated(problem):
+    """A spent budget stops the iterations after one and starts neither the Gauss-Newton
+    polish nor the LM (session 79's exp7 LM ran 60 steps past it); the stop reason says what
+    the limit cut, and the result still has its evaluation and intervals."""
+    st = FitSettings(seed=5, max_iterations=6, spp_start=16, spp_max=16, final_spp=32, window=3, scale="free",
+                     uncertainty_spp=32, iterations_before_polish=4, polish_steps=2, polish_max_steps=2,
+                     lm_iterations=3, lm_spp=32, time_limit_s=1e-9)
+    r = fit_channel(problem, "exp3", start={"sigma_t": 3.0, "albedo": 0.85}, settings=st)
+    assert r.iterations == 1 and not r.polish and r.lm_steps == 0
+    assert r.stop_reason == ("time_limit; the time limit cut the Gauss-Newton polish and the "
+                             "Levenberg-Marquardt steps")
+    assert math.isfinite(r.loss) and all(math.isfinite(v) and v > 0 for v in r.uncertainties.values())
