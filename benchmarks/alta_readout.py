@@ -47,14 +47,14 @@ def run(time_scale: float, dark: bool, n: int) -> dict[str, float]:
 
 def main() -> None:
     modelled = 512 * ROW_SHIFT_TIME_S + 512 * 513 * PIXEL_TIME_S
-    rows = []
+    rows: list[dict[str, float | str]] = []
     for label, scale, n in (("software", 1e6, N), ("real-time", 1.0, 5)):
         for dark in (True, False):
             r = run(scale, dark, n)
             rows.append({"mode": label, "time_scale": scale, "frame": "dark" if dark else "light", **r})
     print(f"{'mode':<10} {'frame':<6} {'expose (s)':>11} {'download (s)':>13}")
-    for r in rows:
-        print(f"{r['mode']:<10} {r['frame']:<6} {r['expose_s']:>11.4f} {r['download_s']:>13.4f}")
+    for row in rows:
+        print(f"{row['mode']:<10} {row['frame']:<6} {row['expose_s']:>11.4f} {row['download_s']:>13.4f}")
     print(f"modelled CCD readout at time_scale 1: {modelled:.4f} s")
     out = ROOT / "benchmarks" / "results" / "alta_readout.json"
     out.parent.mkdir(parents=True, exist_ok=True)

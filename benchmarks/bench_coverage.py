@@ -85,6 +85,13 @@ def fit_draw(seed: int, overrides: dict | None = None, truth_engine: str = "came
                                                       "polish_se": r.polish_se, "drift": r.drift}}
 
 
+def _number(x: float | str | None) -> float:
+    """A value of `derived_quantities`' entries: a float (the entries' type also covers their
+    unit's str and an unknown uncertainty's None)."""
+    assert isinstance(x, float), x
+    return x
+
+
 def summarise(draws: list[dict]) -> dict[str, dict[str, float]]:
     """Per quantity: mean error, RMS error, RMS reported uncertainty, RMS z, coverage at 1 and 2 sigma."""
     from estimate.derived import derived_quantities
@@ -98,7 +105,7 @@ def summarise(draws: list[dict]) -> dict[str, dict[str, float]]:
                 value, unc, true = d["parameters"][name], d["uncertainties"].get(name), TRUTH[name]
             else:
                 value, unc, true = d["derived"][name]["value"], d["derived"][name]["uncertainty"], \
-                    truth_derived[name]["value"]
+                    _number(truth_derived[name]["value"])
             if unc is None or not math.isfinite(unc) or unc <= 0:
                 continue
             errs.append(value - true)
@@ -107,7 +114,7 @@ def summarise(draws: list[dict]) -> dict[str, dict[str, float]]:
             continue
         n = len(errs)
         z = [e / u for e, u in zip(errs, uncs)]
-        rows[name] = {"n": n, "truth": TRUTH.get(name, truth_derived.get(name, {}).get("value")),
+        rows[name] = {"n": n, "truth": TRUTH[name] if name in TRUTH else _number(truth_derived[name]["value"]),
                       "mean_error": sum(errs) / n,
                       "rms_error": math.sqrt(sum(e * e for e in errs) / n),
                       "rms_uncertainty": math.sqrt(sum(u * u for u in uncs) / n),

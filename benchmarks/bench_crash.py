@@ -34,6 +34,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import TypedDict
 
 import yaml
 
@@ -50,6 +51,18 @@ TRIALS = 24
 EARLY_FRACTION = 0.25
 PLAN = ["--angles", "3", "--filters", "rg", "--band-rows", "8", "--max-exposures", "3", "--darks", "1",
         "--no-progress", "--sim"]
+
+
+class Trial(TypedDict):
+    """One trial's entry in the results."""
+
+    trial: int
+    kills: int
+    runs: int
+    kill_phases: list[str]
+    stacks_done_before_final_resume: int
+    ok: bool
+    violations: list[str]
 
 
 def cheap_world(tmp: Path) -> Path | None:
@@ -113,7 +126,7 @@ def _run_killed(cmd: list[str], out: Path, kill: tuple[str, float] | None) -> tu
 
 def main() -> int:
     rng = random.Random(SEED)
-    results = []
+    results: list[Trial] = []
     with tempfile.TemporaryDirectory(prefix="bench-crash-") as tmp:
         tmpd = Path(tmp)
         data = yaml.safe_load(PACKAGED_SIM_CONFIG.read_text())
@@ -141,7 +154,9 @@ def main() -> int:
             out = tmpd / f"t{trial:02d}"
             create = _cmd(cfg, *PLAN, "--out", str(out))
             resume = _cmd(cfg, "--resume", str(out), "--sim", "--no-progress")
-            kills, phases, violations, runs = 0, [], [], 0
+            kills, runs = 0, 0
+            phases: list[str] = []
+            violations: list[str] = []
             seen: dict[str, dict] = {}
             cmd = create
             extra_kills = 0
@@ -183,9 +198,9 @@ def main() -> int:
                 stray = [f.name for f in out.rglob("*") if is_temp_name(f.name)]
                 if stray:
                     violations.append(f"temporary files left behind: {stray}")
-                for rec, img in s.iter_hdr():
+                for stack, img in s.iter_hdr():
                     if img["radiance"].shape != tuple(s.manifest["frame_shape"]):
-                        violations.append(f"{rec.id}: HDR shape {img['radiance'].shape}")
+                        violations.append(f"{stack.id}: HDR shape {img['radiance'].shape}")
                 info = subprocess.run([sys.executable, "-m", "rig.cli", "info", str(out)], check=False, cwd=ROOT, capture_output=True)
                 if info.returncode != 0:
                     violations.append(f"rig info exited {info.returncode}")

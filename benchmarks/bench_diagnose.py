@@ -77,7 +77,7 @@ PAIRS = [("stray_light", "lens_blur"), ("angle_offset", "thickness_error"),
 
 
 def cases(quick: bool) -> list[dict[str, Any]]:
-    out = []
+    out: list[dict[str, Any]] = []
     for name, mags in MAGNITUDES.items():
         for k, m in enumerate(mags[:1] if quick else mags):
             out.append({"id": f"{name}-{k + 1}", "effects": {name: m}})
@@ -165,9 +165,9 @@ def synthetic_recording(case: dict[str, Any], excess: float = 0.0,
     geometry = RigGeometry(thickness_mm=1.0, magnification=0.5, profile_columns=(c0, c0 + columns))
     beam = BeamProfile.disk(0.3)
     angles = np.array([15.0, 30.0, 45.0, 60.0, 75.0, 105.0, 120.0, 135.0, 150.0, 165.0])
-    models: dict[tuple[Any, ...], Any] = {}
+    models: dict[tuple[str, ...], ForwardModel] = {}
 
-    def make_model(exts, phase="hg"):
+    def make_model(exts: Sequence[str], phase: str = "hg") -> ForwardModel:
         """The estimator's model (`phase` "hg"), or with `phase` the world's where a case's
         truth lies outside the catalogue ("truth_phase")."""
         key = (*exts, phase)
@@ -265,7 +265,7 @@ def run_synthetic(case: dict[str, Any], spp: int, excess: float = 0.0, base_spp:
 
     cached = base_from / f"{case['id']}.json" if base_from is not None else None
     prior = json.loads(cached.read_text()) if cached is not None and cached.is_file() else None
-    if prior is not None:   # checked before the recording is rendered
+    if cached is not None and prior is not None:   # checked before the recording is rendered
         if prior.get("base_fit_spp", base_spp) != base_spp:
             raise ValueError(f"{cached}: its base fit is at {prior.get('base_fit_spp')} spp, not {base_spp}")
         _check_recording(cached, prior, excess, columns)
@@ -669,7 +669,7 @@ def report(rows: list[dict[str, Any]], source: str, ran: int, total: int) -> tup
     outside = [r for r in rows if r.get("outside")]
     frac = lambda rs: (sum(r["ok"] for r in rs) / len(rs)) if rs else float("nan")
     named_cases = [r for r in singles + pairs if r["named"]]
-    summary = {
+    summary: dict[str, Any] = {
         "source": source, "cases_run": ran, "cases_planned": total,
         "single_named_first": frac(singles), "pairs_both_named": frac(pairs), "clean_nothing_named": frac(clean),
         "outside_nothing_named": frac(outside),

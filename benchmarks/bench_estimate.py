@@ -149,13 +149,13 @@ def main() -> int:
         print("stage wall times [s]", r.stage_times_s)
         print("parameters", {k: round(v, 4) for k, v in r.parameters.items()})
         print("uncertainties", {k: round(v, 4) for k, v in r.uncertainties.items()})
-        for i, e in enumerate(r.polish):
-            print(f"polish step {i + 1}: {'kept' if e['accepted'] else 'undone'}"
-                  f"{' after ' + str(e['halvings']) + ' halving(s)' if e['halvings'] else ''}, loss without render "
-                  f"noise {e['loss']:.3g} -> {e['loss_new']:.3g}, step chi2 {e.get('step_chi2', float('nan')):.1f}, "
-                  f"{e.get('spp', '?')} spp, {e.get('jacobians', '?')} new Jacobian(s), "
-                  f"sigma_t step {e['step'].get('sigma_t', 0.0):+.4f}"
-                  + (f", at {e['point']['sigma_t']:.4f}" if e.get("point") and "sigma_t" in e["point"] else ""))
+        for i, ps in enumerate(r.polish):
+            print(f"polish step {i + 1}: {'kept' if ps['accepted'] else 'undone'}"
+                  f"{' after ' + str(ps['halvings']) + ' halving(s)' if ps['halvings'] else ''}, loss without render "
+                  f"noise {ps['loss']:.3g} -> {ps['loss_new']:.3g}, step chi2 {ps.get('step_chi2', float('nan')):.1f}, "
+                  f"{ps.get('spp', '?')} spp, {ps.get('jacobians', '?')} new Jacobian(s), "
+                  f"sigma_t step {ps['step'].get('sigma_t', 0.0):+.4f}"
+                  + (f", at {ps['point']['sigma_t']:.4f}" if ps.get("point") and "sigma_t" in ps["point"] else ""))
         print("drift (mean step of the averaged polish points, else the last polish step, else over the last "
               "windows)", {k: round(v, 4) for k, v in r.drift.items()},
               "still drifting:", r.drifting or "none")

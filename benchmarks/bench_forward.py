@@ -24,6 +24,7 @@ import platform
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -49,7 +50,7 @@ def exp3_fit_of_hg(g: float) -> list[float]:
     return [float(c) for c in coef[1:]]
 
 
-def timed(fn, cpu: list[float]) -> float:
+def timed(fn: Callable[[], object], cpu: list[float]) -> float:
     """Wall seconds of fn(); appends the process CPU seconds (all threads) to `cpu`."""
     import drjit as dr
 
@@ -78,7 +79,7 @@ def main() -> int:
     }
     target = {name: m.render_profiles(p, ANGLES, spp=SPP, seed=999) * 1.1 for name, (m, p) in cases.items()}
 
-    def loss_for(name: str):
+    def loss_for(name: str) -> Callable[[np.ndarray], tuple[float, np.ndarray]]:
         t = target[name]
 
         def loss(prof: np.ndarray) -> tuple[float, np.ndarray]:
@@ -94,11 +95,12 @@ def main() -> int:
     cpu: dict[str, dict[str, list[float]]] = {n: {"forward": [], "forward_backward": []} for n in cases}
     for rep in range(REPEATS):  # interleaved, so load changes hit every case alike
         for name, (m, p) in cases.items():
+            # timed() calls each lambda at once: they see this iteration's m, p, name and rep.
             times[name]["forward"].append(timed(
-                lambda m=m, p=p, rep=rep: m.render_profiles(p, ANGLES, spp=SPP, seed=rep),
+                lambda: m.render_profiles(p, ANGLES, spp=SPP, seed=rep),
                 cpu[name]["forward"]))
             times[name]["forward_backward"].append(timed(
-                lambda m=m, p=p, name=name, rep=rep: m.value_and_grad(
+                lambda: m.value_and_grad(
                     p, ANGLES, loss_for(name), spp=SPP, seed=rep, fd_parameters=False),
                 cpu[name]["forward_backward"]))
     med = {n: {k: statistics.median(v) for k, v in d.items()} for n, d in times.items()}
@@ -121,34 +123,36 @@ def main() -> int:
                          "tail_rel_std": float(vt.std(ddof=1) / vt.mean()),
                          "tail_over_peak": float(ref[k, tail] / ref[k, peak])})
 
+    ratios = {
+        "exp_over_builtin_forward": med["exp3"]["forward"] / med["hg_builtin"]["forward"],
+        "exp_over_builtin_forward_backward": med["exp3"]["forward_backward"] / med["hg_builtin"]["forward_backward"],
+        "refractive_over_index_matched_forward": med["exp3_refractive"]["forward"] / med["exp3"]["forward"],
+        "refractive_over_index_matched_forward_backward":
+            med["exp3_refractive"]["forward_backward"] / med["exp3"]["forward_backward"],
+    }
+    load_start_end = [load_start, os.getloadavg()[0]]
     result = {
         "config": {"angles_deg": ANGLES, "pixels": 256, "spp": SPP, "repeats": REPEATS,
                    "thickness_mm": 1.0, "sigma_t": 2.0, "albedo": 0.9, "hg_g": G, "exp3_b": b,
                    "pixel_mm": geometry.pixel_mm, "beam": "gaussian 1/e^2 radius 0.5 mm",
                    "max_depth": 64, "variant": m.mi.variant(),
                    "cpu_count": os.cpu_count(), "machine": platform.processor() or platform.machine(),
-                   "load_average_1min_start_end": [load_start, os.getloadavg()[0]]},
+                   "load_average_1min_start_end": load_start_end},
         "median_s": med,
         "median_cpu_s_over_2": med_cpu_half,
         "all_s": times,
-        "ratios": {
-            "exp_over_builtin_forward": med["exp3"]["forward"] / med["hg_builtin"]["forward"],
-            "exp_over_builtin_forward_backward": med["exp3"]["forward_backward"] / med["hg_builtin"]["forward_backward"],
-            "refractive_over_index_matched_forward": med["exp3_refractive"]["forward"] / med["exp3"]["forward"],
-            "refractive_over_index_matched_forward_backward":
-                med["exp3_refractive"]["forward_backward"] / med["exp3"]["forward_backward"],
-        },
+        "ratios": ratios,
         "targets": {"forward_s": 0.4, "forward_backward_s": 1.2, "refractive_factor": 2.0, "exp_over_builtin": 1.2},
         "variance_128spp": variance,
     }
-    print(f"load average (1 min) at start / end: {result['config']['load_average_1min_start_end']}")
+    print(f"load average (1 min) at start / end: {load_start_end}")
     print(f"{'case':<18}{'forward [s]':>14}{'fwd+bwd [s]':>14}{'fwd cpu/2':>12}{'f+b cpu/2':>12}")
     for n, d in med.items():
         c = med_cpu_half[n]
         print(f"{n:<18}{d['forward']:>14.3f}{d['forward_backward']:>14.3f}"
               f"{c['forward']:>12.3f}{c['forward_backward']:>12.3f}")
-    for k, v in result["ratios"].items():
-        print(f"{k:<48}{v:>8.2f}")
+    for key, ratio in ratios.items():
+        print(f"{key:<48}{ratio:>8.2f}")
     print(f"{'angle':>6}{'peak px':>9}{'peak rel std':>14}{'tail rel std':>14}{'tail/peak':>11}")
     for v in variance:
         print(f"{v['angle_deg']:>6.0f}{v['peak_px']:>9d}{v['peak_rel_std']:>14.3f}{v['tail_rel_std']:>14.3f}"

@@ -32,6 +32,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -79,7 +80,7 @@ def main() -> int:
         for k, v in values.items():
             params[f"{e}.{k}"] = float(v) * (pb.beam.power() if e == "stray_light" else 1.0)
     scene = RenderedScene(world, magnification=pb.geometry.magnification)
-    row = pb.geometry.profile_row
+    row = pb.geometry.row
     c0, c1 = pb.geometry.profile_columns or (0, pb.geometry.sensor_px[0])
     t0 = time.perf_counter()
     # The bench's radiance at the session's angles: its calibration put the stage's zero
@@ -97,16 +98,17 @@ def main() -> int:
         return float(ev.residuals.reduced_chi2_adjusted)
 
     out: dict[str, object] = {"case": args.case, "channel": channel, "blur": effects["lens_blur"]}
-    out["floor_chi2"] = {
+    floor_chi2 = {
         "model": floor(pb.beam, pb.y_shapes()),
         "bench beam": floor(bench_beam, pb.y_shapes()),
         "bench rows": floor(pb.beam, bench_rows),
         "bench beam and rows": floor(bench_beam, bench_rows),
     }
+    out["floor_chi2"] = floor_chi2
     # The recording's frozen render noise: two more renders of the profile tier at the bench's spp.
     ratios: dict[str, list[float]] = {"unblurred": [], "blurred": []}
     if args.no_frozen_noise:
-        return _report(args, out, effects, len(pb.angles_deg), ratios, 0, t0)
+        return _report(args, out, floor_chi2, effects, len(pb.angles_deg), ratios, 0, t0)
     model, mparams = scene.slab_model(channel)
     p0, p1, spp = scene.row_tiers()[0]
     cols = scene.sensor_px[0]
@@ -127,16 +129,17 @@ def main() -> int:
     out["frozen_noise_variance_over_sensor"] = {k: {"per_angle": v, "mean": float(np.mean(v))}
                                                for k, v in ratios.items()}
     out["profile_tier"] = {"rows": [p0, p1], "spp": spp}
-    return _report(args, out, effects, len(pb.angles_deg), ratios, spp, t0)
+    return _report(args, out, floor_chi2, effects, len(pb.angles_deg), ratios, spp, t0)
 
 
-def _report(args: argparse.Namespace, out: dict[str, object], effects: dict, n_angles: int,
-            ratios: dict[str, list[float]], spp: int, t0: float) -> int:
+def _report(args: argparse.Namespace, out: dict[str, object], floor_chi2: dict[str, float],
+            effects: dict[str, Any], n_angles: int, ratios: dict[str, list[float]], spp: int, t0: float) -> int:
+    """Print the floors (`floor_chi2`, also in `out`) and the frozen noise, write `out`."""
     out["wall_s"] = time.perf_counter() - t0
     print(f"case {args.case}, blur {effects['lens_blur']}, {n_angles} angles, {out['wall_s']:.0f} s")
     print("the true model's reduced chi^2 at the noise floor:")
-    for k, v in out["floor_chi2"].items():  # type: ignore[union-attr]
-        print(f"  {k:22s} {v:6.2f}")
+    for k, chi2 in floor_chi2.items():
+        print(f"  {k:22s} {chi2:6.2f}")
     if spp:
         print(f"the recording's frozen render noise (profile tier, {spp} spp), variance / the sensor's:")
     for k, v in ratios.items() if spp else ():

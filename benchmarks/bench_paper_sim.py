@@ -197,6 +197,13 @@ def truth_forward(pb: Any, mat: Any, engine: str | None = None) -> Any:
     return forward_model(pb, mat.model, engine=engine or FitSettings().engine, phase_table=mat.phase_table)
 
 
+def _number(x: float | str | None) -> float:
+    """A value of `derived_quantities`' entries: a float (the entries' type also covers their
+    unit's str and an unknown uncertainty's None)."""
+    assert isinstance(x, float), x
+    return x
+
+
 def truth_derived(mat: Any) -> dict[str, float]:
     """sigma_a, sigma_s' and g of the case's true material (g of its rendered phase)."""
     from estimate.derived import derived_quantities
@@ -205,7 +212,7 @@ def truth_derived(mat: Any) -> dict[str, float]:
     if mat.phase_table is not None:
         # The derived quantities see the phase only through g: an HG lobe of the table's g.
         model, params = "hg", {**params, "phase.g": float(mat.phase_table.g)}
-    return {k: float(v["value"]) for k, v in derived_quantities(model, params).items()}  # type: ignore[arg-type]
+    return {k: _number(v["value"]) for k, v in derived_quantities(model, params).items()}
 
 
 def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
@@ -272,7 +279,7 @@ def derived_errors(row: dict) -> dict:
     tru = truth_derived(mat)
 
     def rel(k: str) -> float:
-        return abs(float(fit[k]["value"]) / tru[k] - 1.0)  # type: ignore[arg-type]
+        return abs(_number(fit[k]["value"]) / tru[k] - 1.0)
 
     return {"sigma_a_rel_error": rel("sigma_a"), "reduced_scattering_rel_error": rel("sigma_s_reduced"),
             "g_fit": fit["g"]["value"], "g_true": tru["g"]}
@@ -428,12 +435,12 @@ def main() -> int:
                 continue
             if args.table_only:
                 for m in models:
-                    f = fit_cache(CACHE / case_key(d, s), m)
-                    if f.exists():
-                        rows.append(json.loads(f.read_text()))
-                    c = check_cache(CACHE / case_key(d, s), m)
-                    if c.exists():
-                        checks.append(json.loads(c.read_text()))
+                    fit_file = fit_cache(CACHE / case_key(d, s), m)
+                    if fit_file.exists():
+                        rows.append(json.loads(fit_file.read_text()))
+                    check_file = check_cache(CACHE / case_key(d, s), m)
+                    if check_file.exists():
+                        checks.append(json.loads(check_file.read_text()))
                 continue
             rows.extend(run_case(d, s, models, args.seed))
             if args.noise_check:

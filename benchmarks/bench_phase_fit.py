@@ -19,6 +19,7 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -28,7 +29,7 @@ from estimate.phase_fit import PAPER_MODELS, fit_models
 from estimate.phase_table import PhaseTable
 
 
-def _fit_one(table: PhaseTable) -> tuple[str, list[dict], float, float]:
+def _fit_one(table: PhaseTable) -> tuple[str, list[dict[str, Any]], float, float]:
     t0, c0 = time.perf_counter(), time.process_time()
     fits = fit_models(table, PAPER_MODELS)
     return table.label, [f.to_json() for f in fits], time.perf_counter() - t0, time.process_time() - c0
@@ -57,7 +58,7 @@ def main() -> int:
     header = f"{'dataset':<14}{'g':>9}" + "".join(f"{m:>9}" for m in PAPER_MODELS)
     print(f"SAD of ln p over {tables[0].p.size} angles (natural log); -- = polynomial <= 0 on the grid")
     print(header)
-    rows = []
+    rows: list[dict[str, Any]] = []
     cpu_fit = sum(r[3] for r in results)
     for t, (label, fits, dt, _) in zip(tables, results):
         sads = {f["model"]: f["sad"] for f in fits}
@@ -68,8 +69,8 @@ def main() -> int:
     # how often each model is the best (lowest SAD) per dataset
     wins = {m: 0 for m in PAPER_MODELS}
     for r in rows:
-        ok = {m: s for m, s in r["sad"].items() if s is not None}
-        wins[min(ok, key=ok.get)] += 1
+        ok: dict[str, float] = {m: s for m, s in r["sad"].items() if s is not None}
+        wins[min(ok, key=ok.__getitem__)] += 1
     load_after = os.getloadavg()
     print(f"\nMie tables: {t_mie:.2f} s; fits (26 datasets x 9 models, {args.workers} workers): {t_fit:.2f} s wall, "
           f"{cpu_fit:.2f} CPU-s (= {cpu_fit / max(1, args.workers):.2f} s on {args.workers} idle cores; target <= 30 s)")

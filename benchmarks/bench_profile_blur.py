@@ -31,6 +31,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -65,6 +66,8 @@ def main() -> int:
         print(f"{work / 'world.yaml'}: the world has no lens_blur; pick a case with one", file=sys.stderr)
         return 2
     pb = load_problem(work / "session", args.channel)
+    y_shape = pb.y_shape
+    assert y_shape is not None  # load_problem always measures it
     # The scene at the session's own pixel scale (the rig's magnification, from the geometry).
     scene = RenderedScene(world, magnification=pb.geometry.magnification)
     row = pb.geometry.row
@@ -72,16 +75,16 @@ def main() -> int:
     blur = {**{p.name: p.neutral for p in LensBlur.parameters}, **world.effects["lens_blur"]}
     stray = world.effects.get("stray_light")
     t0 = time.perf_counter()
-    rows = []
+    rows: list[dict[str, Any]] = []
     for i, angle in enumerate(pb.angles_deg):
         rad = scene.radiance(float(angle), args.channel)
         bench = scene.image_effects(rad, direct=False)[row, c0:c1]
         prof = rad[row, c0:c1][None, None, :]
         # (shape, whether it is the blurred recording's, to be deblurred first)
-        shapes = {"lsf": (None, True), "as recorded": (pb.y_shape[i:i + 1], False),
-                  "recorded": (pb.y_shape[i:i + 1], True),
+        shapes = {"lsf": (None, True), "as recorded": (y_shape[i:i + 1], False),
+                  "recorded": (y_shape[i:i + 1], True),
                   "unblurred": (y_shape_from_rows(rad, np.ones(rad.shape, bool), row, (c0, c1))[None], False)}
-        entry: dict[str, object] = {"angle_deg": float(angle)}
+        entry: dict[str, Any] = {"angle_deg": float(angle)}
         for name, (h, recorded) in shapes.items():
             if h is None or recorded:
                 out = LensBlur.apply(prof, blur, pixel_mm=pb.geometry.pixel_mm, profile_only=True, y_shape=h)
@@ -96,18 +99,18 @@ def main() -> int:
         rows.append(entry)
     wall = time.perf_counter() - t0
     names = ("lsf", "as recorded", "recorded", "unblurred")
-    summary = {name: float(max(r[name]["max_abs_error"] for r in rows)) for name in names}  # type: ignore[index]
+    summary = {name: float(max(r[name]["max_abs_error"] for r in rows)) for name in names}
     print(f"case {args.case}, blur {blur}, {len(rows)} angles, {wall:.1f} s")
     print(f"{'angle':>6} " + " ".join(f"{n:>11}" for n in names) + "   (largest |profile / 2D - 1| over 16-px bins)")
     for r in rows:
-        print(f"{r['angle_deg']:6.0f} " + " ".join(f"{r[n]['max_abs_error']:11.3f}" for n in names))  # type: ignore[index]
+        print(f"{r['angle_deg']:6.0f} " + " ".join(f"{r[n]['max_abs_error']:11.3f}" for n in names))
     print(f"{'all':>6} " + " ".join(f"{summary[n]:11.3f}" for n in names))
     suffix = "" if args.cache == "bench" else f"_{args.cache}_{args.case}"
-    out = ROOT / "benchmarks" / "results" / f"bench_profile_blur{suffix}.json"
-    out.write_text(json.dumps({"case": args.case, "channel": args.channel, "blur": blur, "angles": rows,
-                               "max_abs_error": summary, "wall_s": wall, "bin_px": BIN_PX,
-                               "central_px": list(CENTRAL)}, indent=1))
-    print(f"wrote {out}")
+    dest = ROOT / "benchmarks" / "results" / f"bench_profile_blur{suffix}.json"
+    dest.write_text(json.dumps({"case": args.case, "channel": args.channel, "blur": blur, "angles": rows,
+                                "max_abs_error": summary, "wall_s": wall, "bin_px": BIN_PX,
+                                "central_px": list(CENTRAL)}, indent=1))
+    print(f"wrote {dest}")
     return 0
 
 

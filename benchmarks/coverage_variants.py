@@ -26,9 +26,10 @@ import shutil
 import sys
 import tempfile
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -39,6 +40,9 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_coverage import CHANNEL, MODEL, SCALE, TRUTH_SPP
 from bench_estimate import ANGLES, TRUTH
+
+if TYPE_CHECKING:
+    from estimate.problem import Problem
 
 
 def _seeds(text: str) -> list[int]:
@@ -56,7 +60,9 @@ def _fit_keeping_inputs(problem: Any, settings: Any) -> tuple[Any, dict[str, Any
     kept: dict[str, Any] = {}
     real_sandwich, real_combined = fit.sandwich_uncertainties, fit.combined_uncertainties
 
-    def sandwich(problem, params, names, scale, profiles, model_variance, jac, **kw):
+    def sandwich(problem: Problem, params: Mapping[str, float], names: Sequence[str], scale: float,
+                 profiles: np.ndarray, model_variance: np.ndarray, jac: Mapping[str, np.ndarray],
+                 **kw: Any) -> tuple[dict[str, float], float, float]:
         kept["sandwich"] = {
             "problem": SimpleNamespace(measured=np.asarray(problem.measured), variance=np.asarray(problem.variance),
                                        valid=np.asarray(problem.valid)),
@@ -68,7 +74,9 @@ def _fit_keeping_inputs(problem: Any, settings: Any) -> tuple[Any, dict[str, Any
         kept["sandwich"]["kw"]["jac_more"] = [{k: np.asarray(v) for k, v in j.items()} for j in kw.get("jac_more", ())]
         return real_sandwich(problem, params, names, scale, profiles, model_variance, jac, **kw)
 
-    def combined(base, spread, polish_se, drift, polish_sd, *, polished):
+    def combined(base: Mapping[str, float], spread: Mapping[str, float], polish_se: Mapping[str, float],
+                 drift: Mapping[str, float], polish_sd: Mapping[str, float], *,
+                 polished: bool) -> tuple[dict[str, float], list[str]]:
         kept["combined"] = {"base": dict(base), "spread": dict(spread), "polish_se": dict(polish_se),
                             "drift": dict(drift), "polish_sd": dict(polish_sd), "polished": polished}
         return real_combined(base, spread, polish_se, drift, polish_sd, polished=polished)
@@ -106,11 +114,11 @@ def capture(seed: int, out: Path) -> None:
 
 
 def _interval(k: dict[str, Any], *, polish_se: bool = True, clip_b: bool = False, polish_corr: bool = False,
-              fixed_b: float | None = None, **over: Any) -> dict[str, float]:
+              fixed_b: float | None = None, **over: Any) -> tuple[dict[str, float], dict[str, dict[str, float]]]:
     """A kept fit's combined intervals, recomputed from its kept inputs with the sandwich's
     arguments changed by `over` (and the polish points' standard error left out without
     `polish_se`; the data meat's excess share clipped at 0, as until session 36, with
-    `clip_b`; or set to `fixed_b`, an oracle). The covariance that goes with them is under the key "covariance"; with
+    `clip_b`; or set to `fixed_b`, an oracle), and the covariance that goes with them; with
     `polish_corr` the polish points' standard error carries the correlation of its steps'
     render noise there (`sandwich_uncertainties`' `render_correlation_out`)."""
     from estimate import uncertainties as un
@@ -137,7 +145,7 @@ def _interval(k: dict[str, Any], *, polish_se: bool = True, clip_b: bool = False
     # The averaged iterates' covariance: their spread on the diagonal (none once polished).
     it_cov = np.diag([c["spread"].get(n, 0.0) ** 2 for n in names])
     pse = c["polish_se"] if polish_se and polish_corr else None
-    return {**out, "covariance": un.combined_covariance(names, out, sw, it_cov, pse, step if pse else None)}
+    return out, un.combined_covariance(names, out, sw, it_cov, pse, step if pse else None)
 
 
 def _excess(k: dict[str, Any]) -> dict[str, float]:
@@ -153,6 +161,13 @@ def _excess(k: dict[str, Any]) -> dict[str, float]:
 DERIVED = ("sigma_a", "sigma_s_reduced", "g")
 
 
+def _number(x: float | str | None) -> float:
+    """A value of `derived_quantities`' entries: a float (the entries' type also covers their
+    unit's str and an unknown uncertainty's None)."""
+    assert isinstance(x, float), x
+    return x
+
+
 def analyse(d: Path) -> None:
     from estimate.derived import derived_quantities
 
@@ -160,7 +175,7 @@ def analyse(d: Path) -> None:
     if not draws:
         raise SystemExit(f"no draws in {d}: run `capture` first")
 
-    variants = {
+    variants: dict[str, dict[str, Any]] = {  # _interval's keyword arguments
         "as fitted": {},
         "data meat, b clipped at 0 (sessions 30-36)": {"data_meat": True, "clip_b": True},
         "data meat, b its posterior mean, the polish's share on the diagonal": {"data_meat": True},
@@ -185,7 +200,7 @@ def analyse(d: Path) -> None:
     # reproduce their own intervals (later ones did too, until the recipe changed again).
     same = [k for k in draws if not k["sandwich"]["kw"].get("data_meat")]
     if same:
-        worst = max(abs(_interval(k)[p] / k["uncertainties"][p] - 1.0) for k in same for p in TRUTH)
+        worst = max(abs(_interval(k)[0][p] / k["uncertainties"][p] - 1.0) for k in same for p in TRUTH)
         print(f"recomputed 'as fitted' against the fits' own intervals ({len(same)} draws fitted with "
               f"session 29's recipe): largest relative difference {worst:.2g}")
     print("the data meat's excess share per draw: " + "; ".join(
@@ -201,15 +216,15 @@ def analyse(d: Path) -> None:
     for name, over in variants.items():
         zs: dict[str, list[float]] = {p: [] for p in cols}
         for k in draws:
-            u = _interval(k, **over)
+            u, cov = _interval(k, **over)
             for p in TRUTH:
                 if u.get(p, 0) > 0 and math.isfinite(u[p]):
                     zs[p].append((k["parameters"][p] - TRUTH[p]) / u[p])
-            dq = derived_quantities(MODEL, k["parameters"], u["covariance"])
+            dq = derived_quantities(MODEL, k["parameters"], cov)
             for p in DERIVED:
                 du = dq[p]["uncertainty"]
                 if du:
-                    zs[p].append((dq[p]["value"] - truth_derived[p]["value"]) / du)
+                    zs[p].append((_number(dq[p]["value"]) - _number(truth_derived[p]["value"])) / _number(du))
         print(f"| {name} | " + " | ".join(
             f"{math.sqrt(np.mean(np.square(v))):.2f} ({100 * np.mean(np.abs(v) <= 1):.0f} %, max {np.max(np.abs(v)):.1f})"
             if v else "-" for v in zs.values()) + " |")
@@ -255,7 +270,7 @@ def analyse_paper(d: Path) -> None:
         t, p = k["truth"], k["parameters"]
         cells = []
         for m, over in meats.items():
-            u = _interval(k, **over)
+            u, _ = _interval(k, **over)
             z = {q: (p[q] - t[q]) / u[q] for q in ("sigma_t", "albedo")}
             for q, v in z.items():
                 zs[m][q].append(v)

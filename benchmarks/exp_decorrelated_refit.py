@@ -23,6 +23,7 @@ own (`rig diagnose --refits decorrelated`), dividing by the data's noise (the ya
 import json
 import sys
 import time
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +39,7 @@ from estimate.diagnose import (
     _start,
     _yardstick,
 )
+from estimate.model_protocols import ProfileModel
 from estimate.refit import DECORRELATED, DEFAULT_SEED, evaluate, refit
 
 CASE = sys.argv[1] if len(sys.argv) > 1 else "beam_halo-1"
@@ -62,7 +64,7 @@ floor = before.residuals.noise_scale
 print(f"before {time.perf_counter() - t:.0f} s; floor {np.round(floor, 3)}", flush=True)
 
 
-def indep(model, p):
+def indep(model: ProfileModel, p: Mapping[str, float]) -> float:
     return evaluate(model, p, rec, 0, spp=1024, seed=DEFAULT_SEED, repeats=4, angle_idx=train,
                     noise_variance=yard).residuals.chi2_adjusted
 

@@ -36,6 +36,7 @@ import math
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -46,6 +47,9 @@ from estimate.beam import BeamProfile, beam_frame  # noqa: E402
 from estimate.geometry import PixelWindow, RigGeometry  # noqa: E402
 from estimate.mitsuba_phase import inverse_cdf_table  # noqa: E402
 from estimate.phase_exponential import ExponentialPhase  # noqa: E402
+
+if TYPE_CHECKING:
+    from estimate.forward import ForwardModel
 
 #: the bench's beam (benchmarks/worlds/*: a Gaussian of sigma 0.25 mm)
 BEAM_SIGMA_MM = 0.25
@@ -67,7 +71,7 @@ def light_trace(geo: RigGeometry, window: PixelWindow, phi_deg: float, sigma_t: 
     [y_lo - dy, y_hi - dy]. Every vertex then adds to the profile row instead of the few
     that land in it (a 66-um row against the beam's and the light's spread in y)."""
     import drjit as dr
-    from drjit.llvm import PCG32, Bool, Float
+    from drjit.llvm import PCG32, Bool, Float, UInt64
     from drjit.llvm import UInt32 as U
 
     D = geo.thickness_mm
@@ -76,7 +80,7 @@ def light_trace(geo: RigGeometry, window: PixelWindow, phi_deg: float, sigma_t: 
     cx, cy = geo.center_px
     H, W = window.height, window.width
     d, e_u, e_v = beam_frame(phi_deg)
-    rng = PCG32(n_paths, initstate=seed)
+    rng = PCG32(n_paths, initstate=UInt64(seed))
     # Gaussian irradiance exp(-r^2 / (2 sigma^2)): r by the inverse of its radial CDF.
     r = BEAM_SIGMA_MM * dr.sqrt(-2.0 * dr.log(1.0 - rng.next_float32()))
     s_, c_ = dr.sincos(2.0 * math.pi * rng.next_float32())
@@ -153,7 +157,7 @@ def light_trace(geo: RigGeometry, window: PixelWindow, phi_deg: float, sigma_t: 
     return np.array(image, dtype=np.float64).reshape(H, W)
 
 
-def camera_trace(model, values: dict[str, float], window: PixelWindow, phi_deg: float, spp: int,
+def camera_trace(model: ForwardModel, values: dict[str, float], window: PixelWindow, phi_deg: float, spp: int,
                  seed: int) -> np.ndarray:
     """The forward model's radiance of `window` (H, W) at one angle."""
     return model._render_radiance(values, [phi_deg], window, spp, seed)[0]

@@ -8,7 +8,10 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterable
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from estimate.fit import FitSettings
 
 
 def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
@@ -34,7 +37,7 @@ def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
     return out
 
 
-def settings_with(overrides: dict[str, Any], **base: Any):
+def settings_with(overrides: dict[str, Any], **base: Any) -> FitSettings:
     """`FitSettings.for_variant(**base)` (what `rig estimate` starts from on this machine) with
     the overrides applied and checked as `FitSettings.from_dict` checks a results file (a bad
     value raises `ModelParameterError`, one line)."""
