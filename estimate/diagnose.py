@@ -2752,6 +2752,46 @@ def _resolve_fit(session_dir: Any, fit_run: Any) -> Any:
     return cand
 
 
+def _number(v: Any, finite: bool = True) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and (math.isfinite(v) or not finite)
+
+
+def _base_fit(entry: Any, ch: str, settings: Mapping[str, Any], base_exts: list[str], where: str) -> BaseFit:
+    """Channel `ch`'s entry of a run's results.yaml as the `BaseFit` to diagnose; a hand-edited
+    entry (not a mapping, a value that is not a finite number, a base or phase parameter
+    missing) raises `DataError` naming the key and `where`, before any channel is diagnosed."""
+    from estimate.fit import model_phase
+    from estimate.light_paths import phase_parameter_names
+
+    def bad(what: str) -> DataError:
+        return DataError(f"{where}: channels.{ch}{what}; restore the file or run the estimate again")
+
+    if not isinstance(entry, Mapping):
+        raise bad(f" is {type(entry).__name__}, not a mapping")
+    phase = model_phase(str(entry.get("model") or settings.get("model") or "exp3"))
+    params = entry.get("parameters")
+    if not isinstance(params, Mapping):
+        raise bad(f".parameters is {type(params).__name__}, not a mapping of names to numbers")
+    for k in ("sigma_t", "albedo", *phase_parameter_names(phase)):
+        if k not in params:
+            raise bad(f".parameters has no {k} (a {phase} fit has sigma_t, albedo and its phase parameters)")
+    unc = entry.get("uncertainties") or {}
+    if not isinstance(unc, Mapping):
+        raise bad(f".uncertainties is {type(unc).__name__}, not a mapping of names to numbers")
+    for k, v in params.items():
+        if not _number(v):
+            raise bad(f".parameters.{k} = {v!r} is not a finite number")
+    for k, v in unc.items():
+        # NaN: a parameter the fit could not bound (written by the estimator as .nan)
+        if not (v is None or _number(v, finite=False)):
+            raise bad(f".uncertainties.{k} = {v!r} is not a number")
+    scale = entry.get("scale", 1.0)
+    if not _number(scale):
+        raise bad(f".scale = {scale!r} is not a finite number")
+    return BaseFit({k: float(v) for k, v in params.items()}, float(scale), phase, base_exts,
+                   {k: float(v) for k, v in unc.items() if v is not None})
+
+
 def _check_same_session(session_dir: Any, run_doc: Mapping[str, Any], run_dir: Any) -> None:
     import hashlib
     from pathlib import Path
@@ -2760,6 +2800,9 @@ def _check_same_session(session_dir: Any, run_doc: Mapping[str, Any], run_dir: A
 
     session = Path(session_dir).resolve()
     rec = (run_doc.get("session") or {})
+    if not isinstance(rec, Mapping):
+        raise DataError(f"{Path(run_dir) / 'results.yaml'}: session is {type(rec).__name__}, not a mapping with "
+                        "path and manifest_sha256; restore the file or run the estimate again")
     path = rec.get("path")
     sha = rec.get("manifest_sha256")
     manifest = session / "session.yaml"
@@ -2767,6 +2810,10 @@ def _check_same_session(session_dir: Any, run_doc: Mapping[str, Any], run_dir: A
     # The manifest checksum decides (a session directory may have been moved or copied);
     # the recorded path only when there is no checksum to compare.
     other = (sha != here) if (sha and here) else bool(path and Path(path).resolve() != session)
+    if other and path and Path(path).resolve() == session:
+        # The same folder, a different manifest: session.yaml was edited or damaged since the fit.
+        raise DataError(f"{manifest} has changed since fit {run_dir} was made from it (its checksum differs); "
+                        "restore it, or run rig estimate again on the session as it is")
     if other:
         raise DataError(f"fit {run_dir} was made from another session ({path}), not {session}")
 
@@ -2802,7 +2849,6 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
 
     import yaml
 
-    from estimate.fit import model_phase
     from estimate.forward import ForwardModel
     from estimate.problem import load_problem
     from estimate.results import new_run_dir, read_run, write_run
@@ -2829,9 +2875,25 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
         check_engine(engine)   # a hand-edited results.yaml's, before any work
     if spp is None:
         spp = default_diagnose_spp(engine=engine)
+    where = str(run_dir / "results.yaml")
+    if not isinstance(settings.get("extensions") or [], list):
+        raise DataError(f"{where}: settings.extensions = {settings.get('extensions')!r} is not a list of extension "
+                        "names; correct it, e.g. [stray_light]")
     base_exts = list(settings.get("extensions") or [])
     chans = doc.get("channels") or {}
+    if not isinstance(chans, Mapping):
+        raise DataError(f"{where}: channels is {type(chans).__name__}, not a mapping of channel names to fits; "
+                        "restore the file or run the estimate again")
+    if not chans:
+        raise DataError(f"{where}: channels holds no fitted channel; restore the file or run the estimate again")
+    columns = settings.get("columns")
+    if columns is not None and not (isinstance(columns, int) and not isinstance(columns, bool)):
+        raise DataError(f"{where}: settings.columns = {columns!r} is not a whole number of pixels; correct it")
     chosen = list(channels) if channels else list(chans)
+    for ch in chosen:
+        if ch not in chans:
+            raise EstimateError(f"channel {ch!r} is not in fit {run_dir.name} (has {', '.join(chans)})")
+    bases = {ch: _base_fit(chans[ch], ch, settings, base_exts, where) for ch in chosen}
     out: dict[str, Any] = {"format": "rig-diagnosis/1", "fit_run": str(run_dir), "session": str(session.resolve()),
                            "created": datetime.now(UTC).isoformat(timespec="seconds"),
                            "settings": {"spp": spp, "repeats": repeats, "iterations": iterations, "seed": seed,
@@ -2844,11 +2906,10 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
     problems: dict[str, Any] = {}
     phases: dict[str, str] = {}
     for ch in chosen:
-        if ch not in chans:
-            raise EstimateError(f"channel {ch!r} is not in fit {run_dir.name} (has {', '.join(chans)})")
         c = chans[ch]
-        pb = load_problem(session, ch, settings.get("columns"), allow_partial=bool(c.get("missing_stacks")))
-        phase = model_phase(str(c.get("model") or settings.get("model") or "exp3"))
+        pb = load_problem(session, ch, columns, allow_partial=bool(c.get("missing_stacks")))
+        base = bases[ch]
+        phase = base.phase
         cache: dict[tuple[str, ...], Any] = {}
 
         def make_model(exts: Sequence[str], _pb: Any = pb, _phase: str = phase,
@@ -2859,10 +2920,6 @@ def run_diagnosis(session_dir: Any, fit_run: Any = None, *, effects: Sequence[st
                                            profile_y_shape=_pb.y_shapes(), engine=engine,
                                            profile_merge_fill=_pb.merge_fills(), beam_fill=_pb.beam_fill)
             return _cache[key]
-
-        base = BaseFit({k: float(v) for k, v in (c.get("parameters") or {}).items()}, float(c.get("scale", 1.0)),
-                       phase, base_exts, {k: float(v) for k, v in (c.get("uncertainties") or {}).items()
-                                          if v is not None})
 
         def round_fit(refitted: Evaluation, _pb: Any = pb, _phase: str = phase, _ch: str = ch,
                       _make: Any = make_model) -> EstimatorFit:

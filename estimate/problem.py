@@ -389,6 +389,8 @@ def _load_beam(session: Any, cal: dict[str, Any], channel: str, pitch_mm: float,
     if not isinstance(entry, dict) or "map" not in entry:
         raise DataError(f"the calibration of {session.path} has no beam map for channel {channel!r}")
     path = Path(session.calibration_dir) / str(entry["map"])
+    if not path.is_file():
+        raise DataError(f"beam map {path} is missing; copy it back from the calibration rig calibrate-beam wrote")
     try:
         img = read_exr(path)
         rad = np.asarray(img["radiance"], dtype=np.float64)
@@ -462,18 +464,21 @@ def load_problem(session_dir: str | os.PathLike[str], channel: str, columns: int
 
     # Stacks: done and sound, else missing.
     problems = s.verify()
-    bad_files = {p.split(" ", 1)[0] for p in problems}
+    # file -> what is wrong with it, as `Session.verify` words it ("is missing", "is corrupt
+    # (checksum mismatch)", "is unreadable: ...")
+    bad_files = {p.split(" ", 1)[0]: p.split(" ", 1)[1] if " " in p else "is damaged" for p in problems}
     cal_bad = [p for p in problems if p.startswith("calibration/")]
     if cal_bad:
-        raise DataError(f"calibration of {s.path} is damaged: {cal_bad[0]}")
+        raise DataError(f"calibration of {s.path} is damaged: {cal_bad[0]}; copy it back from the folder "
+                        "rig calibrate-beam wrote")
     recs = [r for r in s.stacks() if r.key.filter == channel]
     missing: list[str] = []
     usable = []
     for r in recs:
         if not r.done:
             missing.append(f"{r.id} (not captured)")
-        elif any(f.file in bad_files for f in r.files.values() if f.file.startswith("hdr/")):
-            missing.append(f"{r.id} (corrupt)")
+        elif bad := [f.file for f in r.files.values() if f.file.startswith("hdr/") and f.file in bad_files]:
+            missing.append(f"{r.id} ({bad[0]} {bad_files[bad[0]]})")
         else:
             usable.append(r)
     if missing and not allow_partial:

@@ -22,7 +22,7 @@ import yaml
 
 from estimate.errors import DataError
 
-__all__ = ["FORMAT", "list_runs", "new_run_dir", "plot_channel", "read_run", "write_run"]
+__all__ = ["FORMAT", "check_writable", "list_runs", "new_run_dir", "plot_channel", "read_run", "write_run"]
 
 FORMAT = "rig-estimate/1"
 ESTIMATES_DIR = "estimates"
@@ -35,6 +35,22 @@ def _atomic_bytes(path: Path, data: bytes) -> None:
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
+
+
+def check_writable(session_dir: str | os.PathLike[str], kind: str = ESTIMATES_DIR) -> None:
+    """Refuse, before any work, a SESSION/<kind> that new runs cannot be written into (DataError:
+    a file in its place, a read-only folder); writes and removes a probe file, creates nothing."""
+    root = Path(session_dir) / kind
+    if root.exists() and not root.is_dir():
+        raise DataError(f"{root} is a file, not a folder of runs; move it away so that runs can be written there")
+    where = root if root.is_dir() else Path(session_dir)
+    probe = where / f".write-probe-{os.getpid()}"
+    try:
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise DataError(f"cannot write runs into {root}: {e.strerror or e}; make the session folder writable "
+                        "or work on a writable copy of it") from None
 
 
 def new_run_dir(session_dir: str | os.PathLike[str], model: str, *, kind: str = ESTIMATES_DIR) -> Path:

@@ -5,6 +5,7 @@ estimate run (tables + plots) and every diagnosis run. Plots are embedded as bas
 from __future__ import annotations
 
 import base64
+import contextlib
 import html
 import io
 import os
@@ -72,12 +73,53 @@ def _beam_plots(cal_dir: Path, cal: dict[str, Any]) -> str:
     return "".join(out)
 
 
+def _run_section(rd: Path, doc: dict[str, Any]) -> list[str]:
+    """The report's section of one estimate run (raises on a hand-edited results.yaml of the wrong shape)."""
+    parts = [f"<h3>{html.escape(str(doc['run_id']))}</h3>"]
+    st = doc.get("settings") or {}
+    exts = st.get("extensions") or []
+    fit_raw = st.get("fit")
+    fit_st: dict = fit_raw if isinstance(fit_raw, dict) else {}
+    # Runs before the light engine (session 61) were rendered from the camera.
+    engine = fit_st.get("engine") or ("camera" if fit_st else "-")
+    parts.append(f"<p>model {html.escape(str(st.get('model')))}, extensions "
+                 f"{html.escape(', '.join(map(str, exts)) if exts else 'none')}, scale "
+                 f"{html.escape(str(st.get('scale') or '-'))}, render engine {html.escape(str(engine))}, "
+                 f"software {html.escape(_fmt(doc.get('software')))}</p>")
+    # A calibrated scale (the default) is not fitted and has no interval of its own.
+    scale_unc_missing = "from the calibration" if st.get("scale") == "calibrated" else "-"
+    rows = []
+    for f, ch in (doc.get("channels") or {}).items():
+        for k, v in ch["parameters"].items():
+            rows.append([f, k, v, (ch.get("uncertainties") or {}).get(k, "fixed")])
+        for k, d in (ch.get("derived") or {}).items():
+            rows.append([f, f"{k} [{d.get('unit') or '-'}] (derived)", d.get("value"), d.get("uncertainty")])
+        s_unc = ch.get("scale_uncertainty")
+        rows.append([f, "scale", ch["scale"], scale_unc_missing if s_unc is None else s_unc])
+        rows.append([f, "loss / reduced chi2", ch["loss"], ch["reduced_chi2"]])
+        rows.append([f, "iterations / time [s]", ch["iterations"], ch["time_s"]])
+        if ch.get("still_drifting"):
+            rows.append([f, "still drifting when the fit stopped", ", ".join(ch["still_drifting"]),
+                         "uncertainties include the last drift"])
+    parts.append(_table(rows, ["channel", "parameter", "value", "1-sigma"]))
+    for png in sorted(rd.glob("*.png")):
+        parts.append(_img(png, png.name))
+    return parts
+
+
 def write_report(session_dir: str | os.PathLike[str], out: str | os.PathLike[str] | None = None) -> Path:
     """Write SESSION/report.html (or `out`) and return its path."""
     from capture.session import Session
+    from estimate.errors import DataError
     from estimate.results import list_runs, read_run
+    from rig.errors import UsageError
 
     s = Session.open(session_dir)
+    path = Path(out) if out else s.path / "report.html"
+    if path.is_dir() or not path.parent.is_dir():
+        raise UsageError(f"cannot write the report to {path}: "
+                         + ("it is a folder" if path.is_dir() else f"folder {path.parent} does not exist")
+                         + "; pass --out FILE.html in an existing folder")
     parts = [f"<h1>rig session {html.escape(str(s.path))}</h1>",
              f"<p>report written {datetime.now(UTC).isoformat(timespec='seconds')}</p>"]
     summ = s.summary()
@@ -111,39 +153,10 @@ def write_report(session_dir: str | os.PathLike[str], out: str | os.PathLike[str
         parts.append("<p>no estimate runs yet (rig estimate SESSION)</p>")
     for rd in runs:
         try:
-            doc = read_run(rd)
-        except Exception as e:  # noqa: BLE001
-            parts.append(f"<h3>{html.escape(rd.name)}</h3><p>{html.escape(str(e))}</p>")
-            continue
-        parts.append(f"<h3>{html.escape(doc['run_id'])}</h3>")
-        st = doc.get("settings") or {}
-        exts = st.get("extensions") or []
-        fit_raw = st.get("fit")
-        fit_st: dict = fit_raw if isinstance(fit_raw, dict) else {}
-        # Runs before the light engine (session 61) were rendered from the camera.
-        engine = fit_st.get("engine") or ("camera" if fit_st else "-")
-        parts.append(f"<p>model {html.escape(str(st.get('model')))}, extensions "
-                     f"{html.escape(', '.join(map(str, exts)) if exts else 'none')}, scale "
-                     f"{html.escape(str(st.get('scale') or '-'))}, render engine {html.escape(str(engine))}, "
-                     f"software {html.escape(_fmt(doc.get('software')))}</p>")
-        # A calibrated scale (the default) is not fitted and has no interval of its own.
-        scale_unc_missing = "from the calibration" if st.get("scale") == "calibrated" else "-"
-        rows = []
-        for f, ch in (doc.get("channels") or {}).items():
-            for k, v in ch["parameters"].items():
-                rows.append([f, k, v, (ch.get("uncertainties") or {}).get(k, "fixed")])
-            for k, d in (ch.get("derived") or {}).items():
-                rows.append([f, f"{k} [{d.get('unit') or '-'}] (derived)", d.get("value"), d.get("uncertainty")])
-            s_unc = ch.get("scale_uncertainty")
-            rows.append([f, "scale", ch["scale"], scale_unc_missing if s_unc is None else s_unc])
-            rows.append([f, "loss / reduced chi2", ch["loss"], ch["reduced_chi2"]])
-            rows.append([f, "iterations / time [s]", ch["iterations"], ch["time_s"]])
-            if ch.get("still_drifting"):
-                rows.append([f, "still drifting when the fit stopped", ", ".join(ch["still_drifting"]),
-                             "uncertainties include the last drift"])
-        parts.append(_table(rows, ["channel", "parameter", "value", "1-sigma"]))
-        for png in sorted(rd.glob("*.png")):
-            parts.append(_img(png, png.name))
+            parts.extend(_run_section(rd, read_run(rd)))
+        except Exception as e:  # noqa: BLE001  (a hand-edited results.yaml: the page says so, the rest is shown)
+            what = str(e) if isinstance(e, DataError) else f"{rd / 'results.yaml'}: malformed ({type(e).__name__}: {e})"
+            parts.append(f"<h3>{html.escape(rd.name)}</h3><p>{html.escape(what)}</p>")
     diag = sorted((s.path / "diagnoses").glob("*/diagnosis.yaml")) if (s.path / "diagnoses").is_dir() else []
     if diag:
         parts.append("<h2>Diagnoses</h2>")
@@ -161,8 +174,13 @@ def write_report(session_dir: str | os.PathLike[str], out: str | os.PathLike[str
     style = ("<style>body{font-family:sans-serif;max-width:1200px;margin:auto}table{border-collapse:collapse;margin:6px 0}"
              "td,th{border:1px solid #ccc;padding:2px 6px;font-size:13px}img{max-width:100%;margin:4px}</style>")
     page = f"<!doctype html><html><head><meta charset='utf-8'><title>rig report</title>{style}</head><body>{''.join(parts)}</body></html>"
-    path = Path(out) if out else s.path / "report.html"
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(page, encoding="utf-8")
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(page, encoding="utf-8")
+        os.replace(tmp, path)
+    except OSError as e:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise UsageError(f"cannot write the report to {path}: {e.strerror or e}; "
+                         "pass --out FILE.html in a writable folder") from None
     return path

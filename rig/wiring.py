@@ -15,6 +15,7 @@ from urllib.parse import parse_qs, urlencode, urlsplit
 from drivers.interfaces import AngleRange, Camera, FilterChanger, RotationStage
 from drivers.iolog import Transcript
 from rig.config import RigConfig
+from rig.errors import UsageError
 
 #: pyserial URL scheme of each serial driver's twin.
 SIM_SCHEMES = {"sigma-koki": "sim-shot702", "fw102c": "sim-fw102c"}
@@ -147,6 +148,18 @@ def open_changer(cfg: RigConfig, *, sim: bool = False, transcript: Transcript | 
     return FW102C(port, positions=f.positions, transcript=transcript)  # type: ignore[arg-type]
 
 
+def open_transcript(log_io: str | None) -> Transcript | None:
+    """The byte transcript of ``--log-io`` (appended to), or None; a path that cannot be
+    written is a one-line UsageError before any device is opened."""
+    if not log_io:
+        return None
+    try:
+        return Transcript(log_io)
+    except OSError as e:
+        raise UsageError(f"--log-io {log_io}: cannot write it ({e.strerror or e}); give a file in an existing, "
+                         "writable folder") from None
+
+
 def open_rig(cfg: RigConfig, *, sim: bool = False, log_io: str | None = None, scene: object | None = None) -> Rig:
     """Open every configured device. With ``sim`` the twins are used (and the bench prepared).
 
@@ -159,7 +172,7 @@ def open_rig(cfg: RigConfig, *, sim: bool = False, log_io: str | None = None, sc
     uses_sim = sim or _is_sim(cfg.stage.port, False) or _is_sim(cfg.filter.port, False)
     if uses_sim:
         prepare_bench(cfg, scene)
-    transcript = Transcript(log_io) if log_io else None
+    transcript = open_transcript(log_io)
     opened: list = []
     try:
         stage = open_stage(cfg, sim=sim, transcript=transcript)

@@ -386,6 +386,49 @@ def test_calibration_sets_the_band_and_is_attached(tmp_path: Path, capsys: pytes
         assert "rotation_zero_deg" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
 
 
+def test_calibration_without_a_beam_map_for_a_planned_filter_is_refused(tmp_path: Path,
+                                                                       capsys: pytest.CaptureFixture) -> None:
+    """A calibration with beam maps must hold one for every filter captured (rig estimate needs
+    it): refused before anything moves, not found out after the capture."""
+    cal = tmp_path / "cal"
+    cal.mkdir()
+    (cal / "beam_g.exr").write_bytes(b"")
+    (cal / "calibration.yaml").write_text(yaml.safe_dump(
+        {"beam": {"center_px": [256.0, 256.0], "filters": {"g": {"map": "beam_g.exr"}, "b": {"map": "beam_b.exr"}}},
+         "rotation_zero_deg": 180.0}))
+    log = tmp_path / "io.log"
+    for filters, missing in (("rg", "'r'"), ("b", "'b'")):
+        out = tmp_path / f"out-{filters}"
+        assert main(["capture", "--angles", "2", "--filters", filters, "--out", str(out), "--calibration", str(cal),
+                     "--config", str(_config(tmp_path)), "--sim", "--log-io", str(log), *SMALL]) == 2
+        err = capsys.readouterr().err.strip()
+        assert f"no beam map for filter {missing}" in err and len(err.splitlines()) == 1, err
+        assert not out.exists() and _moves(log) == []
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["snap", "--exposure", "0"], "--exposure 0: give a positive exposure time"),
+    (["snap", "--exposure", "nan"], "--exposure nan: give a positive exposure time"),
+    (["snap", "--angle", "nan"], "--angle nan: outside the stage's allowed range"),
+    (["snap", "--angle", "9999"], "--angle 9999: outside the stage's allowed range"),
+    (["snap", "--log-io", "{tmp}/nowhere/io.log"], "--log-io {tmp}/nowhere/io.log: cannot write it"),
+    (["devices", "--log-io", "{tmp}/nowhere/io.log"], "--log-io {tmp}/nowhere/io.log: cannot write it"),
+    (["devices", "--log-io", "{tmp}"], "cannot write it (Is a directory)"),
+    (["calibrate-beam", "--filters", "g", "--log-io", "{tmp}/nowhere/io.log"], "its directory does not exist"),
+])
+def test_device_commands_refuse_bad_flags_in_one_line_exit_2(argv: list[str], needle: str, tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture) -> None:
+    """Bad flags are bad input (2), not a device fault (3), and never a traceback; nothing is written."""
+    tmp = str(tmp_path)
+    out = tmp_path / "f.npz" if argv[0] == "snap" else tmp_path / "cal"
+    extra = ["--out", str(out)] if argv[0] != "devices" else []
+    args = [a.replace("{tmp}", tmp) for a in argv]
+    assert main([args[0], "--config", str(_config(tmp_path)), "--sim", *extra, *args[1:]]) == 2
+    err = capsys.readouterr().err.strip()
+    assert needle.replace("{tmp}", tmp) in err and len(err.splitlines()) == 1, err
+    assert not out.exists() and not (tmp_path / "nowhere").exists()
+
+
 @pytest.mark.skipif(os.name != "posix", reason="flock")
 def test_info_on_missing_dir_is_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     assert main(["info", str(tmp_path / "nope")]) == 2

@@ -105,11 +105,76 @@ def test_report_cells_round_floats_wherever_they_are():
     (["--final-spp", "1"], "--final-spp 1: use at least 2 samples per pixel"),
     (["--degree", "three"], "--degree three: use a whole number 0..12 or auto"),
     (["--degree", "13"], "--degree 13: use 0..12 or auto"),
+    (["--channels", ","], "--channels ',': give channel names"),
+    (["--channels", "gg"], "--channels 'gg': a channel is named twice"),
+    (["--columns", "0"], "--columns 0: use at least 2 pixels"),
+    (["--seed", "-1"], "--seed -1: use a whole number >= 0"),
+    (["--extensions", "stray_light,moonlight"], "--extensions: unknown extension 'moonlight'; known: "),
+    (["--time-limit", "0"], "--time-limit 0: give a positive number of seconds"),
+    (["--time-limit", "nan"], "--time-limit nan: give a positive number of seconds"),
 ])
 def test_bad_input_one_line_exit_2(session, capsys, extra, message):
+    runs = sorted((session / "estimates").glob("*")) if (session / "estimates").is_dir() else []
     assert main(["estimate", str(session), "--max-iterations", "1", *extra]) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1
+    # no run directory, not even an empty one, is left behind
+    assert (sorted((session / "estimates").glob("*")) if (session / "estimates").is_dir() else []) == runs
+
+
+def test_time_limit_bounds_each_fit_and_the_run_says_what_it_cut(session, capsys):
+    """`--time-limit` is the fit's budget (FitSettings.time_limit_s, recorded in the run): a
+    spent one stops the iterations after one and starts no polish step, and the run still
+    has its evaluation and intervals."""
+    argv = ["estimate", str(session), "--channels", "g", "--columns", "32", "--spp-max", "32", "--polish-steps", "2",
+            "--time-limit", "1e-6", "--json"]
+    assert main(argv) == 0
+    (run,) = json.loads(capsys.readouterr().out)["runs"]
+    ch = run["channels"]["g"]
+    assert ch["iterations"] == 1 and ch["stop_reason"].startswith("time_limit; the time limit cut the Gauss-Newton")
+    assert all(v > 0 for v in ch["uncertainties"].values())
+    doc = yaml.safe_load((Path(run["path"]) / "results.yaml").read_text())
+    assert doc["settings"]["fit"]["time_limit_s"] == 1e-6 and doc["channels"]["g"]["polish"] == []
+
+
+def test_unwritable_estimates_folder_fails_before_fitting(session, tmp_path, capsys, monkeypatch):
+    """A session whose estimates/ cannot be written is refused before the fit (which would
+    otherwise be lost), in one line; what is there stays as it was."""
+    import shutil
+
+    import estimate.fit
+
+    copy = tmp_path / "s"
+    shutil.copytree(session, copy, ignore=shutil.ignore_patterns("estimates"))
+    (copy / "estimates").write_text("not a folder")
+    monkeypatch.setattr(estimate.fit, "fit_channel", lambda *a, **k: pytest.fail("fitted"))
+    assert main(["estimate", str(copy), "--channels", "g", "--columns", "32", "--max-iterations", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "estimates is a file" in err and len(err.splitlines()) == 1 and "Traceback" not in err
+    assert (copy / "estimates").read_text() == "not a folder"
+
+
+def test_report_shows_a_hand_edited_run_and_refuses_an_unwritable_page(session, tmp_path, capsys):
+    """A results.yaml of the wrong shape is named in the page (the other runs still shown), not a
+    traceback; a report that cannot be written is one line, exit 2."""
+    import shutil
+
+    copy = tmp_path / "s"
+    shutil.copytree(session, copy, ignore=shutil.ignore_patterns("estimates", "report.html"))
+    for name, doc in (("20260101T000000_exp3", {"channels": {"g": {}}}),
+                      ("20260101T000001_exp3", {"run_id": "x", "channels": ["g"]}),
+                      ("20260101T000002_exp3", {"run_id": "y", "settings": "oops"})):
+        (copy / "estimates" / name).mkdir(parents=True)
+        (copy / "estimates" / name / "results.yaml").write_text(yaml.safe_dump({"format": "rig-estimate/1", **doc}))
+    assert main(["report", str(copy)]) == 0
+    captured = capsys.readouterr()
+    assert captured.err == ""
+    html = (copy / "report.html").read_text()
+    assert html.count("results.yaml: malformed (") == 3 and "KeyError" in html and "AttributeError" in html
+    for out, needle in ((tmp_path / "nowhere" / "r.html", "does not exist"), (tmp_path, "it is a folder")):
+        assert main(["report", str(copy), "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert needle in err and "--out" in err and len(err.splitlines()) == 1 and "Traceback" not in err
 
 
 def test_free_scale_is_fitted(session, capsys):

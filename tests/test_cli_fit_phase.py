@@ -99,6 +99,16 @@ def test_bad_arguments_are_one_line_exit_2(tmp_path: Path, capsys: pytest.Captur
     assert len(err.strip().splitlines()) == 1 and needle in err
 
 
+def test_unwritable_output_is_one_line_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """An output file that cannot be written (here a folder in its place) is one line, exit 2."""
+    out = tmp_path / "out"
+    (out / "sad_table.csv").mkdir(parents=True)
+    rc, _, err = _run(capsys, "fit-phase", str(_hg_csv(tmp_path / "hg.csv")), "--models", "hg", "--out", str(out),
+                      "--no-plots")
+    assert rc == 2 and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert f"--out {out}: cannot write sad_table.csv" in err
+
+
 def test_table_and_mie_together_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     csv = _hg_csv(tmp_path / "hg.csv")
     rc, _, err = _run(capsys, "fit-phase", str(csv), "--mie", "mono", "--out", str(tmp_path / "o"))

@@ -1021,6 +1021,24 @@ def test_cli_refuses_a_fit_from_another_session(tmp_path, capsys):
     assert "another session" in err and "\n" not in err
 
 
+def test_cli_says_the_manifest_changed_when_the_fit_was_made_from_this_folder(tmp_path, capsys):
+    """The same folder with a different session.yaml (edited or damaged since the fit) is named
+    as that, not as a fit from another session."""
+    import hashlib
+
+    s = _session(tmp_path, "a")
+    run = s / "estimates" / "20260101T000000_exp3"
+    run.mkdir(parents=True)
+    sha = hashlib.sha256((s / "session.yaml").read_bytes()).hexdigest()
+    (run / "results.yaml").write_text(yaml.safe_dump({
+        "format": "rig-estimate/1", "run_id": run.name, "session": {"path": str(s.resolve()), "manifest_sha256": sha},
+        "settings": {"model": "exp3"}, "channels": {}}))
+    (s / "session.yaml").write_text("format: rig-session/1\n{{ damaged")
+    assert main(["diagnose", str(s)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "session.yaml has changed since fit" in err and "another session" not in err and "\n" not in err, err
+
+
 def test_cli_refuses_a_hand_edited_fit_setting_in_one_line(tmp_path, capsys):
     s = _session(tmp_path, "a")
     run = s / "estimates" / "20260101T000000_exp3"
@@ -1035,6 +1053,53 @@ def test_cli_refuses_a_hand_edited_fit_setting_in_one_line(tmp_path, capsys):
     assert "max_iterations" in err and "results.yaml" in err and "\n" not in err and "Traceback" not in err
     assert (run / "results.yaml").read_bytes() == before
     assert sorted(p.name for p in (s / "estimates").iterdir()) == [run.name]
+
+
+_GOOD_CHANNEL = {"model": "exp3", "parameters": {"sigma_t": 2.0, "albedo": 0.9, "phase.b1": 1.0, "phase.b2": 0.1,
+                                                  "phase.b3": 0.1},
+                 "uncertainties": {"sigma_t": 0.1, "albedo": float("nan")}, "scale": 1.0}
+
+
+@pytest.mark.parametrize("edit, needle", [
+    (lambda d: d.update(session="elsewhere"), "session is str"),
+    (lambda d: d.update(channels=["g"]), "channels is list"),
+    (lambda d: d.update(channels={}), "channels holds no fitted channel"),
+    (lambda d: d["channels"].update(g="oops"), "channels.g is str"),
+    (lambda d: d["channels"]["g"].update(parameters=[1, 2]), "channels.g.parameters is list"),
+    (lambda d: d["channels"]["g"]["parameters"].update(sigma_t="abc"), "channels.g.parameters.sigma_t = 'abc'"),
+    (lambda d: d["channels"]["g"]["parameters"].pop("phase.b3"), "channels.g.parameters has no phase.b3"),
+    (lambda d: d["channels"]["g"].update(scale="big"), "channels.g.scale = 'big'"),
+    (lambda d: d["channels"]["g"]["uncertainties"].update(albedo="x"), "channels.g.uncertainties.albedo = 'x'"),
+    (lambda d: d["settings"].update(columns="wide"), "settings.columns = 'wide'"),
+    (lambda d: d["settings"].update(extensions="stray_light"), "settings.extensions = 'stray_light'"),
+    # the second channel's entry is checked before the first channel's diagnosis starts
+    (lambda d: d["channels"].update(r={"model": "exp3"}), "channels.r.parameters is NoneType"),
+])
+def test_cli_refuses_a_hand_edited_fit_entry_in_one_line_before_any_work(tmp_path, capsys, monkeypatch, edit, needle):
+    import estimate.problem
+
+    monkeypatch.setattr(estimate.problem, "load_problem", lambda *a, **k: pytest.fail("diagnosis started"))
+    s = _session(tmp_path, "a")
+    run = s / "estimates" / "20260101T000000_exp3"
+    run.mkdir(parents=True)
+    doc = {"format": "rig-estimate/1", "run_id": run.name, "session": {"path": str(s.resolve())},
+           "settings": {"model": "exp3", "columns": 32, "extensions": []}, "channels": {"g": copy.deepcopy(_GOOD_CHANNEL)}}
+    edit(doc)
+    (run / "results.yaml").write_text(yaml.safe_dump(doc))
+    before = (run / "results.yaml").read_bytes()
+    assert main(["diagnose", str(s), "--quick", "--no-plots", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert needle in err and "results.yaml" in err and "\n" not in err and "Traceback" not in err, err
+    assert (run / "results.yaml").read_bytes() == before and not (s / "diagnoses").exists()
+
+
+def test_cli_refuses_an_unwritable_session_before_any_work(tmp_path, capsys):
+    s = _session(tmp_path, "a")
+    (s / "diagnoses").write_text("not a folder")
+    assert main(["diagnose", str(s)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "diagnoses is a file" in err and "\n" not in err
+    assert (s / "diagnoses").read_text() == "not a folder"
 
 
 def test_cli_unknown_effect_and_unknown_run(tmp_path, capsys):

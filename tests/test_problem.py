@@ -135,10 +135,14 @@ def test_no_calibration(tmp_path):
 def test_corrupt_stack_named(tmp_path):
     s = make_session(tmp_path / "s", {"g": TRUTH["g"]}, angles=[30, 60, 150], spp=16, width=64)
     (s / "hdr" / "a01_g.exr").write_bytes(b"garbage")
-    with pytest.raises(DataError, match=r"a01_g \(corrupt\)"):
+    with pytest.raises(DataError, match=r"a01_g \(hdr/a01_g.exr is corrupt \(checksum mismatch\)\)"):
         load_problem(s, "g")
     pb = load_problem(s, "g", allow_partial=True)
-    assert pb.stack_ids == ["a00_g", "a02_g"] and pb.missing == ["a01_g (corrupt)"]
+    assert pb.stack_ids == ["a00_g", "a02_g"] and pb.missing == ["a01_g (hdr/a01_g.exr is corrupt (checksum mismatch))"]
+    # a file that is gone is named as missing, not corrupt
+    (s / "hdr" / "a02_g.exr").unlink()
+    with pytest.raises(DataError, match=r"a02_g \(hdr/a02_g.exr is missing\)"):
+        load_problem(s, "g")
 
 
 def test_nan_and_negative_radiance_named(tmp_path):

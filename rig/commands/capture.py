@@ -141,9 +141,10 @@ def _positive(name: str, value: float | None) -> None:
         raise _usage(f"{name} must be a positive number, got {value:g}")
 
 
-def _read_calibration(path: str) -> tuple[Path, tuple[float, float], float]:
+def _read_calibration(path: str, filters: tuple[str, ...] = ()) -> tuple[Path, tuple[float, float], float]:
     """The calibration source (directory or calibration.yaml), its beam centre ``beam.center_px``
-    [x, y] in pixels, and the stage offset ``rotation_zero_deg - 180`` (degrees)."""
+    [x, y] in pixels, and the stage offset ``rotation_zero_deg - 180`` (degrees). Each of
+    ``filters`` must have its beam map there (``rig estimate`` needs it)."""
     import yaml
 
     from capture.plan import MAX_STAGE_OFFSET_DEG
@@ -166,6 +167,12 @@ def _read_calibration(path: str) -> tuple[Path, tuple[float, float], float]:
             or abs(zero - 180.0) > MAX_STAGE_OFFSET_DEG:
         raise _usage(f"--calibration {main}: rotation_zero_deg must be the stage angle of the beam into the lens "
                      f"(within {MAX_STAGE_OFFSET_DEG:g} deg of 180), got {zero!r}; rerun rig calibrate-beam")
+    maps = data["beam"].get("filters")
+    for f in filters if isinstance(maps, dict) and maps else ():  # a calibration with beam maps: one per filter
+        entry = maps.get(f)
+        if not isinstance(entry, dict) or not (main.parent / str(entry.get("map"))).is_file():
+            raise _usage(f"--calibration {main}: no beam map for filter {f!r}, which rig estimate needs; "
+                         f"calibrate it too (rig calibrate-beam --filters ...) or leave it out of --filters")
     return src, (float(centre[0]), float(centre[1])), float(zero) - 180.0
 
 
@@ -259,7 +266,9 @@ def _check(args: argparse.Namespace) -> _Request:
               "max_exposure_s": args.max_exposure, "max_exposures": args.max_exposures,
               "target_snr": args.target_snr, "n_darks": args.darks}
     bracket = replace(BracketPolicy(), **{k: v for k, v in chosen.items() if v is not None})
-    calibration, centre, offset = _read_calibration(args.calibration) if args.calibration else (None, None, 0.0)
+    # (a filter the rig lacks is make_plan's to name)
+    known = tuple(f for f in spec.filters if f in cfg.filter.positions)
+    calibration, centre, offset = _read_calibration(args.calibration, known) if args.calibration else (None, None, 0.0)
     # the plan (its stage angles) against the configured range and filters: errors before anything opens
     make_plan(spec, available_filters=list(cfg.filter.positions), stage_range=AngleRange(*cfg.stage.allowed_range_deg),
               bracket=bracket, exposure_range_s=None, stage_offset_deg=offset)

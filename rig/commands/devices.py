@@ -53,7 +53,6 @@ def _probe(name: str, opener: Callable[[], Any], describe: Callable[[Any], dict]
 def run(args: argparse.Namespace) -> int:
     if args.scan:
         return _scan(args)
-    from drivers.iolog import Transcript
     from rig import wiring
     from rig.config import load_config
 
@@ -61,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     sim = bool(args.sim)
     if sim or wiring.config_is_simulated(cfg):
         wiring.prepare_bench(cfg)
-    tr = Transcript(args.log_io) if args.log_io else None
+    tr = wiring.open_transcript(args.log_io)
     # the camera is simulated when the serial devices are (a simulated rig has no USB camera)
     cam_sim = sim or wiring.config_is_simulated(cfg)
 

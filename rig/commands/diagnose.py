@@ -72,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
 
     from estimate.diagnose import run_diagnosis
     from estimate.extensions import EXTENSIONS
+    from estimate.results import check_writable
     from rig.fit_progress import FitProgress
 
     session = Path(args.session)
@@ -83,6 +84,8 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--effects: unknown effect {e!r}; known: {', '.join(sorted(EXTENSIONS))}")
     if args.spp is not None and args.spp < 16:
         raise UsageError(f"--spp {args.spp}: use at least 16 samples per pixel (default 2048 with the light engine; 256 on the CPU and 2048 on a GPU with the camera engine)")
+    for kind in ("diagnoses", "estimates"):  # the diagnosis and its refit run: fail now, not after the renders
+        check_writable(session, kind)
     log = None if args.json else (lambda s: print(s, file=sys.stderr))
     with FitProgress(enabled=not (args.json or args.no_progress)) as live:
         doc = run_diagnosis(session, args.fit, effects=effects, channels=_list(args.channels, True), spp=args.spp,

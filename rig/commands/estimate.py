@@ -2,7 +2,7 @@
 
     rig estimate SESSION/ [--model exp|tthg|both] [--degree 3|auto] [--channels rgb]
                           [--columns 256] [--allow-partial] [--max-iterations N] [--seed S]
-                          [--extensions a,b] [--scale calibrated|free] [--json] [--diagnose]
+                          [--extensions a,b] [--scale calibrated|free] [--time-limit S] [--json] [--diagnose]
 
 The intensity scale is calibrated by default (`--scale calibrated`: the beam power
 measured by `rig calibrate-beam`, the calibration ND transmission `camera.calibration_nd`
@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -59,6 +60,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="how the forward model renders the slab: light paths from the beam connected to the "
                         "camera (light, default; about ten times faster and less noisy on the profile row) or "
                         "Mitsuba's prbvolpath from the camera (camera)")
+    p.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
+                   help="wall-clock budget of each fit's optimisation (its iterations, Gauss-Newton polish and "
+                        "Levenberg-Marquardt steps; the evaluation and uncertainties run after it); with "
+                        "--degree auto, of each degree's fit. Default: none")
     p.add_argument("--seed", type=int, default=0, help="random seed (renders, delta draws)")
     p.add_argument("--scale", choices=("calibrated", "free"), default="calibrated",
                    help="measured/rendered intensity scale: from the calibrated beam power and the lens's "
@@ -74,14 +79,20 @@ def _channels(spec: str | None, available: list[str]) -> list[str]:
     if not spec:
         return available
     parts = [c for c in (spec.split(",") if "," in spec else list(spec)) if c.strip()]
-    return [c.strip() for c in parts]
+    names = [c.strip() for c in parts]
+    if not names:
+        raise UsageError(f"--channels {spec!r}: give channel names, e.g. rgb or r,g (the session has "
+                         f"{', '.join(available)})")
+    if len(set(names)) != len(names):
+        raise UsageError(f"--channels {spec!r}: a channel is named twice; name each once")
+    return names
 
 
 def run(args: argparse.Namespace) -> int:
     from estimate.fit import FitSettings, fit_channel, model_phase
     from estimate.loss import calibrated_scale
     from estimate.problem import load_problem, session_channels
-    from estimate.results import new_run_dir, write_run
+    from estimate.results import check_writable, new_run_dir, write_run
     from rig.fit_progress import FitProgress
 
     session = Path(args.session)
@@ -96,6 +107,12 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--degree {args.degree}: use 0..12 or auto")
     if args.max_iterations is not None and args.max_iterations < 1:
         raise UsageError("--max-iterations must be >= 1")
+    if args.columns is not None and args.columns < 2:
+        raise UsageError(f"--columns {args.columns}: use at least 2 pixels (default 256)")
+    if args.time_limit is not None and not (math.isfinite(args.time_limit) and args.time_limit > 0):
+        raise UsageError(f"--time-limit {args.time_limit:g}: give a positive number of seconds, e.g. 60")
+    if args.seed < 0:
+        raise UsageError(f"--seed {args.seed}: use a whole number >= 0")
     if args.polish_steps is not None and not 0 <= args.polish_steps <= 20:
         raise UsageError(f"--polish-steps {args.polish_steps}: use 0..20")
     if args.spp_max is not None and args.spp_max < 1:
@@ -109,8 +126,14 @@ def run(args: argparse.Namespace) -> int:
     available = session_channels(session)
     channels = _channels(args.channels, available)
     exts = [e.strip() for e in args.extensions.split(",") if e.strip()]
+    from estimate.extensions import EXTENSIONS
+
+    for e in exts:   # before the problems load and the first fit starts
+        if e not in EXTENSIONS:
+            raise UsageError(f"--extensions: unknown extension {e!r}; known: {', '.join(sorted(EXTENSIONS))}")
     # Load every problem first: bad input fails before any fitting.
     problems = {c: load_problem(session, c, args.columns, allow_partial=args.allow_partial) for c in channels}
+    check_writable(session)  # a read-only session fails now, not after the fits
     corr = next((pb.angle_correction_deg for pb in problems.values() if pb.angle_correction_deg), 0.0)
     if corr:
         print(f"note: {session} was captured before capture applied the calibrated rotation zero; its angles are "
@@ -127,6 +150,7 @@ def run(args: argparse.Namespace) -> int:
         settings.iterations_before_polish = args.max_iterations
     if args.polish_steps is not None:
         settings.polish_steps = args.polish_steps
+    settings.time_limit_s = args.time_limit
     if args.spp_max is not None:
         settings.spp_max = max(settings.spp_start, args.spp_max)
         settings.lm_spp = settings.final_spp = 2 * settings.spp_max

@@ -127,15 +127,19 @@ def run(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise UsageError(f"--out {out}: cannot create: {e.strerror}") from None
-    with open(out / "sad_table.csv", "w", encoding="utf-8") as fh:
-        fh.write(",".join(["dataset", "diameter_um", "g"] + names) + "\n")
-        for d in datasets:
-            row = [d["label"], "" if d["diameter_um"] is None else f"{d['diameter_um']:g}", f"{d['g']:.6g}"]
-            row += ["" if d["fits"][n]["sad"] is None else f"{d['fits'][n]['sad']:.6g}" for n in names]
-            fh.write(",".join(row) + "\n")
-    (out / "results.json").write_text(json.dumps(doc, indent=1), encoding="utf-8")
-    if not args.no_plots:
-        _plots(out, tables, results_per_table, names, source)
+    try:
+        with open(out / "sad_table.csv", "w", encoding="utf-8") as fh:
+            fh.write(",".join(["dataset", "diameter_um", "g"] + names) + "\n")
+            for d in datasets:
+                row = [d["label"], "" if d["diameter_um"] is None else f"{d['diameter_um']:g}", f"{d['g']:.6g}"]
+                row += ["" if d["fits"][n]["sad"] is None else f"{d['fits'][n]['sad']:.6g}" for n in names]
+                fh.write(",".join(row) + "\n")
+        (out / "results.json").write_text(json.dumps(doc, indent=1), encoding="utf-8")
+        if not args.no_plots:
+            _plots(out, tables, results_per_table, names, source)
+    except OSError as e:
+        raise UsageError(f"--out {out}: cannot write {Path(e.filename or out).name}: {e.strerror or e}; "
+                         "choose a writable folder") from None
 
     if args.json:
         json.dump(doc, sys.stdout, indent=1)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 
 
@@ -40,9 +41,15 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--out {out}: folder {out.parent} does not exist; create it first")
     if args.count < 1:
         raise UsageError(f"--count {args.count}: must be at least 1")
+    if not (math.isfinite(args.exposure) and args.exposure > 0):
+        raise UsageError(f"--exposure {args.exposure:g}: give a positive exposure time in seconds, e.g. 0.01")
     cfg = load_config(args.config)
     if args.filter is not None and args.filter not in cfg.filter.positions:
         raise UsageError(f"--filter {args.filter!r}: unknown; configured filters: {', '.join(cfg.filter.positions)}")
+    lo, hi = cfg.stage.allowed_range_deg
+    if args.angle is not None and not (math.isfinite(args.angle) and lo <= args.angle <= hi):
+        raise UsageError(f"--angle {args.angle:g}: outside the stage's allowed range [{lo:g}, {hi:g}] deg "
+                         f"(allowed_range_deg in {cfg.path})")
 
     sim = args.sim is not None
     scene = None
