@@ -73,6 +73,36 @@ def _beam_plots(cal_dir: Path, cal: dict[str, Any]) -> str:
     return "".join(out)
 
 
+def _degree_choice(choices: Any) -> str:
+    """The table of a `rig estimate --degree auto` run's degree search (settings.degree_choice:
+    per channel every degree tried, its chi^2 at the noise floor, its BIC gain over the best
+    degree before it, and which one was kept; estimate/phase_degree.py)."""
+    if not isinstance(choices, dict) or not choices:
+        return ""
+    rows: list[list[Any]] = []
+    notes: list[str] = []
+    for ch, c in choices.items():
+        steps = c.get("steps") if isinstance(c, dict) else None
+        if not isinstance(steps, list):
+            notes.append(f"{ch}: the degree choice is not readable")
+            continue
+        for st in steps:
+            if not isinstance(st, dict):
+                continue
+            gain, se = st.get("gain"), st.get("gain_se")
+            shown = (f"{gain:+.1f} +- {se:.1f}" if isinstance(gain, float) and isinstance(se, float)
+                     and np.isfinite(gain) else "-")
+            kept = st.get("degree") == c.get("chosen")
+            rows.append([ch, f"exp{st.get('degree')}", st.get("chi2_adjusted"), shown, st.get("sigma_t"),
+                         st.get("albedo"), "kept" if kept else ("better" if st.get("accepted") else "")])
+        notes.append(f"{ch}: kept exp{c.get('chosen')} ({c.get('stopped', '')})")
+    rule = next((c.get("rule") for c in choices.values() if isinstance(c, dict) and c.get("rule")), "")
+    return (f"<p>degree search (--degree auto): {html.escape(str(rule))}</p>"
+            + _table(rows, ["channel", "degree", "chi2 at the noise floor", "BIC gain +- s.e.", "sigma_t [1/mm]",
+                            "albedo", ""])
+            + "".join(f"<p>{html.escape(n)}</p>" for n in notes))
+
+
 def _run_section(rd: Path, doc: dict[str, Any]) -> list[str]:
     """The report's section of one estimate run (raises on a hand-edited results.yaml of the wrong shape)."""
     parts = [f"<h3>{html.escape(str(doc['run_id']))}</h3>"]
@@ -102,6 +132,7 @@ def _run_section(rd: Path, doc: dict[str, Any]) -> list[str]:
             rows.append([f, "still drifting when the fit stopped", ", ".join(ch["still_drifting"]),
                          "uncertainties include the last drift"])
     parts.append(_table(rows, ["channel", "parameter", "value", "1-sigma"]))
+    parts.append(_degree_choice(st.get("degree_choice")))
     for png in sorted(rd.glob("*.png")):
         parts.append(_img(png, png.name))
     return parts

@@ -97,6 +97,18 @@ def test_report_cells_round_floats_wherever_they_are():
     assert _fmt(None) == "-" and _fmt({}) == "-" and _fmt(True) == "True" and _fmt(3) == "3"
 
 
+def test_report_degree_table_tolerates_hand_edits():
+    """A run without a degree search shows none; a hand-edited one is named, not a traceback."""
+    from rig.report import _degree_choice
+
+    assert _degree_choice(None) == "" and _degree_choice({}) == ""
+    assert "g: the degree choice is not readable" in _degree_choice({"g": {"steps": "oops"}})
+    page = _degree_choice({"r": {"chosen": 4, "stopped": "reached exp4", "steps": [
+        {"degree": 3, "chi2_adjusted": 120.0, "gain": float("nan"), "gain_se": float("nan"), "accepted": True},
+        {"degree": 4, "chi2_adjusted": 90.0, "gain": 25.5, "gain_se": 3.25, "accepted": True}, "junk"]}})
+    assert "<td>+25.5 +- 3.2</td>" in page and "r: kept exp4 (reached exp4)" in page and page.count("<tr>") == 3
+
+
 @pytest.mark.parametrize("extra, message", [
     (["--channels", "r"], "a01_r (not captured)"),
     (["--channels", "x"], "unknown channel 'x'"),
@@ -135,6 +147,13 @@ def test_time_limit_bounds_each_fit_and_the_run_says_what_it_cut(session, capsys
     assert all(v > 0 for v in ch["uncertainties"].values())
     doc = yaml.safe_load((Path(run["path"]) / "results.yaml").read_text())
     assert doc["settings"]["fit"]["time_limit_s"] == 1e-6 and doc["channels"]["g"]["polish"] == []
+
+
+def test_a_window_wider_than_the_stacks_is_said(session, capsys):
+    assert main(["estimate", str(session), "--channels", "g", "--columns", "100000", "--max-iterations", "1",
+                 "--polish-steps", "0", "--spp-max", "16"]) == 0
+    err = capsys.readouterr().err
+    assert "note: --columns 100000 is wider than the stacks' window; fitting 64 pixels" in err
 
 
 def test_unwritable_estimates_folder_fails_before_fitting(session, tmp_path, capsys, monkeypatch):
@@ -282,3 +301,9 @@ def test_degree_auto_keeps_the_lowest_degree_the_recording_supports(session, cap
     doc = yaml.safe_load((Path(run["path"]) / "results.yaml").read_text())
     assert doc["settings"]["degree"] == "auto" and doc["settings"]["degree_choice"]["g"]["chosen"] == 3
     assert doc["channels"]["g"]["model"] == "exp3"
+    # The report shows the search: a row per degree, the kept one marked, and why it stopped.
+    assert main(["report", str(session), "--out", str(Path(run["path"]) / "report.html")]) == 0
+    capsys.readouterr()
+    page = (Path(run["path"]) / "report.html").read_text()
+    assert "degree search (--degree auto)" in page and "g: kept exp3 (stopped after 2 degrees" in page
+    assert page.count("<td>exp4</td>") == 1 and "<td>kept</td>" in page

@@ -134,6 +134,10 @@ def run(args: argparse.Namespace) -> int:
     # Load every problem first: bad input fails before any fitting.
     problems = {c: load_problem(session, c, args.columns, allow_partial=args.allow_partial) for c in channels}
     check_writable(session)  # a read-only session fails now, not after the fits
+    narrow = sorted({pb.n_px for pb in problems.values()})
+    if args.columns is not None and narrow[0] < args.columns and not args.json:
+        print(f"note: --columns {args.columns} is wider than the stacks' window; fitting {narrow[0]} pixels",
+              file=sys.stderr)
     corr = next((pb.angle_correction_deg for pb in problems.values() if pb.angle_correction_deg), 0.0)
     if corr:
         print(f"note: {session} was captured before capture applied the calibrated rotation zero; its angles are "
