@@ -2752,15 +2752,11 @@ def _resolve_fit(session_dir: Any, fit_run: Any) -> Any:
     return cand
 
 
-def _number(v: Any, finite: bool = True) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and (math.isfinite(v) or not finite)
-
-
 def _base_fit(entry: Any, ch: str, settings: Mapping[str, Any], base_exts: list[str], where: str) -> BaseFit:
     """Channel `ch`'s entry of a run's results.yaml as the `BaseFit` to diagnose; a hand-edited
     entry (not a mapping, a value that is not a finite number, a base or phase parameter
     missing) raises `DataError` naming the key and `where`, before any channel is diagnosed."""
-    from estimate.fit import model_phase
+    from estimate.fit import _finite_number, model_phase
     from estimate.light_paths import phase_parameter_names
 
     def bad(what: str) -> DataError:
@@ -2779,14 +2775,14 @@ def _base_fit(entry: Any, ch: str, settings: Mapping[str, Any], base_exts: list[
     if not isinstance(unc, Mapping):
         raise bad(f".uncertainties is {type(unc).__name__}, not a mapping of names to numbers")
     for k, v in params.items():
-        if not _number(v):
+        if not _finite_number(v):
             raise bad(f".parameters.{k} = {v!r} is not a finite number")
     for k, v in unc.items():
         # NaN: a parameter the fit could not bound (written by the estimator as .nan)
-        if not (v is None or _number(v, finite=False)):
+        if not (v is None or _finite_number(v) or (isinstance(v, float) and not math.isfinite(v))):
             raise bad(f".uncertainties.{k} = {v!r} is not a number")
     scale = entry.get("scale", 1.0)
-    if not _number(scale):
+    if not _finite_number(scale):
         raise bad(f".scale = {scale!r} is not a finite number")
     return BaseFit({k: float(v) for k, v in params.items()}, float(scale), phase, base_exts,
                    {k: float(v) for k, v in unc.items() if v is not None})

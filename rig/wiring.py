@@ -148,6 +148,15 @@ def open_changer(cfg: RigConfig, *, sim: bool = False, transcript: Transcript | 
     return FW102C(port, positions=f.positions, transcript=transcript)  # type: ignore[arg-type]
 
 
+def check_log_io(log_io: str | None) -> None:
+    """``--log-io`` in a folder that does not exist: a one-line UsageError, for commands that
+    check it before they create their output (the transcript itself opens with the rig)."""
+    from pathlib import Path
+
+    if log_io and not Path(log_io).parent.is_dir():
+        raise UsageError(f"--log-io {log_io}: its directory does not exist")
+
+
 def open_transcript(log_io: str | None) -> Transcript | None:
     """The byte transcript of ``--log-io`` (appended to), or None; a path that cannot be
     written is a one-line UsageError before any device is opened."""

@@ -46,7 +46,6 @@ def parse_filters(text: str | None, known: list[str]) -> tuple[str, ...]:
 
 def run(args: argparse.Namespace) -> int:
     import datetime as dt
-    from pathlib import Path
 
     from calibrate.beam import BeamCalibrationSettings, calibrate_beam, check_output_dir
     from capture.session import software_version
@@ -72,8 +71,7 @@ def run(args: argparse.Namespace) -> int:
         from rig.simbench import TerminalOperator
 
         operator = TerminalOperator()
-    if args.log_io and not Path(args.log_io).parent.is_dir():
-        raise UsageError(f"--log-io {args.log_io}: its directory does not exist")
+    wiring.check_log_io(args.log_io)
     check_output_dir(out)  # before any device is opened or moved
     settings = BeamCalibrationSettings(
         filters=filters,

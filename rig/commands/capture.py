@@ -207,6 +207,7 @@ def _check(args: argparse.Namespace) -> _Request:
     from capture.plan import AngleSpec, make_plan, parse_filters
     from capture.session import Session
     from drivers.interfaces import AngleRange
+    from rig import wiring
     from rig.config import load_config
 
     cfg = load_config(args.config)
@@ -223,8 +224,7 @@ def _check(args: argparse.Namespace) -> _Request:
         raise _usage(f"--saturation-headroom must lie in (0, 1] (a share of the sensor's range above bias), got {h:g}")
     if args.full_frame and args.band_rows is not None:
         raise _usage("--full-frame and --band-rows exclude each other")
-    if args.log_io and not Path(args.log_io).parent.is_dir():
-        raise _usage(f"--log-io {args.log_io}: its directory does not exist")
+    wiring.check_log_io(args.log_io)
 
     if args.resume:
         if args.out:
