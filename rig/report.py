@@ -92,6 +92,11 @@ def _degree_choice(choices: Any) -> str:
             gain, se = st.get("gain"), st.get("gain_se")
             shown = (f"{gain:+.1f} +- {se:.1f}" if isinstance(gain, float) and isinstance(se, float)
                      and np.isfinite(gain) else "-")
+            # Runs since session 81 say how many seed pairs each gain was taken over (more
+            # after a close call); earlier ones took four for every degree.
+            pairs = st.get("gain_pairs")
+            if isinstance(pairs, int) and pairs > c.get("seeds", pairs):
+                shown += f" ({pairs} pairs)"
             kept = st.get("degree") == c.get("chosen")
             rows.append([ch, f"exp{st.get('degree')}", st.get("chi2_adjusted"), shown, st.get("sigma_t"),
                          st.get("albedo"), "kept" if kept else ("better" if st.get("accepted") else "")])

@@ -107,6 +107,11 @@ def test_report_degree_table_tolerates_hand_edits():
         {"degree": 3, "chi2_adjusted": 120.0, "gain": float("nan"), "gain_se": float("nan"), "accepted": True},
         {"degree": 4, "chi2_adjusted": 90.0, "gain": 25.5, "gain_se": 3.25, "accepted": True}, "junk"]}})
     assert "<td>+25.5 +- 3.2</td>" in page and "r: kept exp4 (reached exp4)" in page and page.count("<tr>") == 3
+    # A close call decided over more seed pairs says so (runs since session 81).
+    page = _degree_choice({"r": {"chosen": 4, "seeds": 4, "steps": [
+        {"degree": 4, "chi2_adjusted": 90.0, "gain": 60.5, "gain_se": 9.0, "gain_pairs": 16, "accepted": True},
+        {"degree": 5, "chi2_adjusted": 89.0, "gain": -7.0, "gain_se": 2.0, "gain_pairs": 4, "accepted": False}]}})
+    assert "<td>+60.5 +- 9.0 (16 pairs)</td>" in page and "<td>-7.0 +- 2.0</td>" in page
 
 
 @pytest.mark.parametrize("extra, message", [

@@ -2,7 +2,8 @@
 
 The fits and the renders are replaced by stand-ins with given chi^2 per seed pair, so the
 tests see the rule alone: nested warm starts, the BIC margin and its standard error, and
-the stop after `PATIENCE` degrees that do not gain.
+the stop after `PATIENCE` degrees that do not gain, and the close calls decided again over
+more seed pairs.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import pytest
 
 from estimate import phase_degree
 from estimate.errors import ModelParameterError
-from estimate.phase_degree import BIC_MARGIN, PATIENCE, choose_degree
+from estimate.phase_degree import BIC_MARGIN, CLOSE_SEEDS, EVAL_SEEDS, PATIENCE, choose_degree
 
 PIXELS = 400
 
@@ -36,8 +37,10 @@ class FakeFit:
         return [k for k in self.parameters if k not in self.fixed]
 
 
-def _run(chi2_by_degree: dict[int, list[float]], monkeypatch, **kw):
-    """choose_degree with fits that take their start and chi^2 that come from the table."""
+def _run(chi2_by_degree: dict[int, list[float]], monkeypatch, renders: list | None = None, **kw):
+    """choose_degree with fits that take their start and chi^2 that come from the table (per
+    seed pair, repeated when the table is shorter than the pairs asked for); `renders` gets
+    (degree, first pair, pairs) of every comparison render."""
     starts: list[tuple[str, dict | None]] = []
 
     def fit(phase: str, start):
@@ -46,8 +49,12 @@ def _run(chi2_by_degree: dict[int, list[float]], monkeypatch, **kw):
         p = {"sigma_t": 2.0, "albedo": 0.9, **{f"phase.b{i}": 0.1 * i for i in range(1, m + 1)}}
         return FakeFit(phase, p)
 
-    def chi2(problem, res, settings, *, seeds, extensions, metric):
-        return list(chi2_by_degree[int(res.model[3:])]), metric or phase_degree.Metric(np.ones((2, 1)), np.ones(2))
+    def chi2(problem, res, settings, *, seeds, extensions, metric, first=0):
+        row = chi2_by_degree[int(res.model[3:])]
+        if renders is not None:
+            renders.append((int(res.model[3:]), first, seeds))
+        return ([row[k % len(row)] for k in range(first, first + seeds)],
+                metric or phase_degree.Metric(np.ones((2, 1)), np.ones(2)))
 
     monkeypatch.setattr(phase_degree, "degree_chi2", chi2)
     problem = SimpleNamespace(valid=np.ones((2, PIXELS // 2), bool))
@@ -91,10 +98,11 @@ def test_a_model_that_already_holds_the_phase_stays_at_degree_3(monkeypatch):
 def test_a_gain_within_the_render_noise_of_the_comparison_is_not_taken(monkeypatch):
     ln = math.log(PIXELS)
     # exp4's mean gain is 15 beyond the BIC penalty, above the margin of 10, but the seed
-    # pairs scatter by +-20: twice its standard error (20) more than covers it.
+    # pairs scatter by +-20: twice its standard error (20) more than covers it. (The four
+    # pairs alone: no close call is rendered again.)
     table = {3: [500.0, 500.0, 500.0, 500.0], 4: [485.0 - ln + 20, 485.0 - ln - 20, 485.0 - ln + 20, 485.0 - ln - 20],
              5: _flat(500.0), 6: _flat(500.0)}
-    choice, _ = _run(table, monkeypatch)
+    choice, _ = _run(table, monkeypatch, close_seeds=EVAL_SEEDS)
     step = choice.steps[1]
     assert step.gain == pytest.approx(15.0) and step.gain > BIC_MARGIN
     assert step.gain_se == pytest.approx(40.0 / math.sqrt(3) / 2.0)
@@ -103,6 +111,45 @@ def test_a_gain_within_the_render_noise_of_the_comparison_is_not_taken(monkeypat
     table[4] = _flat(485.0 - ln)
     choice, _ = _run(table, monkeypatch)
     assert choice.steps[1].accepted and choice.chosen == 4
+
+
+def _pairs(values: list[float]) -> list[float]:
+    return [float(v) for v in values]
+
+
+def test_a_close_call_is_rendered_again_at_more_seed_pairs_and_decided_on_all_of_them(monkeypatch):
+    ln = math.log(PIXELS)
+    rng = np.random.default_rng(5)
+    # exp4 truly gains 60 (beyond its one parameter's penalty). Its first four pairs happen to
+    # scatter by +-50 (gain 60 +- 29 s.e. under a bar of 68: a close call); its other twelve
+    # scatter by +-10 as the render noise does.
+    first4 = [440.0 - ln + 50, 440.0 - ln - 50, 440.0 - ln + 50, 440.0 - ln - 50]
+    rest = list(440.0 - ln + 10.0 * rng.standard_normal(CLOSE_SEEDS - EVAL_SEEDS))
+    table = {3: _flat(500.0), 4: _pairs(first4 + rest), 5: _flat(500.0), 6: _flat(500.0)}
+    renders: list = []
+    choice, _ = _run(table, monkeypatch, renders=renders, close_seeds=EVAL_SEEDS)
+    assert not choice.steps[1].accepted and choice.steps[1].gain_pairs == EVAL_SEEDS
+    renders.clear()
+    choice, _ = _run(table, monkeypatch, renders=renders)
+    step = choice.steps[1]
+    assert step.gain_pairs == CLOSE_SEEDS and step.accepted and choice.chosen == 4
+    d = np.asarray(table[3] * 4) - np.asarray(table[4]) - ln
+    assert step.gain == pytest.approx(d.mean()) and step.gain_se == pytest.approx(d.std(ddof=1) / 4.0)
+    # Both degrees of the close call got the missing pairs, from the fifth on; exp5 and exp6,
+    # far from the bar, were compared at the four pairs alone.
+    assert (3, EVAL_SEEDS, CLOSE_SEEDS - EVAL_SEEDS) in renders and (4, EVAL_SEEDS, CLOSE_SEEDS - EVAL_SEEDS) in renders
+    assert [r for r in renders if r[0] in (5, 6)] == [(5, 0, EVAL_SEEDS), (6, 0, EVAL_SEEDS)]
+    assert [s.gain_pairs for s in choice.steps] == [0, CLOSE_SEEDS, EVAL_SEEDS, EVAL_SEEDS]
+    assert len(choice.steps[0].chi2_adjusted_seeds) == CLOSE_SEEDS
+    assert "16 seed pairs" in choice.describe() and choice.to_dict()["steps"][1]["gain_pairs"] == CLOSE_SEEDS
+
+
+def test_a_clear_gain_or_loss_is_not_rendered_again(monkeypatch):
+    table = {3: _flat(3600.0, 3.0), 4: _flat(3150.0, 3.0), 5: _flat(3148.0, 3.0), 6: _flat(3300.0, 3.0)}
+    renders: list = []
+    choice, _ = _run(table, monkeypatch, renders=renders)
+    assert renders == [(m, 0, EVAL_SEEDS) for m in (3, 4, 5, 6)]
+    assert choice.chosen == 4
 
 
 def test_a_degree_after_one_that_gains_little_is_still_tried(monkeypatch):
