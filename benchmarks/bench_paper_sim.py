@@ -132,8 +132,17 @@ def fit_cache(cdir: Path, model: str) -> Path:
     # A GPU's fits start from other defaults (FitSettings.for_variant): cached apart.
     variant = default_variant()
     vtag = "" if variant.startswith("llvm") else f"_{variant}"
-    return cdir / (f"fit_{model}_{SCALE}_{FitSettings().optimizer}_{RECIPE}{lm_tag(model)}{vtag}"
+    return cdir / (f"fit_{model}_{SCALE}_{FitSettings().optimizer}_{RECIPE}{lm_tag(model)}{close_tag(model)}{vtag}"
                    f"{overrides_tag(OVERRIDES)}.json")
+
+
+def close_tag(model: str) -> str:
+    """"-close<N>" for a degree search whose close calls are decided again over N seed pairs
+    (`estimate.phase_degree.CLOSE_SEEDS`, since session 81), else "": the searches before
+    took every call on four pairs, and their caches are kept apart."""
+    from estimate.phase_degree import CLOSE_SEEDS, EVAL_SEEDS
+
+    return f"-close{CLOSE_SEEDS}" if model == "expauto" and CLOSE_SEEDS > EVAL_SEEDS else ""
 
 
 def lm_tag(model: str) -> str:
