@@ -2756,7 +2756,7 @@ def _base_fit(entry: Any, ch: str, settings: Mapping[str, Any], base_exts: list[
     """Channel `ch`'s entry of a run's results.yaml as the `BaseFit` to diagnose; a hand-edited
     entry (not a mapping, a value that is not a finite number, a base or phase parameter
     missing) raises `DataError` naming the key and `where`, before any channel is diagnosed."""
-    from estimate.fit import _finite_number, model_phase
+    from estimate.fit import finite_number, model_phase
     from estimate.light_paths import phase_parameter_names
 
     def bad(what: str) -> DataError:
@@ -2775,14 +2775,14 @@ def _base_fit(entry: Any, ch: str, settings: Mapping[str, Any], base_exts: list[
     if not isinstance(unc, Mapping):
         raise bad(f".uncertainties is {type(unc).__name__}, not a mapping of names to numbers")
     for k, v in params.items():
-        if not _finite_number(v):
+        if not finite_number(v):
             raise bad(f".parameters.{k} = {v!r} is not a finite number")
     for k, v in unc.items():
         # NaN: a parameter the fit could not bound (written by the estimator as .nan)
-        if not (v is None or _finite_number(v) or (isinstance(v, float) and not math.isfinite(v))):
+        if not (v is None or finite_number(v) or (isinstance(v, float) and not math.isfinite(v))):
             raise bad(f".uncertainties.{k} = {v!r} is not a number")
     scale = entry.get("scale", 1.0)
-    if not _finite_number(scale):
+    if not finite_number(scale):
         raise bad(f".scale = {scale!r} is not a finite number")
     return BaseFit({k: float(v) for k, v in params.items()}, float(scale), phase, base_exts,
                    {k: float(v) for k, v in unc.items() if v is not None})

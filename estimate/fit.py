@@ -189,11 +189,13 @@ from estimate.uncertainties import (
 
 # evaluate, fisher_uncertainties, sandwich_uncertainties and secant_steps live in estimate.evaluation,
 # estimate.uncertainties and estimate.gauss_newton; they are re-exported here, where callers met them first.
-__all__ = ["FitResult", "FitSettings", "evaluate", "fisher_uncertainties", "fit_channel", "forward_model", "lm_plan",
+__all__ = ["FitResult", "FitSettings", "evaluate", "fisher_uncertainties", "finite_number", "fit_channel", "forward_model", "lm_plan",
            "model_phase", "sandwich_uncertainties", "secant_steps"]
 
 
-def _finite_number(x: Any) -> bool:
+def finite_number(x: Any) -> bool:
+    """True for an int or float that is finite (not a bool, None, str or NaN): what a
+    hand-edited YAML's numeric entries are checked with (`FitSettings`, `estimate.diagnose`)."""
     return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
 
 
@@ -326,7 +328,7 @@ class FitSettings:
                                            "correct it or delete the key to use the default")
 
             if f.name == "time_limit_s":
-                if v is not None and not (_finite_number(v) and v > 0):
+                if v is not None and not (finite_number(v) and v > 0):
                     raise bad("a positive number of seconds or null")
             elif f.name == "polish_max_steps":
                 if v is not None and not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
@@ -341,7 +343,7 @@ class FitSettings:
                 if v is not None and not (isinstance(v, int) and not isinstance(v, bool) and v >= 2):
                     raise bad("a whole number >= 2 or null (null: final_spp)")
             elif f.name == "delta_range":
-                if not (isinstance(v, list | tuple) and len(v) == 2 and all(_finite_number(x) and x > 0 for x in v)
+                if not (isinstance(v, list | tuple) and len(v) == 2 and all(finite_number(x) and x > 0 for x in v)
                         and v[0] <= v[1]):
                     raise bad("a pair [low, high] of positive numbers")
                 v = (float(v[0]), float(v[1]))
@@ -353,15 +355,15 @@ class FitSettings:
                 if not (isinstance(v, int) and not isinstance(v, bool)) or v < least:
                     raise bad(f"a whole number >= {least}")
             elif f.name == "polish_continue_p":
-                if not (_finite_number(v) and 0 < v < 1):
+                if not (finite_number(v) and 0 < v < 1):
                     raise bad("a probability between 0 and 1")
                 v = float(v)
             elif f.name == "gn_smooth_px":
-                if not (_finite_number(v) and v >= 0):
+                if not (finite_number(v) and v >= 0):
                     raise bad("a number of pixels >= 0 (0: no smoothing)")
                 v = float(v)
             elif isinstance(default, float):
-                if not (_finite_number(v) and v > 0):
+                if not (finite_number(v) and v > 0):
                     raise bad("a positive number")
                 v = float(v)
             elif f.name == "engine":

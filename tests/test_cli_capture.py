@@ -409,6 +409,7 @@ def test_calibration_without_a_beam_map_for_a_planned_filter_is_refused(tmp_path
 @pytest.mark.parametrize("argv, needle", [
     (["snap", "--exposure", "0"], "--exposure 0: give a positive exposure time"),
     (["snap", "--exposure", "nan"], "--exposure nan: give a positive exposure time"),
+    (["snap", "--exposure", "1e6"], "--exposure 1e+06: outside this camera's range"),
     (["snap", "--angle", "nan"], "--angle nan: outside the stage's allowed range"),
     (["snap", "--angle", "9999"], "--angle 9999: outside the stage's allowed range"),
     (["snap", "--log-io", "{tmp}/nowhere/io.log"], "--log-io {tmp}/nowhere/io.log: cannot write it"),

@@ -1113,6 +1113,12 @@ def test_cli_unknown_effect_and_unknown_run(tmp_path, capsys):
     assert main(["diagnose", str(s), "--spp", "8"]) == 2
     err = capsys.readouterr().err.strip()
     assert "--spp 8" in err and "at least 16" in err and "\n" not in err
+    # A list that names nothing is not read as "all"; a name given twice is not screened twice.
+    for flag, value, said in [("--effects", ",", "names nothing"), ("--channels", " , ", "names nothing"),
+                              ("--effects", "lens_blur,lens_blur", "a name is given twice"), ("--channels", "gg", "a name is given twice")]:
+        assert main(["diagnose", str(s), flag, value]) == 2
+        err = capsys.readouterr().err.strip()
+        assert f"{flag} {value!r}: {said}" in err and "\n" not in err
 
 
 def test_the_diagnosis_spp_follows_the_renderer(monkeypatch):

@@ -59,12 +59,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _list(spec: str | None, split_letters: bool) -> list[str] | None:
-    if not spec:
+def _list(spec: str | None, split_letters: bool, flag: str, example: str) -> list[str] | None:
+    """The names of a comma list (or of letters, `split_letters`); None when the flag is not
+    given (all). A list that names nothing (",") or a name twice is refused rather than read
+    as "all" or fitted twice."""
+    if spec is None or spec == "":
         return None
     if "," in spec or not split_letters:
-        return [s.strip() for s in spec.split(",") if s.strip()]
-    return list(spec.strip())
+        names = [s.strip() for s in spec.split(",") if s.strip()]
+    else:
+        names = [c for c in spec if not c.isspace()]
+    if not names:
+        raise UsageError(f"{flag} {spec!r}: names nothing; give e.g. {flag} {example}, or leave the flag out for all")
+    if len(set(names)) != len(names):
+        raise UsageError(f"{flag} {spec!r}: a name is given twice; name each once")
+    return names
 
 
 def run(args: argparse.Namespace) -> int:
@@ -78,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
     session = Path(args.session)
     if not (session / "session.yaml").is_file():
         raise UsageError(f"{session}: not a session directory (no session.yaml)")
-    effects = _list(args.effects, split_letters=False)
+    effects = _list(args.effects, False, "--effects", "stray_light,lens_blur")
+    channels = _list(args.channels, True, "--channels", "rg")
     for e in effects or ():
         if e not in EXTENSIONS:
             raise UsageError(f"--effects: unknown effect {e!r}; known: {', '.join(sorted(EXTENSIONS))}")
@@ -88,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
         check_writable(session, kind)
     log = None if args.json else (lambda s: print(s, file=sys.stderr))
     with FitProgress(enabled=not (args.json or args.no_progress)) as live:
-        doc = run_diagnosis(session, args.fit, effects=effects, channels=_list(args.channels, True), spp=args.spp,
+        doc = run_diagnosis(session, args.fit, effects=effects, channels=channels, spp=args.spp,
                             seed=args.seed, plots=not args.no_plots, log=log, refine=not args.quick,
                             fit_progress=live.channel, refit_objective=args.refits, engine=args.engine)
     if args.json:

@@ -58,6 +58,11 @@ def run(args: argparse.Namespace) -> int:
 
         scene = install_world(cfg, args.sim or None).scene
     with open_rig(cfg, sim=sim, log_io=args.log_io, scene=scene) as rig:
+        # The camera's exposure range is known once it is open (the Alta reports its own).
+        elo, ehi = rig.camera.exposure_range_s
+        if not elo <= args.exposure <= ehi:
+            raise UsageError(f"--exposure {args.exposure:g}: outside this camera's range [{elo:g}, {ehi:g}] s; "
+                             "give an exposure inside it")
         try:
             if args.angle is not None:
                 rig.stage.move_to(args.angle)
