@@ -137,12 +137,14 @@ def fit_cache(cdir: Path, model: str) -> Path:
 
 
 def close_tag(model: str) -> str:
-    """"-close<N>" for a degree search whose close calls are decided again over N seed pairs
-    (`estimate.phase_degree.CLOSE_SEEDS`, since session 81), else "": the searches before
-    took every call on four pairs, and their caches are kept apart."""
+    """"-close<N>u" for a degree search whose close calls are decided again over N seed pairs
+    (`estimate.phase_degree.CLOSE_SEEDS`), gains the unpaired error does not hold up among
+    them, else "": the searches before session 81 took every call on four pairs, and
+    session 81's first ones ("-close16") checked the paired error alone; their caches are
+    kept apart."""
     from estimate.phase_degree import CLOSE_SEEDS, EVAL_SEEDS
 
-    return f"-close{CLOSE_SEEDS}" if model == "expauto" and CLOSE_SEEDS > EVAL_SEEDS else ""
+    return f"-close{CLOSE_SEEDS}u" if model == "expauto" and CLOSE_SEEDS > EVAL_SEEDS else ""
 
 
 def lm_tag(model: str) -> str:

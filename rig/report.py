@@ -94,8 +94,8 @@ def _degree_choice(choices: Any) -> str:
                      and np.isfinite(gain) else "-")
             # Runs since session 81 say how many seed pairs each gain was taken over (more
             # after a close call); earlier ones took four for every degree.
-            pairs = st.get("gain_pairs")
-            if isinstance(pairs, int) and pairs > c.get("seeds", pairs):
+            pairs, seeds = st.get("gain_pairs"), c.get("seeds")
+            if isinstance(pairs, int) and isinstance(seeds, int) and pairs > seeds:
                 shown += f" ({pairs} pairs)"
             kept = st.get("degree") == c.get("chosen")
             rows.append([ch, f"exp{st.get('degree')}", st.get("chi2_adjusted"), shown, st.get("sigma_t"),

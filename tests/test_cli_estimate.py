@@ -112,6 +112,8 @@ def test_report_degree_table_tolerates_hand_edits():
         {"degree": 4, "chi2_adjusted": 90.0, "gain": 60.5, "gain_se": 9.0, "gain_pairs": 16, "accepted": True},
         {"degree": 5, "chi2_adjusted": 89.0, "gain": -7.0, "gain_se": 2.0, "gain_pairs": 4, "accepted": False}]}})
     assert "<td>+60.5 +- 9.0 (16 pairs)</td>" in page and "<td>-7.0 +- 2.0</td>" in page
+    assert "(16 pairs)" not in _degree_choice({"r": {"chosen": 4, "seeds": "four", "steps": [
+        {"degree": 4, "chi2_adjusted": 90.0, "gain": 60.5, "gain_se": 9.0, "gain_pairs": 16, "accepted": True}]}})
 
 
 @pytest.mark.parametrize("extra, message", [

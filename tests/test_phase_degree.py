@@ -167,3 +167,23 @@ def test_degree_range_and_seed_count_are_checked(monkeypatch):
         _run({}, monkeypatch, min_degree=5, max_degree=4)
     with pytest.raises(ModelParameterError, match="at least 2"):
         _run({}, monkeypatch, seeds=1)
+
+
+def test_a_gain_that_only_the_pairing_makes_significant_is_checked_over_more_pairs(monkeypatch):
+    # The first four pairs scatter by +-130 for either degree, but exp4 happens to follow exp3
+    # closely on them: the paired error (about 16) takes a gain of about 145, the unpaired one
+    # (about 80) does not. Over all sixteen the pairs disagree: exp4 gains about 30 +- 40.
+    ln = math.log(PIXELS)
+    first3 = [2994.0, 2880.0, 3174.0, 3108.0]
+    diffs = [140.0, 113.0, 185.0, 168.0] + [150.0, -150.0] * 6
+    exp3 = first3 * 4
+    table = {3: exp3, 4: [a - d for a, d in zip(exp3, diffs)], 5: _flat(exp3[0] + 500), 6: _flat(exp3[0] + 500)}
+    choice, _ = _run(table, monkeypatch, close_seeds=EVAL_SEEDS)
+    step = choice.steps[1]
+    assert step.accepted and step.gain == pytest.approx(np.mean(diffs[:4]) - ln)
+    assert step.gain - 2.0 * step.gain_se > BIC_MARGIN             # paired: significant
+    renders: list = []
+    choice, _ = _run(table, monkeypatch, renders=renders)
+    step = choice.steps[1]
+    assert (4, EVAL_SEEDS, CLOSE_SEEDS - EVAL_SEEDS) in renders and step.gain_pairs == CLOSE_SEEDS
+    assert step.gain == pytest.approx(np.mean(diffs) - ln) and not step.accepted and choice.chosen == 3
