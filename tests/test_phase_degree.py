@@ -130,9 +130,12 @@ def test_a_close_call_is_rendered_again_at_more_seed_pairs_and_decided_on_all_of
     choice, _ = _run(table, monkeypatch, renders=renders, close_seeds=EVAL_SEEDS)
     assert not choice.steps[1].accepted and choice.steps[1].gain_pairs == EVAL_SEEDS
     renders.clear()
-    choice, _ = _run(table, monkeypatch, renders=renders)
+    lines: list[str] = []
+    choice, _ = _run(table, monkeypatch, renders=renders, log=lines.append)
     step = choice.steps[1]
     assert step.gain_pairs == CLOSE_SEEDS and step.accepted and choice.chosen == 4
+    # The terminal says which call was decided over more pairs.
+    assert "over 16 seed pairs (a close call) (better)" in lines[1] and "close call" not in lines[2]
     d = np.asarray(table[3] * 4) - np.asarray(table[4]) - ln
     assert step.gain == pytest.approx(d.mean()) and step.gain_se == pytest.approx(d.std(ddof=1) / 4.0)
     # Both degrees of the close call got the missing pairs, from the fifth on; exp5 and exp6,
