@@ -177,9 +177,9 @@ def test_a_gain_that_only_the_pairing_makes_significant_is_checked_over_more_pai
     # closely on them: the paired error (about 16) takes a gain of about 145, the unpaired one
     # (about 80) does not. Over all sixteen the pairs disagree: exp4 gains about 30 +- 40.
     ln = math.log(PIXELS)
-    first3 = [2994.0, 2880.0, 3174.0, 3108.0]
+    head = [2994.0, 2880.0, 3174.0, 3108.0]   # exp3's first four pairs
     diffs = [140.0, 113.0, 185.0, 168.0] + [150.0, -150.0] * 6
-    exp3 = first3 * 4
+    exp3 = head * 4
     table = {3: exp3, 4: [a - d for a, d in zip(exp3, diffs)], 5: _flat(exp3[0] + 500), 6: _flat(exp3[0] + 500)}
     choice, _ = _run(table, monkeypatch, close_seeds=EVAL_SEEDS)
     step = choice.steps[1]
