@@ -91,11 +91,10 @@ class DegreeStep:
     Attributes:
         degree: M of exp<M>.
         fit: the fit.
-        chi2_adjusted: chi^2 in the noise-floor metric, mean over the seed pairs.
-        chi2_adjusted_seeds: the same per seed pair (`EVAL_SEEDS`, or `CLOSE_SEEDS` once the
-            degree took part in a close call).
+        chi2_adjusted_seeds: chi^2 in the noise-floor metric per seed pair (`EVAL_SEEDS`, or
+            `CLOSE_SEEDS` once the degree took part in a close call).
         free: fitted parameters (the scale counts when it is fitted).
-        bic: chi2_adjusted + free ln(pixels).
+        ln_pixels: ln of the comparison's pixels (the BIC's price of a parameter).
         gain: BIC of the best degree before this one minus this one's (positive: better).
         gain_se: standard error of `gain` over the seed pairs.
         gain_pairs: seed pairs `gain` was taken over (more than `EVAL_SEEDS` after a close call).
@@ -104,20 +103,23 @@ class DegreeStep:
 
     degree: int
     fit: FitResult
-    chi2_adjusted: float
     chi2_adjusted_seeds: list[float]
     free: int
-    bic: float
+    ln_pixels: float
     gain: float = float("nan")
     gain_se: float = float("nan")
     gain_pairs: int = 0
     accepted: bool = False
 
-    def set_chi2(self, per_seed: Sequence[float], ln_pixels: float) -> None:
-        """Take chi^2 per seed pair (the first ones, or more of them after a close call)."""
-        self.chi2_adjusted_seeds = [float(x) for x in per_seed]
-        self.chi2_adjusted = float(np.mean(self.chi2_adjusted_seeds))
-        self.bic = self.chi2_adjusted + self.free * ln_pixels
+    @property
+    def chi2_adjusted(self) -> float:
+        """chi^2 in the noise-floor metric, mean over the seed pairs."""
+        return float(np.mean(self.chi2_adjusted_seeds))
+
+    @property
+    def bic(self) -> float:
+        """chi2_adjusted + free ln(pixels)."""
+        return self.chi2_adjusted + self.free * self.ln_pixels
 
     def to_dict(self) -> dict[str, Any]:
         f = self.fit
@@ -270,7 +272,7 @@ def choose_degree(problem: Problem, settings: FitSettings, *, fit: FitFn | None 
         if have < close_seeds:
             more, _ = degree_chi2(problem, step.fit, settings, seeds=close_seeds - have, extensions=extensions,
                                   metric=metric, first=have)
-            step.set_chi2(step.chi2_adjusted_seeds + more, ln_pixels)
+            step.chi2_adjusted_seeds = step.chi2_adjusted_seeds + [float(x) for x in more]
 
     def compare(best: DegreeStep, step: DegreeStep) -> None:
         """`step`'s BIC gain over `best` and its standard error, over their common seed pairs."""
@@ -300,8 +302,7 @@ def choose_degree(problem: Problem, settings: FitSettings, *, fit: FitFn | None 
     for m in range(min_degree, max_degree + 1):
         res = fit(f"exp{m}", start)
         chi, metric = degree_chi2(problem, res, settings, seeds=seeds, extensions=extensions, metric=metric)
-        step = DegreeStep(m, res, 0.0, [], _free_count(res), 0.0)
-        step.set_chi2(chi, ln_pixels)
+        step = DegreeStep(m, res, [float(x) for x in chi], _free_count(res), ln_pixels)
         note = ""
         if best is None:
             step.accepted = True

@@ -22,6 +22,7 @@ import json
 import sys
 
 from rig.errors import UsageError
+from rig.name_lists import split_names
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -65,10 +66,7 @@ def _list(spec: str | None, split_letters: bool, flag: str, example: str) -> lis
     as "all" or fitted twice."""
     if spec is None or spec == "":
         return None
-    if "," in spec or not split_letters:
-        names = [s.strip() for s in spec.split(",") if s.strip()]
-    else:
-        names = [c for c in spec if not c.isspace()]
+    names = split_names(spec, split_letters)
     if not names:
         raise UsageError(f"{flag} {spec!r}: names nothing; give e.g. {flag} {example}, or leave the flag out for all")
     if len(set(names)) != len(names):

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from rig.errors import UsageError
+from rig.name_lists import split_names
 
 #: Reduced chi^2 (HDR variance) above which the summary points at `rig diagnose`: the clean
 #: `make demo` session reaches 4-16, 1 % of its pixels (the recording's render fireflies)
@@ -78,8 +79,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _channels(spec: str | None, available: list[str]) -> list[str]:
     if not spec:
         return available
-    parts = [c for c in (spec.split(",") if "," in spec else list(spec)) if c.strip()]
-    names = [c.strip() for c in parts]
+    names = split_names(spec)
     if not names:
         raise UsageError(f"--channels {spec!r}: give channel names, e.g. rgb or r,g (the session has "
                          f"{', '.join(available)})")
@@ -125,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--diagnose needs estimate.diagnose, which this installation does not have")
     available = session_channels(session)
     channels = _channels(args.channels, available)
-    exts = [e.strip() for e in args.extensions.split(",") if e.strip()]
+    exts = split_names(args.extensions, letters=False)
     from estimate.extensions import EXTENSIONS
 
     for e in exts:   # before the problems load and the first fit starts
