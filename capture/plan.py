@@ -224,15 +224,6 @@ def make_plan(
     )
 
 
-def parse_filters(text: str) -> tuple[str, ...]:
-    """``"rgb"`` -> ("r", "g", "b"); ``"r,g,ir"`` -> ("r", "g", "ir")."""
-    text = text.strip()
-    parts = [p.strip() for p in text.split(",")] if "," in text else list(text)
-    if not parts or any(not p for p in parts):
-        raise PlanError(f"cannot read a filter list from {text!r} (e.g. rgb or r,g,b)")
-    return tuple(parts)
-
-
 # --------------------------------------------------------------------------- steps
 
 

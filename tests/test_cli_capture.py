@@ -244,6 +244,8 @@ def test_device_fault_stops_cleanly_and_resumes(tmp_path: Path, capsys: pytest.C
     "argv, stage, needle",
     [
         (["--filters", "rgx"], {}, "unknown filter 'x'"),
+        (["--filters", "rgr"], {}, "filter 'r' is named twice"),
+        (["--filters", " , "], {}, "names nothing"),
         (["--angles", "0"], {}, "number of angles"),
         (["--angles", "4", "--front-range", "30", "30"], {}, "zero-width range"),
         (["--angles", "2000", "--front-range", "30", "31", "--back-range", "120", "121"], {}, "too many"),

@@ -401,4 +401,6 @@ def test_cli_real_rig_without_devices_exits_1_one_line_per_check(tmp_path, capsy
 def test_cli_bad_filter_is_a_usage_error(capsys):
     assert main(["doctor", "--filters", "rx"]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "--filters" in err
+    assert err.count("\n") == 1 and "--filters 'rx': unknown filter 'x'; choose from r, g, b" in err
+    assert main(["doctor", "--filters", "r,g,r"]) == 2
+    assert "filter 'r' is named twice" in capsys.readouterr().err

@@ -20,7 +20,6 @@ from capture.plan import (
     SelectFilter,
     StackKey,
     make_plan,
-    parse_filters,
     plan_steps,
 )
 from capture.session import Session
@@ -92,13 +91,6 @@ def test_bracket_beyond_the_camera_is_a_plan_error():
         )
     p = make_plan(AngleSpec(2), available_filters=FILTERS, stage_range=STAGE, exposure_range_s=(0.01, 30.0))
     assert (p.bracket.first_exposure_s, p.bracket.max_exposure_s) == (0.01, 30.0)
-
-
-def test_parse_filters():
-    assert parse_filters("rgb") == ("r", "g", "b")
-    assert parse_filters("r, g,ir") == ("r", "g", "ir")
-    with pytest.raises(PlanError):
-        parse_filters("r,,g")
 
 
 def test_plan_round_trips_through_its_dict():

@@ -23,25 +23,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def parse_filters(text: str | None, known: list[str]) -> tuple[str, ...]:
+def parse_filters(text: str | None, known: list[str], where: str = "") -> tuple[str, ...]:
     """'rgb' / 'r,g,b' -> ('r', 'g', 'b'); None -> every configured filter.
 
     Raises:
-        UsageError: an unknown or repeated filter name.
+        UsageError: a list naming nothing, or an unknown or repeated filter name.
     """
-    from rig.errors import UsageError
+    from rig.name_lists import chosen_names
 
-    if text is None:
-        return tuple(known)
-    names = [n.strip() for n in text.split(",")] if "," in text else list(text.strip())
-    if not names or any(not n for n in names):
-        raise UsageError(f"--filters {text!r}: give filter names, e.g. rgb or r,g,b")
-    for n in names:
-        if n not in known:
-            raise UsageError(f"--filters: unknown filter {n!r}; the rig has {', '.join(known)}")
-    if len(set(names)) != len(names):
-        raise UsageError(f"--filters {text!r}: a filter is named twice")
-    return tuple(names)
+    names = chosen_names("--filters", text, known, what="filter", where=where)
+    return tuple(known) if names is None else tuple(names)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -54,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
     from rig.errors import UsageError
 
     cfg = load_config(args.config)
-    filters = parse_filters(args.filters, list(cfg.filter.positions))
+    filters = parse_filters(args.filters, list(cfg.filter.positions), f"the configuration {cfg.path}")
     out = args.out or f"calibration-{dt.datetime.now(dt.UTC).strftime('%Y%m%dT%H%M%SZ')}"
     sim = args.sim is not None or wiring.config_is_simulated(cfg)
     scene = None

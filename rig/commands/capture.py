@@ -204,11 +204,12 @@ def _check_out_dir(out: Path) -> None:
 def _check(args: argparse.Namespace) -> _Request:
     from capture.bracket import DEFAULT_FIRST_EXPOSURE_S, BracketPolicy
     from capture.hdr import MergeOptions, headroom_of
-    from capture.plan import AngleSpec, make_plan, parse_filters
+    from capture.plan import AngleSpec, make_plan
     from capture.session import Session
     from drivers.interfaces import AngleRange
     from rig import wiring
     from rig.config import load_config
+    from rig.name_lists import chosen_names
 
     cfg = load_config(args.config)
     sim = args.sim is not None
@@ -254,9 +255,11 @@ def _check(args: argparse.Namespace) -> _Request:
                         kept)
 
     defaults = AngleSpec()
+    named = chosen_names("--filters", args.filters, list(cfg.filter.positions), what="filter",
+                         where=f"the configuration {cfg.path}")
     spec = AngleSpec(
         n_angles=args.angles if args.angles is not None else defaults.n_angles,
-        filters=parse_filters(args.filters) if args.filters is not None else defaults.filters,
+        filters=tuple(named) if named is not None else defaults.filters,
         n_front=args.front_angles,
         front_range_deg=tuple(args.front_range) if args.front_range else defaults.front_range_deg,  # type: ignore[arg-type]
         back_range_deg=tuple(args.back_range) if args.back_range else defaults.back_range_deg,  # type: ignore[arg-type]

@@ -22,7 +22,7 @@ import json
 import sys
 
 from rig.errors import UsageError
-from rig.name_lists import split_names
+from rig.name_lists import chosen_names
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -60,20 +60,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _list(spec: str | None, split_letters: bool, flag: str, example: str) -> list[str] | None:
-    """The names of a comma list (or of letters, `split_letters`); None when the flag is not
-    given (all). A list that names nothing (",") or a name twice is refused rather than read
-    as "all" or fitted twice."""
-    if spec is None or spec == "":
-        return None
-    names = split_names(spec, split_letters)
-    if not names:
-        raise UsageError(f"{flag} {spec!r}: names nothing; give e.g. {flag} {example}, or leave the flag out for all")
-    if len(set(names)) != len(names):
-        raise UsageError(f"{flag} {spec!r}: a name is given twice; name each once")
-    return names
-
-
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
@@ -85,8 +71,8 @@ def run(args: argparse.Namespace) -> int:
     session = Path(args.session)
     if not (session / "session.yaml").is_file():
         raise UsageError(f"{session}: not a session directory (no session.yaml)")
-    effects = _list(args.effects, False, "--effects", "stray_light,lens_blur")
-    channels = _list(args.channels, True, "--channels", "rg")
+    effects = chosen_names("--effects", args.effects, letters=False, what="effect", example="stray_light,lens_blur")
+    channels = chosen_names("--channels", args.channels, what="channel", example="rg")
     for e in effects or ():
         if e not in EXTENSIONS:
             raise UsageError(f"--effects: unknown effect {e!r}; known: {', '.join(sorted(EXTENSIONS))}")

@@ -18,17 +18,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _filters(text: str | None, configured: dict[str, int]) -> tuple[str, ...]:
-    from rig.errors import UsageError
+def _filters(text: str | None, configured: dict[str, int], config: str) -> tuple[str, ...]:
+    from rig.name_lists import chosen_names
 
-    if text is None:
-        return tuple(configured)
-    names = tuple(t.strip() for t in text.split(",")) if "," in text else tuple(text.strip())
-    unknown = [n for n in names if n not in configured]
-    if not names or any(not n for n in names) or unknown:
-        raise UsageError(f"--filters {text!r}: use names from the configuration ({', '.join(configured)}), "
-                         "e.g. rgb or r,g,b")
-    return names
+    names = chosen_names("--filters", text, list(configured), what="filter", where=f"the configuration {config}")
+    return tuple(configured) if names is None else tuple(names)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -39,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     if args.angles < 1 or args.exposures < 1:
         raise UsageError("--angles and --exposures must be >= 1")
-    filters = _filters(args.filters, cfg.filter.positions)
+    filters = _filters(args.filters, cfg.filter.positions, cfg.path)
     plan = SessionSizePlan(angles=args.angles, filters=len(filters), exposures=args.exposures)
     checks = run_checks(cfg, args.out, plan, filter_names=filters)
     blocking = [c.name for c in checks if c.status == "fail"]

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from rig.errors import UsageError
-from rig.name_lists import split_names
+from rig.name_lists import chosen_names, split_names
 
 #: Reduced chi^2 (HDR variance) above which the summary points at `rig diagnose`: the clean
 #: `make demo` session reaches 4-16, 1 % of its pixels (the recording's render fireflies)
@@ -77,15 +77,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _channels(spec: str | None, available: list[str]) -> list[str]:
-    if not spec:
-        return available
-    names = split_names(spec)
-    if not names:
-        raise UsageError(f"--channels {spec!r}: give channel names, e.g. rgb or r,g (the session has "
-                         f"{', '.join(available)})")
-    if len(set(names)) != len(names):
-        raise UsageError(f"--channels {spec!r}: a channel is named twice; name each once")
-    return names
+    """The channels `--channels` names (all of the session's when left out); a name the
+    session lacks is the run's to name, with the session's channels."""
+    names = chosen_names("--channels", spec, what="channel", example="rg")
+    return available if names is None else names
 
 
 def run(args: argparse.Namespace) -> int:
