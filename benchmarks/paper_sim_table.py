@@ -104,10 +104,10 @@ def table(rows: dict[tuple[str, str], dict], models: Sequence[str]) -> list[str]
         mine = [r for (c, k), r in rows.items() if k == m]
         if not mine:
             continue
-        met = [targets(r) for r in mine]
+        each = [targets(r) for r in mine]
         times = [r["time_s"] for r in mine]
-        out.append(f"- **{m}**: all three targets on {sum(all(t) for t in met)} of {len(mine)}; sigma_t "
-                   f"{sum(t[0] for t in met)}, albedo {sum(t[1] for t in met)}, loss {sum(t[2] for t in met)}; "
+        out.append(f"- **{m}**: all three targets on {sum(all(t) for t in each)} of {len(mine)}; sigma_t "
+                   f"{sum(t[0] for t in each)}, albedo {sum(t[1] for t in each)}, loss {sum(t[2] for t in each)}; "
                    f"{min(times):.0f}-{max(times):.0f} s a fit.")
     lower = [f"{c} {lowest(by)}" for c in cases
              if len(by := {m: rows[(c, m)] for m in models if (c, m) in rows}) > 1]
