@@ -1115,7 +1115,8 @@ def test_cli_unknown_effect_and_unknown_run(tmp_path, capsys):
     assert "--spp 8" in err and "at least 16" in err and "\n" not in err
     # A list that names nothing is not read as "all"; a name given twice is not screened twice.
     for flag, value, said in [("--effects", ",", "names nothing"), ("--channels", " , ", "names nothing"),
-                              ("--effects", "lens_blur,lens_blur", "a name is given twice"), ("--channels", "gg", "a name is given twice")]:
+                              ("--effects", "lens_blur,lens_blur", "effect 'lens_blur' is named twice"),
+                              ("--channels", "gg", "channel 'g' is named twice"), ("--channels", "", "names nothing")]:
         assert main(["diagnose", str(s), flag, value]) == 2
         err = capsys.readouterr().err.strip()
         assert f"{flag} {value!r}: {said}" in err and "\n" not in err
