@@ -49,34 +49,34 @@ def main() -> int:
     from estimate.mie import mie_poly
     from estimate.phase_fit import fit_model
 
-    d, s = (float(x) for x in args.case[1:].split("_s"))
+    d, s = (float(x) for x in args.case[1:].split("_s"))   # bench_paper_sim.case_name's form
     bps.TRUTH_ENGINE, bps.TRUTH_PHASE = "light", "table"
     pb, mat = bps.case_inputs(d, s)
     fs = calibrated_scale(pb.session_path, "g", pb.beam.power()).scale
 
-    def ratio(model: str, params: dict[str, float], forward: Any = None) -> float:
+    def unbiased_loss(model: str, params: dict[str, float], forward: Any = None) -> float:
         ev = loss_at(pb, model, params, spp=bps.UNBIASED_SPP, seed=4242, fixed_scale=fs, forward=forward)
         return float(ev["loss_unbiased"])
 
-    floor = ratio(mat.model, mat.parameters(), bps.truth_forward(pb, mat))
+    floor = unbiased_loss(mat.model, mat.parameters(), bps.truth_forward(pb, mat))
     truth = {"sigma_t": s, "albedo": bps.ALBEDO}
     rows: list[dict[str, Any]] = []
     for i, m in enumerate(int(x) for x in args.degrees.split(",")):
         model = f"exp{m}"
         tf = fit_model(mie_poly(d), model)
         phase = {f"phase.b{k}": float(tf.params["b"][k]) for k in range(1, m + 1)}
-        row: dict[str, Any] = {"degree": m, "table_sad": tf.sad, "at_truth": ratio(model, {**truth, **phase}) / floor}
+        row: dict[str, Any] = {"degree": m, "table_sad": tf.sad, "at_truth": unbiased_loss(model, {**truth, **phase}) / floor}
         t0 = time.monotonic()
         f = fit_channel(pb, model, settings=settings_with({}, seed=0, scale="calibrated"), fixed=phase)
         row["fixed"] = {"sigma_t": f.parameters["sigma_t"], "albedo": f.parameters["albedo"],
-                        "sigma_t_se": f.uncertainties.get("sigma_t"), "loss": ratio(model, f.parameters) / floor,
+                        "sigma_t_se": f.uncertainties.get("sigma_t"), "loss": unbiased_loss(model, f.parameters) / floor,
                         "time_s": time.monotonic() - t0}
         if i == 0:
             t0 = time.monotonic()
             start = {**phase, "sigma_t": args.start_sigma_t, "albedo": args.start_albedo}
             g = fit_channel(pb, model, settings=settings_with({}, seed=0, scale="calibrated"), start=start)
             row["free"] = {"start": start, "sigma_t": g.parameters["sigma_t"], "albedo": g.parameters["albedo"],
-                           "sigma_t_se": g.uncertainties.get("sigma_t"), "loss": ratio(model, g.parameters) / floor,
+                           "sigma_t_se": g.uncertainties.get("sigma_t"), "loss": unbiased_loss(model, g.parameters) / floor,
                            "phase": {k: v for k, v in g.parameters.items() if k.startswith("phase.")},
                            "time_s": time.monotonic() - t0}
         print(json.dumps(row, default=float), flush=True)

@@ -25,13 +25,13 @@ import sys
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
+from bench_paper_sim import DIAMETERS, SIGMAS, case_name
+
 SIGMA_T_TARGET = 0.03
 ALBEDO_TARGET = 0.01
 LOSS_TARGET = 1.10
 #: Losses over the floor within this share of each other are reported as a tie.
 TIE = 0.01
-DIAMETERS = (0.5, 0.3, 0.2, 0.01)
-SIGMAS = (2.0, 6.0)
 
 
 def model_key(row: dict) -> str:
@@ -62,7 +62,7 @@ def collect(docs: Iterable[dict]) -> dict[tuple[str, str], dict]:
 def _case_order(case: str) -> tuple[int, int]:
     for i, s in enumerate(SIGMAS):
         for j, d in enumerate(DIAMETERS):
-            if case == f"d{d:g}_s{s:g}":
+            if case == case_name(d, s):
                 return i, j
     return len(SIGMAS), 0
 
