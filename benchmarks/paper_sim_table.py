@@ -93,6 +93,8 @@ def table(rows: dict[tuple[str, str], dict], models: Sequence[str]) -> list[str]
             met = targets(r)
             said = ", ".join(n for n, ok in zip(("sigma_t", "albedo", "loss"), met, strict=True) if ok)
             ub = f"{r['loss_unbiased_ratio']:.2f}" if "loss_unbiased_ratio" in r else "-"
+            if r.get("loss_unbiased_ratio_se") is not None:
+                ub += f" +- {r['loss_unbiased_ratio_se']:.2f}"
             label = f"d {r['diameter_um']:g} um, sigma_t {r['sigma_t_true']:g}" if first else ""
             out.append(f"| {label} | {m} | {r['model']} | {r['loss_ratio']:.2f} | {ub} | {_sigma_t_cell(r)} "
                        f"| {r['albedo_abs_error']:.4f} | {_pct(r.get('sigma_a_rel_error'))} "

@@ -88,7 +88,8 @@ result and the loop; the stages' parts live beside it: `estimate.start` (1),
    on the same session: 146 s, +2.4 % at seed 0; session 25: 110-155 s). Optionally (`polish_settled_spp` > 1, off by default; session
    19) a step after a noise-sized one keeps the matrix and renders its gradient at that
    many times the spp. A Levenberg-Marquardt polish (`lm_polish`) on the log residuals at
-   one fixed seed may follow (`lm_plan`): on request (`lm_iterations`), and by default for
+   fixed seeds may follow (since session 83 the decorrelated loss of two renders,
+   `lm_decorrelated`) (`lm_plan`): on request (`lm_iterations`), and by default for
    exponential phases of degree 5 and more (`lm_from_degree`: 60 steps at most at 4 x
    `final_spp`). With common random numbers the renders are not smooth in the parameters
    (free flights crossing the slab boundary flip) and its finite-difference Jacobian is
@@ -282,6 +283,10 @@ class FitSettings:
     #: exp3 cases it gained nothing). At 1024 spp the same LM stalled at 1.28 x on the
     #: renders' noise.
     lm_from_degree: int | None = 5
+    #: the LM minimises the decorrelated loss of two half-spp renders (`lm_polish`'s
+    #: `decorrelated`, session 83); False: the plain loss of one render (sessions 79-82),
+    #: which rewards parameters that render with less noise
+    lm_decorrelated: bool = True
     lm_degree_iterations: int = 60
     lm_degree_spp_factor: int = 4
     uncertainties: bool = True
@@ -826,7 +831,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     if lm_iterations > 0 and stepped:
         final, lm_losses = lm_polish(fm, problem, final, stepped, tr, spp=lm_spp,
                                      seed=st.seed * 100_003 + 40_000, delta_rel=d_ref, iterations=lm_iterations,
-                                     fixed_scale=fixed_scale, steps_out=lm_steps, deadline=deadline)
+                                     fixed_scale=fixed_scale, steps_out=lm_steps, deadline=deadline,
+                                     decorrelated=st.lm_decorrelated)
     if lm_steps:
         # The result is the LM's optimum, not the polish's: the polish points' scatter and
         # their Jacobians describe another point (on the paper simulation's d 0.5 um case exp7

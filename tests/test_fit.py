@@ -1218,8 +1218,8 @@ def test_a_high_degree_fit_ends_at_the_lm_point_and_takes_its_uncertainties_ther
     calls: list[dict] = []
 
     def fake_lm(fm, pb, params, names, tr, *, spp, seed, delta_rel, iterations, fixed_scale=None, steps_out=None,
-                deadline=None):
-        calls.append({"spp": spp, "iterations": iterations, "names": list(names)})
+                deadline=None, decorrelated=False):
+        calls.append({"spp": spp, "iterations": iterations, "names": list(names), "decorrelated": decorrelated})
         moved = {**params, "sigma_t": params["sigma_t"] * 1.01}
         steps_out.append({n: moved[n] - params[n] for n in names})
         return moved, [1.0, 0.9]
@@ -1235,7 +1235,7 @@ def test_a_high_degree_fit_ends_at_the_lm_point_and_takes_its_uncertainties_ther
     r3 = fit_channel(problem, "exp3", start=start, settings=st)
     assert not calls and r3.polish_se and not central
     r5 = fit_channel(problem, "exp5", start=start, settings=st)
-    assert calls == [{"spp": 64, "iterations": 3, "names": list(r5.uncertainties)}]
+    assert calls == [{"spp": 64, "iterations": 3, "names": list(r5.uncertainties), "decorrelated": True}]
     assert r5.drift["sigma_t"] == pytest.approx(r5.parameters["sigma_t"] / 1.01 * 0.01, rel=1e-9)
     assert r5.drift["albedo"] == 0.0 and not r5.polish_se
     assert len(central) == 2 and all(c["sigma_t"] == r5.parameters["sigma_t"] for c in central)
@@ -1283,3 +1283,26 @@ def test_the_time_limit_covers_the_polishes_and_the_result_is_still_evaluated(pr
     assert r.stop_reason == ("time_limit; the time limit cut the Gauss-Newton polish and the "
                              "Levenberg-Marquardt steps")
     assert math.isfinite(r.loss) and all(math.isfinite(v) and v > 0 for v in r.uncertainties.values())
+
+
+def test_lm_polish_minimises_a_loss_without_the_renders_variance(problem):
+    """The decorrelated LM's loss (two half-spp renders, mean(r_A r_B)) does not fall as the
+    samples per pixel rise, where the plain loss of one render does: its variance, which
+    depends on the parameters, is not in it for the steps to walk down."""
+    from estimate.fit import forward_model
+    from estimate.loss import reference_delta
+    from estimate.polish import lm_polish
+    from estimate.transforms import transform_for
+
+    fm = forward_model(problem, "exp3")
+    names = ["sigma_t", "albedo"]
+    start = {**fm.default_parameters(), **TRUTH}
+    tr = [transform_for(n, fm.specs[n]) for n in names]
+
+    def loss0(spp: int, decorrelated: bool) -> float:
+        return lm_polish(fm, problem, start, names, tr, spp=spp, seed=11, iterations=0, fixed_scale=2e5,
+                         delta_rel=reference_delta(FitSettings().delta_range), decorrelated=decorrelated)[1][0]
+
+    plain_drop = loss0(8, False) - loss0(256, False)
+    dec_drop = loss0(16, True) - loss0(512, True)
+    assert plain_drop > 0 and abs(dec_drop) < 0.2 * plain_drop, (plain_drop, dec_drop)

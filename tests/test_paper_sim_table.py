@@ -61,3 +61,12 @@ def test_an_unreadable_file_is_one_line_and_exit_2(tmp_path, capsys):
     assert pst.main([str(bad)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "cannot read" in err and str(bad) in err
+
+
+def test_an_unbiased_ratio_over_several_seed_pairs_is_shown_with_its_standard_error(tmp_path, capsys):
+    row = _fit("d0.5_s6", "exp7", 6.1, 0.9, 1.0, unbiased=1.034)
+    row["loss_unbiased_ratio_se"] = 0.0123
+    (tmp_path / "r.json").write_text(json.dumps({"fits": [row]}))
+    assert pst.main([str(tmp_path / "r.json")]) == 0
+    body = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("| d")]
+    assert body[0].startswith("| d 0.5 um, sigma_t 6 | exp7 | exp7 | 1.00 | 1.03 +- 0.01 | ")
