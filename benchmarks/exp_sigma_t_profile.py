@@ -61,19 +61,21 @@ def main() -> int:
     fs = calibrated_scale(pb.session_path, "g", pb.beam.power()).scale
     settings = settings_with({}, seed=0, scale="calibrated")
     d_ref = reference_delta(settings.delta_range)
+    fm_model = forward_model(pb, args.model)     # one for every held point
     points: dict[str, tuple[Any, dict[str, float], dict[str, Any]]] = {
         "truth": (bps.truth_forward(pb, mat), mat.parameters(), {"sigma_t": s, "albedo": bps.ALBEDO})}
     for sig in (float(x) for x in args.sigmas.split(",")):
         t0 = time.monotonic()
-        f = fit_channel(pb, args.model, settings=settings, fixed={"sigma_t": sig})
+        f = fit_channel(pb, args.model, settings=settings, fixed={"sigma_t": sig}, forward=fm_model)
         info = {"sigma_t": sig, "albedo": f.parameters["albedo"], "albedo_se": f.uncertainties.get("albedo"),
                 "fit_time_s": time.monotonic() - t0, "phase": {k: v for k, v in f.parameters.items() if k.startswith("phase.")}}
         print(f"held sigma_t {sig}: albedo {info['albedo']:.4f}, {info['fit_time_s']:.0f} s", flush=True)
-        points[f"held {sig:g}"] = (forward_model(pb, args.model), dict(f.parameters), info)
+        points[f"held {sig:g}"] = (fm_model, dict(f.parameters), info)
     for fn in args.points:
         for row in json.loads(Path(fn).read_text())["fits"]:
             if row["case"] == args.case:
-                points[f"{Path(fn).name}: {row['model']}"] = (forward_model(pb, row["model"]), row["parameters"],
+                fm = fm_model if row["model"] == args.model else forward_model(pb, row["model"])
+                points[f"{Path(fn).name}: {row['model']}"] = (fm, row["parameters"],
                                                               {"sigma_t": row["sigma_t"], "albedo": row["albedo"]})
     losses: dict[str, list[float]] = {k: [] for k in points}
     for i in range(args.pairs):

@@ -34,6 +34,8 @@ GN_DAMPING = 1e-3
 #: that did not), and the tries per step
 DAMPING_UP = 10.0
 DAMPED_TRIES = 4
+#: `lm_polish` stops after a step that gains less than this share of the loss
+LM_MIN_GAIN = 1e-3
 
 #: a render kept as the base of one-sided differences: (profiles, seed, spp)
 Base = tuple[np.ndarray, int, int]
@@ -48,8 +50,7 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
               tr: Sequence[Transform], *, spp: int, seed: int, delta_rel: float, iterations: int,
               fixed_scale: float | None = None,
               steps_out: list[dict[str, float]] | None = None,
-              deadline: Deadline | None = None, decorrelated: bool = True,
-              min_gain: float = 1e-3) -> tuple[dict[str, float], list[float]]:
+              deadline: Deadline | None = None, decorrelated: bool = True) -> tuple[dict[str, float], list[float]]:
     """Levenberg-Marquardt on the log residuals at the reference delta, fixed seeds.
 
     With the seeds fixed (common random numbers) the loss is a deterministic function of the
@@ -73,7 +74,7 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
     (sessions 79-82).
 
     Stops after `iterations` steps, when no step is accepted, or when a step gains less than
-    `min_gain` of the loss. Returns the parameters and the loss after each accepted step;
+    `LM_MIN_GAIN` of the loss. Returns the parameters and the loss after each accepted step;
     `steps_out` receives each accepted step in parameter units. Once `deadline` has passed no
     further step is started (stage name "lm").
     """
@@ -103,15 +104,16 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
     for _ in range(iterations):
         if deadline is not None and deadline.passed("lm"):
             break
+        # the log scale's column depends on the measurement alone: the same for both renders
+        m = meas / sc
+        scale_col = [np.where(valid, -m / (np.clip(m, -0.5 * dlt, None) + dlt), 0.0).ravel()] \
+            if fixed_scale is None else []
         mats = []
         for prof, s_ in zip(profs, seeds):
             jac = fm.jacobian(p, angles, list(names), spp=each_spp, seed=s_)
             cols = [np.where(valid, -jac[n] / (np.clip(prof, 0, None) + dlt), 0.0).ravel() * t.dx_dz(float(zz))
                     for n, t, zz in zip(names, tr, z)]
-            m = meas / sc
-            if fixed_scale is None:
-                cols.append(np.where(valid, -m / (np.clip(m, -0.5 * dlt, None) + dlt), 0.0).ravel())
-            mats.append(np.stack(cols, axis=1))
+            mats.append(np.stack(cols + scale_col, axis=1))
         n_z = len(names)
         # The matrix of the mean Jacobian: positive semi-definite, its render noise only damps
         # the noisy directions further (the cross product A_A^T A_B would be unbiased but can
@@ -151,7 +153,7 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
                 accepted = True
                 break
             lam *= 4.0
-        if not accepted or rel < min_gain:
+        if not accepted or rel < LM_MIN_GAIN:
             break
     return p, losses
 
