@@ -49,7 +49,11 @@ def main() -> int:
     ap.add_argument("--sigmas", default="5.4,6,6.6,7.2", help="held sigma_t values (1/mm), a comma list")
     ap.add_argument("--pairs", type=int, default=8, help="seed pairs of the scoring loss")
     ap.add_argument("--points", nargs="*", default=[], help="bench_paper_sim results JSON whose fits of the case to score too")
+    ap.add_argument("--truth-spp", type=int, default=bps.DEFAULT_TRUTH_SPP,
+                    help="the recording's samples per pixel (bench_paper_sim.py --truth-spp; output named for it)")
     args = ap.parse_args()
+    bps.TRUTH_SPP = args.truth_spp
+    spp_tag = "" if args.truth_spp == bps.DEFAULT_TRUTH_SPP else f"_spp{args.truth_spp}"
     from fit_overrides import settings_with
 
     from estimate.fit import fit_channel, forward_model
@@ -92,7 +96,7 @@ def main() -> int:
                      "losses": losses[name]})
         print(f"{name:40s} sigma_t {info['sigma_t']:.3f} albedo {info['albedo']:.4f} "
               f"loss / truth's {ratio.mean():.4f} +- {se:.4f}", flush=True)
-    out = ROOT / "benchmarks" / "results" / f"exp_sigma_t_profile_{args.case}_{args.model}.json"
+    out = ROOT / "benchmarks" / "results" / f"exp_sigma_t_profile_{args.case}{spp_tag}_{args.model}.json"
     out.write_text(json.dumps({"case": args.case, "model": args.model, "pairs": args.pairs, "pair_spp": PAIR_SPP,
                                "rows": rows}, indent=1, default=float))
     print(f"wrote {out}")

@@ -41,7 +41,11 @@ def main() -> int:
     ap.add_argument("degrees", nargs="?", default="7,12")
     ap.add_argument("--start-sigma-t", type=float, default=6.63, help="the free fit's start (1/mm)")
     ap.add_argument("--start-albedo", type=float, default=0.91, help="the free fit's start")
+    ap.add_argument("--truth-spp", type=int, default=bps.DEFAULT_TRUTH_SPP,
+                    help="the recording's samples per pixel (bench_paper_sim.py --truth-spp; output named for it)")
     args = ap.parse_args()
+    bps.TRUTH_SPP = args.truth_spp
+    spp_tag = "" if args.truth_spp == bps.DEFAULT_TRUTH_SPP else f"_spp{args.truth_spp}"
     from fit_overrides import settings_with
 
     from estimate.fit import fit_channel, loss_at
@@ -81,7 +85,7 @@ def main() -> int:
                            "time_s": time.monotonic() - t0}
         print(json.dumps(row, default=float), flush=True)
         rows.append(row)
-    out = ROOT / "benchmarks" / "results" / f"exp_table_phase_start_{args.case}.json"
+    out = ROOT / "benchmarks" / "results" / f"exp_table_phase_start_{args.case}{spp_tag}.json"
     out.write_text(json.dumps({"case": args.case, "rows": rows}, indent=1, default=float))
     print(f"wrote {out}")
     return 0

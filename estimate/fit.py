@@ -164,6 +164,8 @@ from estimate.loss import (
     ScaleCalibration,
     calibrated_scale,
     log_loss,
+    log_measured,
+    log_residual,
     profile_scale,
     reference_delta,
 )
@@ -704,10 +706,8 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             assert scale is not None  # the calibration's, or profiled just now
             curve_loss = log_loss(problem.measured, mean, problem.valid, scale, d_ref)[0]
             m = problem.measured / scale
-            dl = max(delta_rel * float(np.max(np.where(problem.valid, m, -np.inf))), 1e-30)
-            mm = np.log(np.clip(m, -0.5 * dl, None) + dl)
-            ra = np.where(problem.valid, mm - np.log(np.clip(pa, 0, None) + dl), 0.0)
-            rb = np.where(problem.valid, mm - np.log(np.clip(pb_, 0, None) + dl), 0.0)
+            mm, dl = log_measured(problem.measured, problem.valid, scale, delta_rel)
+            ra, rb = (log_residual(mm, q, problem.valid, dl) for q in (pa, pb_))
             n_v = max(1, int(problem.valid.sum()))
             cot_a = np.where(problem.valid & (pa >= 0), -rb / (np.clip(pa, 0, None) + dl) / n_v, 0.0)
             cot_b = np.where(problem.valid & (pb_ >= 0), -ra / (np.clip(pb_, 0, None) + dl) / n_v, 0.0)

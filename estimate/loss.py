@@ -72,16 +72,32 @@ def reference_delta(delta_range: tuple[float, float] = DEFAULT_DELTA_RANGE) -> f
     return math.sqrt(delta_range[0] * delta_range[1])
 
 
+def log_measured(measured: np.ndarray, valid: np.ndarray, scale: float, delta_rel: float
+                 ) -> tuple[np.ndarray, float]:
+    """log(I_meas / s + delta) per pixel, and delta = delta_rel * max over the valid pixels
+    of I_meas / s (in the model's units; at least 1e-30).
+
+    A dark pixel's sensor noise may dip below zero; it is clipped at -delta / 2 so the
+    logarithm stays finite.
+    """
+    m = measured / scale
+    delta = max(delta_rel * float(np.max(np.where(valid, m, -np.inf))), 1e-30)
+    return np.log(np.clip(m, -0.5 * delta, None) + delta), delta
+
+
+def log_residual(log_meas: np.ndarray, model: np.ndarray, valid: np.ndarray, delta: float) -> np.ndarray:
+    """r = log(I_meas / s + delta) - log(I_model + delta) on the valid pixels, 0 elsewhere
+    (`log_meas`, `delta` from `log_measured`; a render's negative values count as 0)."""
+    return np.where(valid, log_meas - np.log(np.clip(model, 0.0, None) + delta), 0.0)
+
+
 def log_loss(measured: np.ndarray, model: np.ndarray, valid: np.ndarray, scale: float,
              delta_rel: float) -> tuple[float, np.ndarray]:
     """Loss value and its gradient with respect to `model` (same shape)."""
-    m = measured / scale
-    delta = delta_rel * float(np.max(np.where(valid, m, -np.inf)))
-    delta = max(delta, 1e-30)
+    lm, delta = log_measured(measured, valid, scale, delta_rel)
     n = max(1, int(valid.sum()))
-    mm = np.clip(m, -0.5 * delta, None)  # a dark pixel's noise may dip below zero
     im = np.clip(model, 0.0, None)
-    r = np.where(valid, np.log(mm + delta) - np.log(im + delta), 0.0)
+    r = log_residual(lm, model, valid, delta)
     value = float(np.sum(r * r) / n)
     grad = np.where(valid & (model >= 0), -2.0 * r / (im + delta) / n, 0.0)
     return value, grad
@@ -104,12 +120,9 @@ def decorrelated_loss_se(measured: np.ndarray, model_a: np.ndarray, model_b: np.
                          scale: float, delta_rel: float) -> tuple[float, float]:
     """`decorrelated_loss` and its standard error, std(r_A r_B) / sqrt(n) over the valid
     pixels (taken as independent)."""
-    m = measured / scale
-    delta = max(delta_rel * float(np.max(np.where(valid, m, -np.inf))), 1e-30)
+    lm, delta = log_measured(measured, valid, scale, delta_rel)
     n = max(1, int(valid.sum()))
-    lm = np.log(np.clip(m, -0.5 * delta, None) + delta)
-    ra = np.where(valid, lm - np.log(np.clip(model_a, 0.0, None) + delta), 0.0)
-    rb = np.where(valid, lm - np.log(np.clip(model_b, 0.0, None) + delta), 0.0)
+    ra, rb = (log_residual(lm, q, valid, delta) for q in (model_a, model_b))
     prod = (ra * rb)[valid]
     se = float(np.std(prod) / math.sqrt(n)) if prod.size else 0.0
     return float(np.sum(ra * rb) / n), se
@@ -143,9 +156,8 @@ def profile_additive(measured: np.ndarray, model: np.ndarray, valid: np.ndarray,
     names = list(columns)
     if not names:
         return {}
-    m = measured / scale
-    delta = max(delta_rel * float(np.max(np.where(valid, m, -np.inf))), 1e-30)
-    lm = np.log(np.clip(m, -0.5 * delta, None) + delta)[valid]
+    lm_all, delta = log_measured(measured, valid, scale, delta_rel)
+    lm = lm_all[valid]
     base = np.asarray(model, dtype=np.float64)[valid]
     cols = np.stack([np.asarray(columns[n], dtype=np.float64)[valid] for n in names], axis=1)
     x0 = np.array([float(values[n]) for n in names])

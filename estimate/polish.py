@@ -22,7 +22,7 @@ from estimate.errors import ModelParameterError
 from estimate.evaluation import solve_additive
 from estimate.forward import ForwardModel
 from estimate.gauss_newton import gn_columns, gn_inverse, gn_jacobian, secant_steps
-from estimate.loss import decorrelated_loss_se, profile_scale
+from estimate.loss import decorrelated_loss_se, log_measured, log_residual, profile_scale
 from estimate.problem import Problem
 from estimate.transforms import Transform
 
@@ -88,10 +88,8 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
     def residual(p: Mapping[str, float]) -> tuple[list[np.ndarray], list[np.ndarray], float, float, float]:
         profs = fm.render_profiles_many([(p, s_) for s_ in seeds], angles, spp=each_spp)
         sc = fixed_scale if fixed_scale is not None else profile_scale(meas, np.mean(profs, axis=0), valid, delta_rel)
-        m = meas / sc
-        dlt = delta_rel * float(np.max(np.where(valid, m, -np.inf)))
-        mm = np.log(np.clip(m, -0.5 * dlt, None) + dlt)
-        rs = [np.where(valid, mm - np.log(np.clip(prof, 0, None) + dlt), 0.0) for prof in profs]
+        mm, dlt = log_measured(meas, valid, sc, delta_rel)
+        rs = [log_residual(mm, prof, valid, dlt) for prof in profs]
         # decorrelated: r_A r_B, whose expectation holds no render variance; else r^2
         loss = float(np.sum(rs[0] * rs[-1]) / n_v)
         return rs, profs, sc, dlt, loss
@@ -463,17 +461,16 @@ def gn_polish(fm: ForwardModel, problem: Problem, params: Mapping[str, float], n
         # settled step keeps older ones, whose noise is independent of them).
         paired = (jac_a, jac_b) if one_sided and cross and jac_b is not None and new_jacobians else None
         m = meas / sc
-        m_max = float(np.max(np.where(valid, m, -np.inf)))
+        logs = [log_measured(meas, valid, sc, q) for q in delta_nodes]
         mean = 0.5 * (pa + pb)
-        dls = [max(q * m_max, 1e-30) for q in delta_nodes]
+        dls = [d for _, d in logs]
         g = np.zeros(len(names))
         # Per pixel, the gradient's share of the renders' noise: one draw of it from the two
         # renders' difference (the same noise drives every delta node, so they add up first).
         u = np.zeros((meas.size, len(names)))
-        for d in dls:
+        for mm, d in logs:
             A = gn_columns(jac, names, tr, z, problem, mean, d, m, fixed_scale is None, cols_out, smooth_px, exact)
-            mm = np.log(np.clip(m, -0.5 * d, None) + d)
-            ra, rb = (np.where(valid, mm - np.log(np.clip(q, 0.0, None) + d), 0.0) for q in (pa, pb))
+            ra, rb = (log_residual(mm, q, valid, d) for q in (pa, pb))
             if paired:
                 # Each one-sided Jacobian's noise is correlated with its base render's, which
                 # is half of render A's (or B's); paired with the other render's residuals its

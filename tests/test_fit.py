@@ -22,7 +22,10 @@ from estimate.loss import (
     DEFAULT_CALIBRATION_ND,
     DEFAULT_COLLECTION_SR,
     calibrated_scale,
+    decorrelated_loss,
     log_loss,
+    log_measured,
+    log_residual,
     profile_additive,
     profile_scale,
 )
@@ -70,6 +73,30 @@ def test_scale_profiling_and_loss_gradient():
     d[1, 3] = eps
     fd = (log_loss(meas, model * 1.1 + d, valid, 7.0, 1e-2)[0] - log_loss(meas, model * 1.1 - d, valid, 7.0, 1e-2)[0]) / (2 * eps)
     assert g[1, 3] == pytest.approx(fd, rel=1e-5)
+
+
+def test_log_residuals_of_a_scaled_row_clip_dark_pixels_and_skip_invalid_ones():
+    """The one residual every loss uses: zero where the model is the measurement over the
+    scale; a measurement's noise below -delta/2 and a render's below 0 stay finite; invalid
+    pixels give 0; the decorrelated loss of two equal renders is their plain loss."""
+    rng = np.random.default_rng(5)
+    model = rng.uniform(0.1, 1.0, (2, 16))
+    valid = np.ones_like(model, bool)
+    valid[1, 4] = False
+    meas = 3.0 * model
+    meas[0, 2] = -50.0  # a dark pixel's read noise
+    lm, delta = log_measured(meas, valid, 3.0, 0.01)
+    assert delta == pytest.approx(0.01 * float(model[valid].max()))
+    assert lm[0, 2] == pytest.approx(np.log(0.5 * delta))
+    noisy = model.copy()
+    noisy[0, 5] = -1.0
+    r = log_residual(lm, noisy, valid, delta)
+    assert np.all(np.isfinite(r)) and r[1, 4] == 0.0
+    assert np.allclose(np.delete(r.ravel(), [2, 5]), 0.0, atol=1e-12)
+    assert r[0, 5] == pytest.approx(np.log(model[0, 5] + delta) - np.log(delta))
+    plain = log_loss(meas, noisy, valid, 3.0, 0.01)[0]
+    assert decorrelated_loss(meas, noisy, noisy, valid, 3.0, 0.01) == pytest.approx(plain)
+    assert plain == pytest.approx(float(np.sum(r * r)) / valid.sum())
 
 
 @pytest.mark.parametrize("delta_rel", [1e-3, 0.1])
