@@ -16,7 +16,8 @@ the truth's loss over the same pairs, with its standard error.
 
 A profile flat within that error over a range of sigma_t means the recording cannot tell
 those values apart: sigma_t trades with the phase's asymmetry at fixed sigma_a and
-sigma_s (1 - g). Writes benchmarks/results/exp_sigma_t_profile_<CASE>_<MODEL>.json.
+sigma_s (1 - g). Writes benchmarks/results/exp_sigma_t_profile_<CASE>[_spp<N>]_<MODEL>.json
+(`_spp<N>` with `--truth-spp N` off the default).
 """
 
 from __future__ import annotations

@@ -16,7 +16,8 @@ exponential function of degree M is fitted to the case's Mie table by `estimate.
 
 Every loss is the loss without render noise over the truth's (4096 spp, seed 4242, the
 calibrated scale: `bench_paper_sim.unbiased_losses`' measure). Writes
-benchmarks/results/exp_table_phase_start_<CASE>.json; about 6 minutes on 2 cores.
+benchmarks/results/exp_table_phase_start_<CASE>[_spp<N>].json (`_spp<N>` with `--truth-spp N`
+off the default); about 6 minutes on 2 cores.
 """
 
 from __future__ import annotations
