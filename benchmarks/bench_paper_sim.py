@@ -86,6 +86,8 @@ TRUTH_PHASE = "exp8"
 #: of the default carry no spp in their names (as before `--truth-spp`).
 DEFAULT_TRUTH_SPP = 1024
 TRUTH_SPP = DEFAULT_TRUTH_SPP
+#: Where expauto's degrees start (`estimate.phase_degree.START_FROM`; `--degree-start`).
+DEGREE_START = "below"
 #: The simulated camera's render engine (`--truth-engine`; the world's `render.engine`): the
 #: camera engine's recordings carry white but skewed frozen noise, the light engine's far
 #: less of it, correlated along the row. Worlds and caches of the light engine are kept apart.
@@ -144,7 +146,10 @@ def close_tag(model: str) -> str:
     kept apart."""
     from estimate.phase_degree import CLOSE_SEEDS, EVAL_SEEDS
 
-    return f"-close{CLOSE_SEEDS}u" if model == "expauto" and CLOSE_SEEDS > EVAL_SEEDS else ""
+    if model != "expauto":
+        return ""
+    own = "-ownstart" if DEGREE_START == "own" else ""   # `--degree-start own`: cached apart
+    return (f"-close{CLOSE_SEEDS}u" if CLOSE_SEEDS > EVAL_SEEDS else "") + own
 
 
 def lm_tag(model: str) -> str:
@@ -249,7 +254,7 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
             # `rig estimate --degree auto`: exp3, exp4, ... and the degree the BIC rule keeps.
             from estimate.phase_degree import choose_degree
 
-            choice = choose_degree(pb, st)
+            choice = choose_degree(pb, st, start_from=DEGREE_START)
             r = choice.fit
             extra = {"degree_choice": choice.to_dict()}
         else:
@@ -435,14 +440,18 @@ def main() -> int:
     ap.add_argument("--setting", action="append", default=[], metavar="KEY=VALUE",
                     help="a FitSettings field to change for the fits, e.g. final_spp=8192 (JSON values; "
                          "repeatable; such fits are cached apart)")
+    ap.add_argument("--degree-start", choices=("below", "own"), default="below",
+                    help="expauto: each degree from the one below's optimum (default, as rig estimate) or from the "
+                         "estimator's own start (cached apart)")
     ap.add_argument("--unbiased", action="store_true",
                     help="add the losses without Monte Carlo variance (fit and truth) to cached fits that lack them")
     args = ap.parse_args()
     if args.truth_spp < 1:
         ap.error(f"--truth-spp {args.truth_spp}: samples per pixel must be at least 1")
-    global SCALE, TRUTH_SPP, TRUTH_ENGINE, TRUTH_PHASE, OVERRIDES
+    global SCALE, TRUTH_SPP, TRUTH_ENGINE, TRUTH_PHASE, OVERRIDES, DEGREE_START
     SCALE = args.scale
     TRUTH_SPP = args.truth_spp
+    DEGREE_START = args.degree_start
     TRUTH_ENGINE = args.truth_engine
     TRUTH_PHASE = args.truth_phase
     from fit_overrides import parse_overrides, settings_with

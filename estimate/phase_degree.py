@@ -51,7 +51,7 @@ from estimate.problem import Problem
 from estimate.residuals import noise_floor
 
 __all__ = ["BIC_MARGIN", "CLOSE_SE", "CLOSE_SEEDS", "EVAL_SEEDS", "EVAL_SPP_FACTOR", "MAX_DEGREE", "MIN_DEGREE",
-           "PATIENCE", "DegreeChoice", "DegreeStep", "Metric", "choose_degree", "degree_chi2"]
+           "PATIENCE", "START_FROM", "DegreeChoice", "DegreeStep", "Metric", "choose_degree", "degree_chi2"]
 
 #: The first degree tried (the paper's) and the largest (the largest the paper evaluated).
 MIN_DEGREE = 3
@@ -76,6 +76,13 @@ CLOSE_SE = 2.0
 CLOSE_SEEDS = 16
 #: Stop after this many degrees in a row that do not beat the best so far.
 PATIENCE = 2
+#: Where each degree's fit starts: "below", the previous degree's optimum with the new
+#: coefficient at 0 (the default), or "own", the estimator's own coarse start, as `--degree M`
+#: fits it. On the paper simulation's forward media recorded near sensor noise the "below"
+#: chain stays in the part of the valley the lower degrees found, where own-start fits of the
+#: same degrees come 1.1-6 x nearer the noise floor (`docs/estimation-log.md`, session 85);
+#: "own" is there to measure that on every case before any default changes.
+START_FROM = ("below", "own")
 #: Base seed of the comparison renders (apart from the fits' own).
 _EVAL_SEED = 515_151
 
@@ -141,6 +148,8 @@ class DegreeChoice:
         pixels: pixels of the comparison (the n of ln n).
         noise_scale: f per angle (the degree-3 fit's), >= 1.
         stopped: why the search ended.
+        seeds: seed pairs of each comparison; close_seeds: of a close call's.
+        start_from: where each degree's fit started (`START_FROM`).
     """
 
     chosen: int
@@ -150,6 +159,7 @@ class DegreeChoice:
     stopped: str = ""
     seeds: int = EVAL_SEEDS
     close_seeds: int = CLOSE_SEEDS
+    start_from: str = "below"
 
     @property
     def fit(self) -> FitResult:
@@ -162,7 +172,7 @@ class DegreeChoice:
                 f"{self.seeds} common seed pairs ({self.close_seeds} when the gain is within {CLOSE_SE:g} "
                 f"standard errors of that bar)", "pixels": self.pixels,
                 "noise_scale": list(self.noise_scale), "stopped": self.stopped, "seeds": self.seeds,
-                "close_seeds": self.close_seeds,
+                "close_seeds": self.close_seeds, "start_from": self.start_from,
                 "steps": [s.to_dict() for s in self.steps]}
 
     def describe(self) -> str:
@@ -242,18 +252,21 @@ def degree_chi2(problem: Problem, fit: FitResult, settings: FitSettings, *, seed
 
 def choose_degree(problem: Problem, settings: FitSettings, *, fit: FitFn | None = None,
                   extensions: Sequence[str] = (), min_degree: int = MIN_DEGREE, max_degree: int = MAX_DEGREE,
-                  seeds: int = EVAL_SEEDS, close_seeds: int = CLOSE_SEEDS,
+                  seeds: int = EVAL_SEEDS, close_seeds: int = CLOSE_SEEDS, start_from: str = "below",
                   log: Callable[[str], None] | None = None) -> DegreeChoice:
     """Fit exp<min_degree>, exp<min_degree + 1>, ... and keep the degree the BIC rule picks
     (module docstring). `fit(phase, start)` fits one degree (None: `fit_channel` with
-    `settings` and `extensions`); each starts from the previous degree's parameters with the
-    new coefficient at 0. Each degree is compared at `seeds` seed pairs, a close call at
+    `settings` and `extensions`); with `start_from` "below" each starts from the previous
+    degree's parameters with the new coefficient at 0, with "own" from the estimator's own
+    start (`START_FROM`). Each degree is compared at `seeds` seed pairs, a close call at
     `close_seeds` (a value no larger than `seeds`: close calls are not rendered again)."""
     if fit is None:
         def fit(phase: str, start: Mapping[str, float] | None) -> FitResult:
             return fit_channel(problem, phase, extensions=extensions, start=start, settings=settings)
     if not 0 <= min_degree <= max_degree:
         raise ModelParameterError(f"degrees {min_degree}..{max_degree}: need 0 <= first <= last")
+    if start_from not in START_FROM:
+        raise ModelParameterError(f"start {start_from!r}: choose from {', '.join(START_FROM)}")
     if seeds < 2:
         raise ModelParameterError(f"{seeds} seed pairs: the comparison's standard error needs at least 2")
     close_seeds = max(close_seeds, seeds)
@@ -300,7 +313,7 @@ def choose_degree(problem: Problem, settings: FitSettings, *, fit: FitFn | None 
         return step.gain > bar and step.gain - SE_MULTIPLE * unpaired <= BIC_MARGIN
 
     for m in range(min_degree, max_degree + 1):
-        res = fit(f"exp{m}", start)
+        res = fit(f"exp{m}", start if start_from == "below" else None)
         chi, metric = degree_chi2(problem, res, settings, seeds=seeds, extensions=extensions, metric=metric)
         step = DegreeStep(m, res, [float(x) for x in chi], _free_count(res), ln_pixels)
         note = ""
@@ -332,4 +345,4 @@ def choose_degree(problem: Problem, settings: FitSettings, *, fit: FitFn | None 
         start[f"phase.b{m + 1}"] = 0.0
     assert best is not None and metric is not None
     return DegreeChoice(best.degree, steps, pixels, [float(x) for x in metric.noise_scale], stopped, seeds,
-                        close_seeds)
+                        close_seeds, start_from)

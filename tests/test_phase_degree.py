@@ -165,11 +165,23 @@ def test_a_degree_after_one_that_gains_little_is_still_tried(monkeypatch):
     assert [s.accepted for s in choice.steps] == [True, False, True, False, True]
 
 
-def test_degree_range_and_seed_count_are_checked(monkeypatch):
+def test_degree_range_seed_count_and_start_are_checked(monkeypatch):
     with pytest.raises(ModelParameterError, match="degrees 5..4"):
         _run({}, monkeypatch, min_degree=5, max_degree=4)
     with pytest.raises(ModelParameterError, match="at least 2"):
         _run({}, monkeypatch, seeds=1)
+    with pytest.raises(ModelParameterError, match="start 'above': choose from below, own"):
+        _run({}, monkeypatch, start_from="above")
+
+
+def test_own_starts_fit_every_degree_from_the_estimators_start_and_the_rule_is_unchanged(monkeypatch):
+    table = {3: _flat(3600.0, 3.0), 4: _flat(3150.0, 3.0), 5: _flat(3148.0, 3.0), 6: _flat(3147.0, 3.0)}
+    below, _ = _run(table, monkeypatch)
+    own, starts = _run(table, monkeypatch, start_from="own")
+    assert starts == [("exp3", None), ("exp4", None), ("exp5", None), ("exp6", None)]
+    assert own.chosen == below.chosen == 4
+    assert [s.accepted for s in own.steps] == [s.accepted for s in below.steps]
+    assert own.to_dict()["start_from"] == "own" and below.to_dict()["start_from"] == "below"
 
 
 def test_a_gain_that_only_the_pairing_makes_significant_is_checked_over_more_pairs(monkeypatch):
