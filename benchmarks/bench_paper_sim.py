@@ -134,7 +134,7 @@ def fit_cache(cdir: Path, model: str) -> Path:
     # A GPU's fits start from other defaults (FitSettings.for_variant): cached apart.
     variant = default_variant()
     vtag = "" if variant.startswith("llvm") else f"_{variant}"
-    return cdir / (f"fit_{model}_{SCALE}_{FitSettings().optimizer}_{RECIPE}{lm_tag(model)}{close_tag(model)}{vtag}"
+    return cdir / (f"fit_{model}_{SCALE}_{FitSettings().optimizer}_{RECIPE}{lm_tag(model)}{close_tag(model)}{start_tag(model)}{vtag}"
                    f"{overrides_tag(OVERRIDES)}.json")
 
 
@@ -146,10 +146,13 @@ def close_tag(model: str) -> str:
     kept apart."""
     from estimate.phase_degree import CLOSE_SEEDS, EVAL_SEEDS
 
-    if model != "expauto":
-        return ""
-    own = "-ownstart" if DEGREE_START == "own" else ""   # `--degree-start own`: cached apart
-    return (f"-close{CLOSE_SEEDS}u" if CLOSE_SEEDS > EVAL_SEEDS else "") + own
+    return f"-close{CLOSE_SEEDS}u" if model == "expauto" and CLOSE_SEEDS > EVAL_SEEDS else ""
+
+
+def start_tag(model: str) -> str:
+    """"-ownstart" for a degree search with every degree from the estimator's own start
+    (`--degree-start own`), else "": the default chain's caches keep their names."""
+    return "-ownstart" if model == "expauto" and DEGREE_START == "own" else ""
 
 
 def lm_tag(model: str) -> str:
@@ -440,7 +443,9 @@ def main() -> int:
     ap.add_argument("--setting", action="append", default=[], metavar="KEY=VALUE",
                     help="a FitSettings field to change for the fits, e.g. final_spp=8192 (JSON values; "
                          "repeatable; such fits are cached apart)")
-    ap.add_argument("--degree-start", choices=("below", "own"), default="below",
+    from estimate.phase_degree import START_FROM
+
+    ap.add_argument("--degree-start", choices=START_FROM, default=START_FROM[0],
                     help="expauto: each degree from the one below's optimum (default, as rig estimate) or from the "
                          "estimator's own start (cached apart)")
     ap.add_argument("--unbiased", action="store_true",
