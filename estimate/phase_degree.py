@@ -50,8 +50,8 @@ from estimate.loss import profile_scale, reference_delta
 from estimate.problem import Problem
 from estimate.residuals import noise_floor
 
-__all__ = ["BIC_MARGIN", "CLOSE_SE", "CLOSE_SEEDS", "EVAL_SEEDS", "EVAL_SPP_FACTOR", "MAX_DEGREE", "MIN_DEGREE",
-           "PATIENCE", "START_FROM", "DegreeChoice", "DegreeStep", "Metric", "choose_degree", "degree_chi2"]
+__all__ = ["BIC_MARGIN", "CLOSE_SE", "CLOSE_SEEDS", "EVAL_RENDER_RATIO", "EVAL_SEEDS", "EVAL_SPP_FACTOR",
+           "EVAL_SPP_MAX_FACTOR", "MAX_DEGREE", "MIN_DEGREE", "PATIENCE", "START_FROM", "DegreeChoice", "DegreeStep", "Metric", "choose_degree", "degree_chi2"]
 
 #: The first degree tried (the paper's) and the largest (the largest the paper evaluated).
 MIN_DEGREE = 3
@@ -67,6 +67,16 @@ SE_MULTIPLE = 2.0
 #: 1 x 1024 spp), and these renders cost far less than the fits.
 EVAL_SEEDS = 4
 EVAL_SPP_FACTOR = 2
+#: Where the recording is quieter than those renders, the comparison is rendered again at more
+#: spp: the smallest power-of-two multiple of the first spp at which the render variance of
+#: one pair's mean, s^2 v_render, comes to at most `EVAL_RENDER_RATIO` x the HDR variance on
+#: average over the pixels, capped at `EVAL_SPP_MAX_FACTOR` x the fits' final spp. Near
+#: sensor noise the render variance otherwise fills the weights (12 x the HDR variance on the
+#: paper simulation's d 0.3 um / sigma_t 2 at 16384 spp) and shrinks every gain with them:
+#: there own-start exp7's gain over exp3 was -42 +- 22 at 2048 spp and +136 +- 15 at 32768
+#: (`benchmarks/exp_degree_eval_spp.py`, `docs/estimation-log.md`, session 86).
+EVAL_RENDER_RATIO = 1.0
+EVAL_SPP_MAX_FACTOR = 32
 #: A gain within this many of its standard errors of the bar (BIC_MARGIN + SE_MULTIPLE SE), or
 #: above the bar but not by the unpaired error, is a close call, and is decided again over
 #: this many seed pairs in all (the standard error falls by 2 and is itself known to about
@@ -151,6 +161,9 @@ class DegreeChoice:
         stopped: why the search ended.
         seeds: seed pairs of each comparison; close_seeds: of a close call's.
         start_from: where each degree's fit started (`START_FROM`).
+        spp: samples per pixel of the comparison renders (`comparison_spp`).
+        render_ratio_first: s^2 v_render / var of the first renders, at `EVAL_SPP_FACTOR` x
+            the final spp (`Metric.render_ratio`); render_ratio: at `spp`.
     """
 
     chosen: int
@@ -161,6 +174,9 @@ class DegreeChoice:
     seeds: int = EVAL_SEEDS
     close_seeds: int = CLOSE_SEEDS
     start_from: str = "below"
+    spp: int = 0
+    render_ratio_first: float = float("nan")
+    render_ratio: float = float("nan")
 
     @property
     def fit(self) -> FitResult:
@@ -173,7 +189,8 @@ class DegreeChoice:
                 f"{self.seeds} common seed pairs ({self.close_seeds} when the gain is within {CLOSE_SE:g} "
                 f"standard errors of that bar)", "pixels": self.pixels,
                 "noise_scale": list(self.noise_scale), "stopped": self.stopped, "seeds": self.seeds,
-                "close_seeds": self.close_seeds, "start_from": self.start_from,
+                "close_seeds": self.close_seeds, "start_from": self.start_from, "spp": self.spp,
+                "render_ratio_first": self.render_ratio_first, "render_ratio": self.render_ratio,
                 "steps": [s.to_dict() for s in self.steps]}
 
     def describe(self) -> str:
@@ -187,7 +204,7 @@ class DegreeChoice:
             lines.append(f"exp{s.degree}: chi2 at the noise floor {s.chi2_adjusted:.1f}{gain}, sigma_t "
                          f"{s.fit.parameters['sigma_t']:.4g}, albedo {s.fit.parameters['albedo']:.4f}"
                          + (f"  <- {mark}" if mark else ""))
-        return "\n".join(lines) + f"\n({self.stopped})"
+        return "\n".join(lines) + f"\n({self.stopped}; compared at {self.spp} spp)"
 
 
 def _free_count(fit: FitResult) -> int:
@@ -201,11 +218,16 @@ class Metric:
 
     weights: np.ndarray
     noise_scale: np.ndarray
+    #: Samples per pixel of every comparison render made with this metric.
+    spp: int
+    #: Mean over the used pixels of s^2 v_render / var: the render variance of one pair's
+    #: mean at `spp` over the HDR variance (what `comparison_spp` scales the spp by).
+    render_ratio: float = float("nan")
 
 
 def degree_chi2(problem: Problem, fit: FitResult, settings: FitSettings, *, seeds: int = EVAL_SEEDS,
                 extensions: Sequence[str] = (), metric: Metric | None = None,
-                first: int = 0) -> tuple[list[float], Metric]:
+                first: int = 0, spp: int | None = None) -> tuple[list[float], Metric]:
     """chi^2 of a fit without its renders' noise, at `seeds` seed pairs common to every degree
     (pairs first, first + 1, ...: a close call adds pairs to those already rendered).
 
@@ -233,7 +255,11 @@ def degree_chi2(problem: Problem, fit: FitResult, settings: FitSettings, *, seed
     for k in range(first, first + seeds):
         sa = _EVAL_SEED + 1_000 * k
         reqs += [(fit.parameters, sa), (fit.parameters, sa + 7_777)]
-    renders = np.stack(fm.render_profiles_many(reqs, problem.angles_deg, spp=EVAL_SPP_FACTOR * settings.final_spp))
+    if metric is not None:
+        spp = metric.spp
+    elif spp is None:
+        spp = EVAL_SPP_FACTOR * settings.final_spp
+    renders = np.stack(fm.render_profiles_many(reqs, problem.angles_deg, spp=spp))
     m, var, valid = problem.measured, problem.variance, problem.valid
     scales = [fit.scale if fit.scale_mode == "calibrated"
               else profile_scale(m, 0.5 * (renders[2 * k] + renders[2 * k + 1]), valid, delta) for k in range(seeds)]
@@ -245,22 +271,39 @@ def degree_chi2(problem: Problem, fit: FitResult, settings: FitSettings, *, seed
         den = np.where(valid & (var > 0), var + s0 ** 2 * vr, np.inf)
         mean = renders.mean(axis=0)
         f, _ = noise_floor(np.where(valid, (m - s0 * mean) / np.sqrt(den), np.nan))
-        metric = Metric(np.where(np.isfinite(den), 1.0 / den, 0.0) / (f ** 2)[:, None], f)
+        used = np.isfinite(den)
+        ratio = float(np.mean(s0 ** 2 * vr[used] / var[used])) if np.any(used) else float("nan")
+        metric = Metric(np.where(used, 1.0 / den, 0.0) / (f ** 2)[:, None], f, spp, ratio)
     row = [float(np.sum(metric.weights * (m - sk * renders[2 * k]) * (m - sk * renders[2 * k + 1])))
            for k, sk in enumerate(scales)]
     return row, metric
 
 
+def comparison_spp(metric: Metric, settings: FitSettings, *, max_factor: int = EVAL_SPP_MAX_FACTOR) -> int:
+    """The comparison renders' spp for a recording whose first comparison (at `metric.spp`)
+    left `metric.render_ratio`: `metric.spp` doubled until the render variance, which falls as
+    1 / spp, is at most `EVAL_RENDER_RATIO` x the HDR variance on average, or until
+    `max_factor` x `settings.final_spp` (never below `metric.spp`)."""
+    spp, ratio = metric.spp, metric.render_ratio
+    cap = max(metric.spp, max_factor * settings.final_spp)
+    while math.isfinite(ratio) and ratio > EVAL_RENDER_RATIO and 2 * spp <= cap:
+        spp, ratio = 2 * spp, ratio / 2
+    return spp
+
+
 def choose_degree(problem: Problem, settings: FitSettings, *, fit: FitFn | None = None,
                   extensions: Sequence[str] = (), min_degree: int = MIN_DEGREE, max_degree: int = MAX_DEGREE,
                   seeds: int = EVAL_SEEDS, close_seeds: int = CLOSE_SEEDS, start_from: str = "below",
+                  max_spp_factor: int = EVAL_SPP_MAX_FACTOR,
                   log: Callable[[str], None] | None = None) -> DegreeChoice:
     """Fit exp<min_degree>, exp<min_degree + 1>, ... and keep the degree the BIC rule picks
     (module docstring). `fit(phase, start)` fits one degree (None: `fit_channel` with
     `settings` and `extensions`); with `start_from` "below" each starts from the previous
     degree's parameters with the new coefficient at 0, with "own" from the estimator's own
     start (`START_FROM`). Each degree is compared at `seeds` seed pairs, a close call at
-    `close_seeds` (a value no larger than `seeds`: close calls are not rendered again)."""
+    `close_seeds` (a value no larger than `seeds`: close calls are not rendered again). The
+    comparison renders are at `EVAL_SPP_FACTOR` x the final spp, or more where the recording is
+    quieter than they are (`comparison_spp`, up to `max_spp_factor` x the final spp)."""
     if fit is None:
         def fit(phase: str, start: Mapping[str, float] | None) -> FitResult:
             return fit_channel(problem, phase, extensions=extensions, start=start, settings=settings)
@@ -277,6 +320,7 @@ def choose_degree(problem: Problem, settings: FitSettings, *, fit: FitFn | None 
     pixels = int(np.sum(problem.valid))
     ln_pixels = math.log(pixels)
     misses = 0
+    probe: Metric | None = None
     stopped = f"reached exp{max_degree}, the largest tried"
     start: dict[str, float] | None = None
 
@@ -315,7 +359,16 @@ def choose_degree(problem: Problem, settings: FitSettings, *, fit: FitFn | None 
 
     for m in range(min_degree, max_degree + 1):
         res = fit(f"exp{m}", start if start_from == "below" else None)
+        first_metric = metric is None
         chi, metric = degree_chi2(problem, res, settings, seeds=seeds, extensions=extensions, metric=metric)
+        if first_metric:
+            probe = metric
+            spp = comparison_spp(metric, settings, max_factor=max_spp_factor)
+            if spp > metric.spp:
+                if log:
+                    log(f"  the comparison renders' variance at {metric.spp} spp is {metric.render_ratio:.1f} x "
+                        f"the recording's: comparing at {spp} spp")
+                chi, metric = degree_chi2(problem, res, settings, seeds=seeds, extensions=extensions, spp=spp)
         step = DegreeStep(m, res, [float(x) for x in chi], _free_count(res), ln_pixels)
         note = ""
         if best is None:
@@ -344,6 +397,6 @@ def choose_degree(problem: Problem, settings: FitSettings, *, fit: FitFn | None 
             break
         start = dict(res.parameters)
         start[f"phase.b{m + 1}"] = 0.0
-    assert best is not None and metric is not None
+    assert best is not None and metric is not None and probe is not None
     return DegreeChoice(best.degree, steps, pixels, [float(x) for x in metric.noise_scale], stopped, seeds,
-                        close_seeds, start_from)
+                        close_seeds, start_from, metric.spp, probe.render_ratio, metric.render_ratio)

@@ -100,7 +100,11 @@ def _degree_choice(choices: Any) -> str:
             kept = st.get("degree") == c.get("chosen")
             rows.append([ch, f"exp{st.get('degree')}", st.get("chi2_adjusted"), shown, st.get("sigma_t"),
                          st.get("albedo"), "kept" if kept else ("better" if st.get("accepted") else "")])
-        notes.append(f"{ch}: kept exp{c.get('chosen')} ({c.get('stopped', '')})")
+        # Runs since session 86 say the comparison renders' spp (raised where the recording
+        # is quieter than the renders at 2 x the final spp).
+        spp = c.get("spp")
+        at = f"; compared at {spp} spp" if isinstance(spp, int) and spp > 0 else ""
+        notes.append(f"{ch}: kept exp{c.get('chosen')} ({c.get('stopped', '')}{at})")
     rule = next((c.get("rule") for c in choices.values() if isinstance(c, dict) and c.get("rule")), "")
     return (f"<p>degree search (--degree auto): {html.escape(str(rule))}</p>"
             + _table(rows, ["channel", "degree", "chi2 at the noise floor", "BIC gain +- s.e.", "sigma_t [1/mm]",

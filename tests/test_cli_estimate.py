@@ -305,6 +305,13 @@ def test_degree_auto_keeps_the_lowest_degree_the_recording_supports(session, cap
     assert [s["accepted"] for s in choice["steps"]] == [True, False, False]
     for s in choice["steps"][1:]:
         assert s["gain"] <= 10.0 + 2.0 * s["gain_se"]
+    # The comparison renders: 2 x the final spp (2 x --spp-max), doubled while their variance
+    # exceeded the recording's, up to 32 x; the render variance measured on the first and the
+    # last falls as 1 / spp (within the scatter of a variance over eight renders).
+    spp, first, last = choice["spp"], choice["render_ratio_first"], choice["render_ratio"]
+    assert spp in (512, 1024, 2048, 4096, 8192) and (spp in (512, 8192) or last <= 2.0)
+    if spp > 512:
+        assert 0.5 < (first / last) / (spp / 512) < 2.0 and first > 1.0
     doc = yaml.safe_load((Path(run["path"]) / "results.yaml").read_text())
     assert doc["settings"]["degree"] == "auto" and doc["settings"]["degree_choice"]["g"]["chosen"] == 3
     assert doc["channels"]["g"]["model"] == "exp3"

@@ -17,7 +17,17 @@ import pytest
 
 from estimate import phase_degree
 from estimate.errors import ModelParameterError
-from estimate.phase_degree import BIC_MARGIN, CLOSE_SEEDS, EVAL_SEEDS, PATIENCE, choose_degree
+from estimate.phase_degree import (
+    BIC_MARGIN,
+    CLOSE_SEEDS,
+    EVAL_RENDER_RATIO,
+    EVAL_SEEDS,
+    EVAL_SPP_MAX_FACTOR,
+    PATIENCE,
+    Metric,
+    choose_degree,
+    comparison_spp,
+)
 
 PIXELS = 400
 
@@ -37,10 +47,15 @@ class FakeFit:
         return [k for k in self.parameters if k not in self.fixed]
 
 
-def _run(chi2_by_degree: dict[int, list[float]], monkeypatch, renders: list | None = None, **kw):
+FINAL_SPP = 1024
+
+
+def _run(chi2_by_degree: dict[int, list[float]], monkeypatch, renders: list | None = None,
+         ratio: float = float("nan"), spps: list | None = None, **kw):
     """choose_degree with fits that take their start and chi^2 that come from the table (per
     seed pair, repeated when the table is shorter than the pairs asked for); `renders` gets
-    (degree, first pair, pairs) of every comparison render."""
+    (degree, first pair, pairs) of every comparison render, `spps` (degree, spp). The render
+    variance over the HDR variance is `ratio` at 2 x `FINAL_SPP` and falls as 1 / spp."""
     starts: list[tuple[str, dict | None]] = []
 
     def fit(phase: str, start):
@@ -49,16 +64,19 @@ def _run(chi2_by_degree: dict[int, list[float]], monkeypatch, renders: list | No
         p = {"sigma_t": 2.0, "albedo": 0.9, **{f"phase.b{i}": 0.1 * i for i in range(1, m + 1)}}
         return FakeFit(phase, p)
 
-    def chi2(problem, res, settings, *, seeds, extensions, metric, first=0):
+    def chi2(problem, res, settings, *, seeds, extensions, metric=None, first=0, spp=None):
         row = chi2_by_degree[int(res.model[3:])]
         if renders is not None:
             renders.append((int(res.model[3:]), first, seeds))
+        at = metric.spp if metric is not None else (spp or 2 * settings.final_spp)
+        if spps is not None:
+            spps.append((int(res.model[3:]), at))
         return ([row[k % len(row)] for k in range(first, first + seeds)],
-                metric or phase_degree.Metric(np.ones((2, 1)), np.ones(2)))
+                metric or phase_degree.Metric(np.ones((2, 1)), np.ones(2), at, ratio * 2 * settings.final_spp / at))
 
     monkeypatch.setattr(phase_degree, "degree_chi2", chi2)
     problem = SimpleNamespace(valid=np.ones((2, PIXELS // 2), bool))
-    return choose_degree(problem, SimpleNamespace(), fit=fit, **kw), starts
+    return choose_degree(problem, SimpleNamespace(final_spp=FINAL_SPP), fit=fit, **kw), starts
 
 
 def _flat(value: float, jitter: float = 0.0, n: int = 4) -> list[float]:
@@ -202,3 +220,36 @@ def test_a_gain_that_only_the_pairing_makes_significant_is_checked_over_more_pai
     step = choice.steps[1]
     assert (4, EVAL_SEEDS, CLOSE_SEEDS - EVAL_SEEDS) in renders and step.gain_pairs == CLOSE_SEEDS
     assert step.gain == pytest.approx(np.mean(diffs) - ln) and not step.accepted and choice.chosen == 3
+
+
+@pytest.mark.parametrize(("ratio", "max_factor", "expected"), [
+    (12.47, EVAL_SPP_MAX_FACTOR, 32768),   # d 0.3 um / sigma_t 2 at 16384 spp: 0.78 at 32768
+    (3.0, EVAL_SPP_MAX_FACTOR, 8192),      # 3 -> 1.5 -> 0.75
+    (EVAL_RENDER_RATIO, EVAL_SPP_MAX_FACTOR, 2048),   # already at the ratio: no more spp
+    (0.2, EVAL_SPP_MAX_FACTOR, 2048),      # a recording noisier than the renders (1024-spp truths)
+    (100.0, 4, 4096),                      # the cap
+    (100.0, 1, 2048),                      # a cap below the first spp does not lower it
+    (float("nan"), EVAL_SPP_MAX_FACTOR, 2048),   # no pixel in use: nothing to scale by
+])
+def test_comparison_spp_doubles_until_the_renders_are_as_quiet_as_the_recording(ratio, max_factor, expected):
+    metric = Metric(np.ones((1, 1)), np.ones(1), 2 * FINAL_SPP, ratio)
+    assert comparison_spp(metric, SimpleNamespace(final_spp=FINAL_SPP), max_factor=max_factor) == expected
+
+
+def test_a_recording_quieter_than_the_renders_is_compared_at_more_spp(monkeypatch):
+    table = {3: _flat(3600.0, 3.0), 4: _flat(3150.0, 3.0), 5: _flat(3148.0, 3.0), 6: _flat(3147.0, 3.0)}
+    spps: list = []
+    lines: list[str] = []
+    choice, _ = _run(table, monkeypatch, ratio=12.47, spps=spps, log=lines.append)
+    # The first degree is rendered at 2 x the final spp, found 12.5 x the recording's variance,
+    # and rendered again at 32768 spp; the metric made there carries every later degree.
+    assert spps == [(3, 2048), (3, 32768), (4, 32768), (5, 32768), (6, 32768)]
+    assert choice.spp == 32768 and choice.render_ratio_first == pytest.approx(12.47)
+    assert choice.render_ratio == pytest.approx(12.47 / 16)
+    assert "12.5 x the recording's: comparing at 32768 spp" in lines[0]
+    assert "compared at 32768 spp" in choice.describe() and choice.to_dict()["spp"] == 32768
+    assert choice.chosen == 4
+    # Capped: every degree at the first spp, the same choice.
+    spps.clear()
+    capped, _ = _run(table, monkeypatch, ratio=12.47, spps=spps, max_spp_factor=2)
+    assert spps == [(m, 2048) for m in (3, 4, 5, 6)] and capped.spp == 2048 and capped.chosen == 4
