@@ -279,13 +279,13 @@ def degree_chi2(problem: Problem, fit: FitResult, settings: FitSettings, *, seed
     return row, metric
 
 
-def comparison_spp(metric: Metric, settings: FitSettings, *, max_factor: int = EVAL_SPP_MAX_FACTOR) -> int:
+def comparison_spp(metric: Metric, max_spp: int) -> int:
     """The comparison renders' spp for a recording whose first comparison (at `metric.spp`)
     left `metric.render_ratio`: `metric.spp` doubled until the render variance, which falls as
-    1 / spp, is at most `EVAL_RENDER_RATIO` x the HDR variance on average, or until
-    `max_factor` x `settings.final_spp` (never below `metric.spp`)."""
+    1 / spp, is at most `EVAL_RENDER_RATIO` x the HDR variance on average, or as long as it
+    stays within `max_spp` (never below `metric.spp`)."""
     spp, ratio = metric.spp, metric.render_ratio
-    cap = max(metric.spp, max_factor * settings.final_spp)
+    cap = max(metric.spp, max_spp)
     while math.isfinite(ratio) and ratio > EVAL_RENDER_RATIO and 2 * spp <= cap:
         spp, ratio = 2 * spp, ratio / 2
     return spp
@@ -294,7 +294,7 @@ def comparison_spp(metric: Metric, settings: FitSettings, *, max_factor: int = E
 def choose_degree(problem: Problem, settings: FitSettings, *, fit: FitFn | None = None,
                   extensions: Sequence[str] = (), min_degree: int = MIN_DEGREE, max_degree: int = MAX_DEGREE,
                   seeds: int = EVAL_SEEDS, close_seeds: int = CLOSE_SEEDS, start_from: str = "below",
-                  max_spp_factor: int = EVAL_SPP_MAX_FACTOR,
+                  max_spp: int | None = None,
                   log: Callable[[str], None] | None = None) -> DegreeChoice:
     """Fit exp<min_degree>, exp<min_degree + 1>, ... and keep the degree the BIC rule picks
     (module docstring). `fit(phase, start)` fits one degree (None: `fit_channel` with
@@ -303,7 +303,8 @@ def choose_degree(problem: Problem, settings: FitSettings, *, fit: FitFn | None 
     start (`START_FROM`). Each degree is compared at `seeds` seed pairs, a close call at
     `close_seeds` (a value no larger than `seeds`: close calls are not rendered again). The
     comparison renders are at `EVAL_SPP_FACTOR` x the final spp, or more where the recording is
-    quieter than they are (`comparison_spp`, up to `max_spp_factor` x the final spp)."""
+    quieter than they are (`comparison_spp`, up to `max_spp`; None: `EVAL_SPP_MAX_FACTOR` x
+    the final spp)."""
     if fit is None:
         def fit(phase: str, start: Mapping[str, float] | None) -> FitResult:
             return fit_channel(problem, phase, extensions=extensions, start=start, settings=settings)
@@ -313,6 +314,8 @@ def choose_degree(problem: Problem, settings: FitSettings, *, fit: FitFn | None 
         raise ModelParameterError(f"start {start_from!r}: choose from {', '.join(START_FROM)}")
     if seeds < 2:
         raise ModelParameterError(f"{seeds} seed pairs: the comparison's standard error needs at least 2")
+    if max_spp is not None and max_spp < 1:
+        raise ModelParameterError(f"comparison renders of at most {max_spp} spp: use a positive number")
     close_seeds = max(close_seeds, seeds)
     steps: list[DegreeStep] = []
     best: DegreeStep | None = None
@@ -363,7 +366,7 @@ def choose_degree(problem: Problem, settings: FitSettings, *, fit: FitFn | None 
         chi, metric = degree_chi2(problem, res, settings, seeds=seeds, extensions=extensions, metric=metric)
         if first_metric:
             probe = metric
-            spp = comparison_spp(metric, settings, max_factor=max_spp_factor)
+            spp = comparison_spp(metric, EVAL_SPP_MAX_FACTOR * settings.final_spp if max_spp is None else max_spp)
             if spp > metric.spp:
                 if log:
                     log(f"  the comparison renders' variance at {metric.spp} spp is {metric.render_ratio:.1f} x "

@@ -124,6 +124,8 @@ def test_report_degree_table_tolerates_hand_edits():
     (["--final-spp", "1"], "--final-spp 1: use at least 2 samples per pixel"),
     (["--degree", "three"], "--degree three: use a whole number 0..12 or auto"),
     (["--degree", "13"], "--degree 13: use 0..12 or auto"),
+    (["--degree-spp-max", "4096"], "--degree-spp-max 4096: only --degree auto compares degrees"),
+    (["--degree", "auto", "--degree-spp-max", "0"], "--degree-spp-max 0: use a positive number"),
     (["--channels", ","], "--channels ',': names nothing"),
     (["--channels", "gg"], "--channels 'gg': channel 'g' is named twice"),
     (["--columns", "0"], "--columns 0: use at least 2 pixels"),
@@ -296,7 +298,8 @@ def test_degree_auto_keeps_the_lowest_degree_the_recording_supports(session, cap
     the margin, so exp3 is kept after two degrees in a row that do not; the run records
     every degree's comparison and is named for the search."""
     assert main(["estimate", str(session), "--channels", "g", "--columns", "32", "--max-iterations", "4",
-                 "--spp-max", "128", "--polish-steps", "2", "--degree", "auto", "--json"]) == 0
+                 "--spp-max", "128", "--polish-steps", "2", "--degree", "auto", "--degree-spp-max", "2048",
+                 "--json"]) == 0
     (run,) = json.loads(capsys.readouterr().out)["runs"]
     assert run["model"] == "expauto" and run["path"].endswith("_expauto")
     assert run["channels"]["g"]["model"] == "exp3"
@@ -306,10 +309,10 @@ def test_degree_auto_keeps_the_lowest_degree_the_recording_supports(session, cap
     for s in choice["steps"][1:]:
         assert s["gain"] <= 10.0 + 2.0 * s["gain_se"]
     # The comparison renders: 2 x the final spp (2 x --spp-max), doubled while their variance
-    # exceeded the recording's, up to 32 x; the render variance measured on the first and the
-    # last falls as 1 / spp (within the scatter of a variance over eight renders).
+    # exceeded the recording's, up to --degree-spp-max; the render variance measured on the
+    # first and the last falls as 1 / spp (within the scatter of a variance over eight renders).
     spp, first, last = choice["spp"], choice["render_ratio_first"], choice["render_ratio"]
-    assert spp in (512, 1024, 2048, 4096, 8192) and (spp in (512, 8192) or last <= 2.0)
+    assert spp in (512, 1024, 2048) and (spp in (512, 2048) or last <= 2.0)
     if spp > 512:
         assert 0.5 < (first / last) / (spp / 512) < 2.0 and first > 1.0
     doc = yaml.safe_load((Path(run["path"]) / "results.yaml").read_text())

@@ -190,6 +190,8 @@ def test_degree_range_seed_count_and_start_are_checked(monkeypatch):
         _run({}, monkeypatch, seeds=1)
     with pytest.raises(ModelParameterError, match="start 'above': choose from below, own"):
         _run({}, monkeypatch, start_from="above")
+    with pytest.raises(ModelParameterError, match="at most 0 spp: use a positive number"):
+        _run({}, monkeypatch, max_spp=0)
 
 
 def test_own_starts_fit_every_degree_from_the_estimators_start_and_the_rule_is_unchanged(monkeypatch):
@@ -222,18 +224,21 @@ def test_a_gain_that_only_the_pairing_makes_significant_is_checked_over_more_pai
     assert step.gain == pytest.approx(np.mean(diffs) - ln) and not step.accepted and choice.chosen == 3
 
 
-@pytest.mark.parametrize(("ratio", "max_factor", "expected"), [
-    (12.47, EVAL_SPP_MAX_FACTOR, 32768),   # d 0.3 um / sigma_t 2 at 16384 spp: 0.78 at 32768
-    (3.0, EVAL_SPP_MAX_FACTOR, 8192),      # 3 -> 1.5 -> 0.75
-    (EVAL_RENDER_RATIO, EVAL_SPP_MAX_FACTOR, 2048),   # already at the ratio: no more spp
-    (0.2, EVAL_SPP_MAX_FACTOR, 2048),      # a recording noisier than the renders (1024-spp truths)
-    (100.0, 4, 4096),                      # the cap
-    (100.0, 1, 2048),                      # a cap below the first spp does not lower it
-    (float("nan"), EVAL_SPP_MAX_FACTOR, 2048),   # no pixel in use: nothing to scale by
+CAP = EVAL_SPP_MAX_FACTOR * FINAL_SPP
+
+
+@pytest.mark.parametrize(("ratio", "max_spp", "expected"), [
+    (12.47, CAP, 32768),                   # d 0.3 um / sigma_t 2 at 16384 spp: 0.78 at 32768
+    (3.0, CAP, 8192),                      # 3 -> 1.5 -> 0.75
+    (EVAL_RENDER_RATIO, CAP, 2048),        # already at the ratio: no more spp
+    (0.2, CAP, 2048),                      # a recording noisier than the renders (1024-spp truths)
+    (100.0, 4096, 4096),                   # the cap
+    (100.0, 6000, 4096),                   # ... which a doubling does not pass
+    (100.0, 1000, 2048),                   # a cap below the first spp does not lower it
+    (float("nan"), CAP, 2048),             # no pixel in use: nothing to scale by
 ])
-def test_comparison_spp_doubles_until_the_renders_are_as_quiet_as_the_recording(ratio, max_factor, expected):
-    metric = Metric(np.ones((1, 1)), np.ones(1), 2 * FINAL_SPP, ratio)
-    assert comparison_spp(metric, SimpleNamespace(final_spp=FINAL_SPP), max_factor=max_factor) == expected
+def test_comparison_spp_doubles_until_the_renders_are_as_quiet_as_the_recording(ratio, max_spp, expected):
+    assert comparison_spp(Metric(np.ones((1, 1)), np.ones(1), 2 * FINAL_SPP, ratio), max_spp) == expected
 
 
 def test_a_recording_quieter_than_the_renders_is_compared_at_more_spp(monkeypatch):
@@ -251,5 +256,5 @@ def test_a_recording_quieter_than_the_renders_is_compared_at_more_spp(monkeypatc
     assert choice.chosen == 4
     # Capped: every degree at the first spp, the same choice.
     spps.clear()
-    capped, _ = _run(table, monkeypatch, ratio=12.47, spps=spps, max_spp_factor=2)
+    capped, _ = _run(table, monkeypatch, ratio=12.47, spps=spps, max_spp=2048)
     assert spps == [(m, 2048) for m in (3, 4, 5, 6)] and capped.spp == 2048 and capped.chosen == 4

@@ -39,6 +39,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--degree", default="3",
                    help="degree M of the exponential phase function (3, the paper's), or auto: fit degrees 3, 4, ... "
                         "and keep the one the recording supports (estimate/phase_degree.py; a few fits a channel)")
+    p.add_argument("--degree-spp-max", type=int, default=None,
+                   help="with --degree auto: largest samples per pixel of the renders that compare the degrees "
+                        "(they start at twice the final spp and double while their noise exceeds the recording's; "
+                        "default 32 x the final spp; lower it for a quicker, coarser comparison on a CPU)")
     p.add_argument("--channels", default=None, help="filters to fit, e.g. rgb or r,g (default: all of the plan)")
     p.add_argument("--columns", type=int, default=None, help="profile window width in pixels (256)")
     p.add_argument("--extensions", default="", help="forward-model extensions to include, comma separated")
@@ -100,6 +104,12 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--degree {args.degree}: use a whole number 0..12 or auto") from None
         if degree < 0 or degree > 12:
             raise UsageError(f"--degree {args.degree}: use 0..12 or auto")
+    if args.degree_spp_max is not None:
+        if not auto:
+            raise UsageError(f"--degree-spp-max {args.degree_spp_max}: only --degree auto compares degrees; "
+                             "add --degree auto or leave the flag out")
+        if args.degree_spp_max < 1:
+            raise UsageError(f"--degree-spp-max {args.degree_spp_max}: use a positive number of samples per pixel")
     if args.max_iterations is not None and args.max_iterations < 1:
         raise UsageError("--max-iterations must be >= 1")
     if args.columns is not None and args.columns < 2:
@@ -187,7 +197,8 @@ def run(args: argparse.Namespace) -> int:
                     from estimate.phase_degree import choose_degree
 
                     log = None if args.json else (lambda s: print(s, file=sys.stderr, flush=True))
-                    choice = choose_degree(problems[c], settings, fit=fit_one, extensions=exts, log=log)
+                    choice = choose_degree(problems[c], settings, fit=fit_one, extensions=exts, log=log,
+                                           max_spp=args.degree_spp_max)
                     choices[c] = choice
                     fits.append(choice.fit)
                     if not args.json:
