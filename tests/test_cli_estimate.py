@@ -130,7 +130,10 @@ def test_report_degree_table_tolerates_hand_edits():
     (["--channels", "gg"], "--channels 'gg': channel 'g' is named twice"),
     (["--columns", "0"], "--columns 0: use at least 2 pixels"),
     (["--seed", "-1"], "--seed -1: use a whole number >= 0"),
-    (["--extensions", "stray_light,moonlight"], "--extensions: unknown extension 'moonlight'; known: "),
+    (["--extensions", "stray_light,moonlight"], "--extensions 'stray_light,moonlight': unknown extension "
+                                                "'moonlight'; choose from "),
+    (["--extensions", "stray_light,stray_light"], "extension 'stray_light' is named twice"),
+    (["--extensions", ","], "--extensions ',': names nothing"),
     (["--time-limit", "0"], "--time-limit 0: give a positive number of seconds"),
     (["--time-limit", "nan"], "--time-limit nan: give a positive number of seconds"),
 ])

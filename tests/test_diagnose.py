@@ -1105,7 +1105,8 @@ def test_cli_refuses_an_unwritable_session_before_any_work(tmp_path, capsys):
 def test_cli_unknown_effect_and_unknown_run(tmp_path, capsys):
     s = _session(tmp_path, "a")
     assert main(["diagnose", str(s), "--effects", "stray_light,moonlight"]) == 2
-    assert "moonlight" in capsys.readouterr().err
+    err = capsys.readouterr().err.strip()
+    assert "unknown effect 'moonlight'; choose from " in err and "stray_light" in err and "\n" not in err
     assert main(["diagnose", str(s), "--fit", "nope"]) == 2
     assert "no estimate run" in capsys.readouterr().err
     assert main(["diagnose", str(s), "--refits", "median"]) == 2

@@ -71,11 +71,9 @@ def run(args: argparse.Namespace) -> int:
     session = Path(args.session)
     if not (session / "session.yaml").is_file():
         raise UsageError(f"{session}: not a session directory (no session.yaml)")
-    effects = chosen_names("--effects", args.effects, letters=False, what="effect", example="stray_light,lens_blur")
+    effects = chosen_names("--effects", args.effects, sorted(EXTENSIONS), letters=False, what="effect",
+                           example="stray_light,lens_blur")
     channels = chosen_names("--channels", args.channels, what="channel", example="rg")
-    for e in effects or ():
-        if e not in EXTENSIONS:
-            raise UsageError(f"--effects: unknown effect {e!r}; known: {', '.join(sorted(EXTENSIONS))}")
     if args.spp is not None and args.spp < 16:
         raise UsageError(f"--spp {args.spp}: use at least 16 samples per pixel (default 2048 with the light engine; 256 on the CPU and 2048 on a GPU with the camera engine)")
     for kind in ("diagnoses", "estimates"):  # the diagnosis and its refit run: fail now, not after the renders

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from rig.errors import UsageError
-from rig.name_lists import chosen_names, split_names
+from rig.name_lists import chosen_names
 
 #: Reduced chi^2 (HDR variance) above which the summary points at `rig diagnose`: the clean
 #: `make demo` session reaches 4-16, 1 % of its pixels (the recording's render fireflies)
@@ -45,7 +45,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "default 32 x the final spp; lower it for a quicker, coarser comparison on a CPU)")
     p.add_argument("--channels", default=None, help="filters to fit, e.g. rgb or r,g (default: all of the plan)")
     p.add_argument("--columns", type=int, default=None, help="profile window width in pixels (256)")
-    p.add_argument("--extensions", default="", help="forward-model extensions to include, comma separated")
+    p.add_argument("--extensions", default=None, help="forward-model extensions to include, comma separated "
+                   "(default: none)")
     p.add_argument("--allow-partial", action="store_true", help="fit the stacks present when some are missing")
     p.add_argument("--max-iterations", type=int, default=None, help="stochastic optimiser iterations before the Gauss-Newton polish (default 10, Adam); "
                    "with --polish-steps 0, at most this many (default 80: 10 Adam, then Gauss-Newton)")
@@ -130,12 +131,11 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--diagnose needs estimate.diagnose, which this installation does not have")
     available = session_channels(session)
     channels = _channels(args.channels, available)
-    exts = split_names(args.extensions, letters=False)
     from estimate.extensions import EXTENSIONS
 
-    for e in exts:   # before the problems load and the first fit starts
-        if e not in EXTENSIONS:
-            raise UsageError(f"--extensions: unknown extension {e!r}; known: {', '.join(sorted(EXTENSIONS))}")
+    # Checked before the problems load and the first fit starts.
+    exts = chosen_names("--extensions", args.extensions, sorted(EXTENSIONS), letters=False, what="extension",
+                        example="stray_light,lens_blur") or []
     # Load every problem first: bad input fails before any fitting.
     problems = {c: load_problem(session, c, args.columns, allow_partial=args.allow_partial) for c in channels}
     check_writable(session)  # a read-only session fails now, not after the fits
