@@ -31,7 +31,10 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from estimate.phase_degree import StartFrom
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -87,7 +90,7 @@ TRUTH_PHASE = "exp8"
 DEFAULT_TRUTH_SPP = 1024
 TRUTH_SPP = DEFAULT_TRUTH_SPP
 #: Where expauto's degrees start (`estimate.phase_degree.START_FROM`; `--degree-start`).
-DEGREE_START = "below"
+DEGREE_START: StartFrom = "below"
 #: The simulated camera's render engine (`--truth-engine`; the world's `render.engine`): the
 #: camera engine's recordings carry white but skewed frozen noise, the light engine's far
 #: less of it, correlated along the row. Worlds and caches of the light engine are kept apart.

@@ -39,7 +39,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal, get_args
 
 import numpy as np
 
@@ -51,7 +51,8 @@ from estimate.problem import Problem
 from estimate.residuals import noise_floor
 
 __all__ = ["BIC_MARGIN", "CLOSE_SE", "CLOSE_SEEDS", "EVAL_RENDER_RATIO", "EVAL_SEEDS", "EVAL_SPP_FACTOR",
-           "EVAL_SPP_MAX_FACTOR", "MAX_DEGREE", "MIN_DEGREE", "PATIENCE", "START_FROM", "DegreeChoice", "DegreeStep", "Metric", "choose_degree", "degree_chi2"]
+           "EVAL_SPP_MAX_FACTOR", "MAX_DEGREE", "MIN_DEGREE", "PATIENCE", "START_FROM", "DegreeChoice", "DegreeStep", "Metric", "StartFrom", "choose_degree",
+           "comparison_spp", "degree_chi2"]
 
 #: The first degree tried (the paper's) and the largest (the largest the paper evaluated).
 MIN_DEGREE = 3
@@ -93,7 +94,8 @@ PATIENCE = 2
 #: search with "own" met the targets on the same 4 of 8 cases: the rule's chi^2, limited by its
 #: comparison renders' noise, did not see the gains (`docs/estimation-log.md`, session 85). So
 #: the default stays "below"; "own" is kept for measuring the starts again once it can.
-START_FROM = ("below", "own")
+StartFrom = Literal["below", "own"]
+START_FROM: tuple[StartFrom, ...] = get_args(StartFrom)
 #: Base seed of the comparison renders (apart from the fits' own).
 _EVAL_SEED = 515_151
 
@@ -173,7 +175,7 @@ class DegreeChoice:
     stopped: str = ""
     seeds: int = EVAL_SEEDS
     close_seeds: int = CLOSE_SEEDS
-    start_from: str = "below"
+    start_from: StartFrom = "below"
     spp: int = 0
     render_ratio_first: float = float("nan")
     render_ratio: float = float("nan")
@@ -293,7 +295,7 @@ def comparison_spp(metric: Metric, max_spp: int) -> int:
 
 def choose_degree(problem: Problem, settings: FitSettings, *, fit: FitFn | None = None,
                   extensions: Sequence[str] = (), min_degree: int = MIN_DEGREE, max_degree: int = MAX_DEGREE,
-                  seeds: int = EVAL_SEEDS, close_seeds: int = CLOSE_SEEDS, start_from: str = "below",
+                  seeds: int = EVAL_SEEDS, close_seeds: int = CLOSE_SEEDS, start_from: StartFrom = "below",
                   max_spp: int | None = None,
                   log: Callable[[str], None] | None = None) -> DegreeChoice:
     """Fit exp<min_degree>, exp<min_degree + 1>, ... and keep the degree the BIC rule picks
