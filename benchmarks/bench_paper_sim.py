@@ -358,7 +358,10 @@ def unbiased_losses(row: dict, seed: int = 4242) -> dict:
 
 def recording_noise(d: float, s: float, spp: int = 16384, seed: int = 11) -> dict:
     """How far the case's recording scatters about its truth, in units of its variance channel
-    (the sensor's noise): the truth rendered twice at `spp` with independent seeds, scaled to
+    (the sensor's noise): the truth rendered twice at `spp` with independent seeds by the
+    recording's own engine (`TRUTH_ENGINE`; up to session 85 by the camera engine, whose noise
+    at equal spp was 18 x the light engine's on d 0.3 um / sigma_t 2, which made the check's own noise the larger
+    part of its chi^2 on the light engine's recordings), scaled to
     the recording (`estimate.refit.best_scale`); chi^2 / pixel of the recording against their
     mean, and that mean's own variance (from the two renders' difference) / the sensor's. What
     is left of the first beyond the second and 1 is the simulated camera's frozen render noise
@@ -370,7 +373,7 @@ def recording_noise(d: float, s: float, spp: int = 16384, seed: int = 11) -> dic
 
     pb, mat = case_inputs(d, s)
     fm = ForwardModel(pb.geometry, pb.beam, phase=mat.model, profile_y_shape=pb.y_shapes(),
-                      phase_table=mat.phase_table)
+                      phase_table=mat.phase_table, engine=TRUTH_ENGINE)
     angles = [float(a) for a in pb.angles_deg]
     meas = np.asarray(pb.measured, dtype=float)
     var = recording_variance(pb)
@@ -381,7 +384,8 @@ def recording_noise(d: float, s: float, spp: int = 16384, seed: int = 11) -> dic
     sc = best_scale(meas, var, m, None)
     chi2 = float(np.mean(((meas - sc * m) ** 2 / var)[ok]))
     own = float(np.mean(((sc * 0.5 * (ra - rb)) ** 2 / var)[ok]))
-    row = {"case": case_name(d, s), "truth_spp": TRUTH_SPP, "check_spp": spp, "pixels": int(ok.sum()),
+    row = {"case": case_name(d, s), "truth_spp": TRUTH_SPP, "check_spp": spp, "check_engine": TRUTH_ENGINE,
+           "pixels": int(ok.sum()),
            "chi2_per_pixel": chi2, "check_render_variance_per_pixel": own, "frozen_render_noise": chi2 - own - 1.0}
     print(f"{row['case']} recorded at {TRUTH_SPP} spp: chi2 / pixel {chi2:.1f} against the truth at 2 x {spp} spp "
           f"(its own noise {own:.1f}): the recording's render noise about {row['frozen_render_noise']:.0f}x the "
