@@ -12,7 +12,8 @@ is then the first thing to try; this module does it with a stated rule rather th
 The degrees are nested (exp<M> is exp<M+1> with b_{M+1} = 0), so each fit starts from the
 previous degree's optimum with the new coefficient at 0 and needs no coarse search. Each
 degree's fit is compared on the same footing: its parameters are rendered at `EVAL_SEEDS`
-pairs of independent seeds (the same seeds for every degree), its chi^2 is the product of
+pairs of independent seeds (the same seeds for every degree; at 2 x the final spp, or more
+where the recording is quieter than such renders: `comparison_spp`), its chi^2 is the product of
 the pair's residuals (no render-variance term: `degree_chi2`), weighted by one
 metric for all degrees: the HDR variance plus the first degree's render variance, scaled per
 angle by the empirical white-noise factor f of its residuals (`estimate.residuals`; what the
@@ -51,8 +52,8 @@ from estimate.problem import Problem
 from estimate.residuals import noise_floor
 
 __all__ = ["BIC_MARGIN", "CLOSE_SE", "CLOSE_SEEDS", "EVAL_RENDER_RATIO", "EVAL_SEEDS", "EVAL_SPP_FACTOR",
-           "EVAL_SPP_MAX_FACTOR", "MAX_DEGREE", "MIN_DEGREE", "PATIENCE", "START_FROM", "DegreeChoice", "DegreeStep", "Metric", "StartFrom", "choose_degree",
-           "comparison_spp", "degree_chi2"]
+           "EVAL_SPP_MAX_FACTOR", "MAX_DEGREE", "MIN_DEGREE", "PATIENCE", "START_FROM", "DegreeChoice",
+           "DegreeStep", "Metric", "StartFrom", "choose_degree", "comparison_spp", "degree_chi2"]
 
 #: The first degree tried (the paper's) and the largest (the largest the paper evaluated).
 MIN_DEGREE = 3
@@ -233,8 +234,8 @@ def degree_chi2(problem: Problem, fit: FitResult, settings: FitSettings, *, seed
     """chi^2 of a fit without its renders' noise, at `seeds` seed pairs common to every degree
     (pairs first, first + 1, ...: a close call adds pairs to those already rendered).
 
-    The fit's parameters (extensions' too) are rendered with its own phase model at
-    `EVAL_SPP_FACTOR` x `settings.final_spp`, twice per pair with independent seeds A and B, and
+    The fit's parameters (extensions' too) are rendered with its own phase model at the
+    metric's spp (without a metric: `spp`, or `EVAL_SPP_FACTOR` x `settings.final_spp`), twice per pair with independent seeds A and B, and
 
         chi^2 = sum_valid w (m - s I_A) (m - s I_B)
 
