@@ -360,8 +360,8 @@ def recording_noise(d: float, s: float, spp: int = 16384, seed: int = 11) -> dic
     """How far the case's recording scatters about its truth, in units of its variance channel
     (the sensor's noise): the truth rendered twice at `spp` with independent seeds by the
     recording's own engine (`TRUTH_ENGINE`; up to session 85 by the camera engine, whose noise
-    at equal spp was 18 x the light engine's on d 0.3 um / sigma_t 2, which made the check's own noise the larger
-    part of its chi^2 on the light engine's recordings), scaled to
+    at equal spp was 18 x the light engine's on d 0.3 um / sigma_t 2, which made the check's
+    own noise the larger part of its chi^2 on the light engine's recordings), scaled to
     the recording (`estimate.refit.best_scale`); chi^2 / pixel of the recording against their
     mean, and that mean's own variance (from the two renders' difference) / the sensor's. What
     is left of the first beyond the second and 1 is the simulated camera's frozen render noise

@@ -196,6 +196,11 @@ class DegreeChoice:
                 "render_ratio_first": self.render_ratio_first, "render_ratio": self.render_ratio,
                 "steps": [s.to_dict() for s in self.steps]}
 
+    @property
+    def outcome(self) -> str:
+        """The search's end in one line: the degree kept, why it stopped, the comparison spp."""
+        return f"kept exp{self.chosen} ({self.stopped}; compared at {self.spp} spp)"
+
     def describe(self) -> str:
         """One line per degree for the terminal."""
         lines = []
@@ -207,7 +212,7 @@ class DegreeChoice:
             lines.append(f"exp{s.degree}: chi2 at the noise floor {s.chi2_adjusted:.1f}{gain}, sigma_t "
                          f"{s.fit.parameters['sigma_t']:.4g}, albedo {s.fit.parameters['albedo']:.4f}"
                          + (f"  <- {mark}" if mark else ""))
-        return "\n".join(lines) + f"\n({self.stopped}; compared at {self.spp} spp)"
+        return "\n".join(lines) + f"\n{self.outcome}"
 
 
 def _free_count(fit: FitResult) -> int:

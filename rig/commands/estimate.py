@@ -202,8 +202,7 @@ def run(args: argparse.Namespace) -> int:
                     choices[c] = choice
                     fits.append(choice.fit)
                     if not args.json:
-                        print(f"  {c}: kept exp{choice.chosen} ({choice.stopped}; compared at {choice.spp} spp)",
-                              file=sys.stderr, flush=True)
+                        print(f"  {c}: {choice.outcome}", file=sys.stderr, flush=True)
                 else:
                     fits.append(fit_one(phase, None))
         choice_docs = {c: ch.to_dict() for c, ch in choices.items()}
