@@ -91,6 +91,8 @@ DEFAULT_TRUTH_SPP = 1024
 TRUTH_SPP = DEFAULT_TRUTH_SPP
 #: Where expauto's degrees start (`estimate.phase_degree.START_FROM`; `--degree-start`).
 DEGREE_START: StartFrom = "below"
+#: The highest degree expauto tries (`estimate.phase_degree.MAX_DEGREE` unless `--degree-max`).
+DEGREE_MAX: int | None = None
 #: The simulated camera's render engine (`--truth-engine`; the world's `render.engine`): the
 #: camera engine's recordings carry white but skewed frozen noise, the light engine's far
 #: less of it, correlated along the row. Worlds and caches of the light engine are kept apart.
@@ -137,7 +139,7 @@ def fit_cache(cdir: Path, model: str) -> Path:
     # A GPU's fits start from other defaults (FitSettings.for_variant): cached apart.
     variant = default_variant()
     vtag = "" if variant.startswith("llvm") else f"_{variant}"
-    return cdir / (f"fit_{model}_{SCALE}_{FitSettings().optimizer}_{RECIPE}{lm_tag(model)}{close_tag(model)}{start_tag(model)}{vtag}"
+    return cdir / (f"fit_{model}_{SCALE}_{FitSettings().optimizer}_{RECIPE}{lm_tag(model)}{close_tag(model)}{start_tag(model)}{max_tag(model)}{vtag}"
                    f"{overrides_tag(OVERRIDES)}.json")
 
 
@@ -158,6 +160,21 @@ def start_tag(model: str) -> str:
     return "-ownstart" if model == "expauto" and DEGREE_START == "own" else ""
 
 
+def largest_phase(model: str) -> str:
+    """The model's largest phase: exp<the search's highest degree> for expauto, else itself."""
+    from estimate.phase_degree import MAX_DEGREE
+
+    return f"exp{DEGREE_MAX or MAX_DEGREE}" if model == "expauto" else model
+
+
+def max_tag(model: str) -> str:
+    """"-max<N>" for a degree search whose highest degree is not the default (`--degree-max`),
+    else "": the default's caches keep their names."""
+    from estimate.phase_degree import MAX_DEGREE
+
+    return f"-max{DEGREE_MAX}" if model == "expauto" and DEGREE_MAX not in (None, MAX_DEGREE) else ""
+
+
 def lm_tag(model: str) -> str:
     """"-lmdeg<N>" for a model whose fits end with the Levenberg-Marquardt polish by degree
     (`estimate.fit.lm_plan`; since session 79, degree N and more), else "": earlier fits of
@@ -165,12 +182,11 @@ def lm_tag(model: str) -> str:
     from fit_overrides import settings_with
 
     from estimate.fit import lm_plan
-    from estimate.phase_degree import MAX_DEGREE
 
     st = settings_with(OVERRIDES)
     if st.lm_iterations > 0 or st.lm_from_degree is None:
         return ""
-    phase = f"exp{MAX_DEGREE}" if model == "expauto" else model
+    phase = largest_phase(model)
     return f"-lmdeg{st.lm_from_degree}" if lm_plan(st, phase)[0] > 0 else ""
 
 
@@ -260,7 +276,8 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
             # `rig estimate --degree auto`: exp3, exp4, ... and the degree the BIC rule keeps.
             from estimate.phase_degree import choose_degree
 
-            choice = choose_degree(pb, st, start_from=DEGREE_START)
+            choice = choose_degree(pb, st, start_from=DEGREE_START,
+                                   max_degree=int(largest_phase(model)[3:]))
             r = choice.fit
             extra = {"degree_choice": choice.to_dict()}
         else:
@@ -455,15 +472,23 @@ def main() -> int:
     ap.add_argument("--degree-start", choices=START_FROM, default=START_FROM[0],
                     help="expauto: each degree from the one below's optimum (default, as rig estimate) or from the "
                          "estimator's own start (cached apart)")
+    from estimate.phase_degree import DEGREE_LIMIT, MAX_DEGREE, MIN_DEGREE
+
+    ap.add_argument("--degree-max", type=int, default=None,
+                    help=f"expauto: the highest degree tried ({MAX_DEGREE}, as rig estimate; {MIN_DEGREE}.."
+                         f"{DEGREE_LIMIT}; cached apart)")
     ap.add_argument("--unbiased", action="store_true",
                     help="add the losses without Monte Carlo variance (fit and truth) to cached fits that lack them")
     args = ap.parse_args()
     if args.truth_spp < 1:
         ap.error(f"--truth-spp {args.truth_spp}: samples per pixel must be at least 1")
-    global SCALE, TRUTH_SPP, TRUTH_ENGINE, TRUTH_PHASE, OVERRIDES, DEGREE_START
+    global SCALE, TRUTH_SPP, TRUTH_ENGINE, TRUTH_PHASE, OVERRIDES, DEGREE_START, DEGREE_MAX
     SCALE = args.scale
     TRUTH_SPP = args.truth_spp
     DEGREE_START = args.degree_start
+    if args.degree_max is not None and not MIN_DEGREE <= args.degree_max <= DEGREE_LIMIT:
+        ap.error(f"--degree-max {args.degree_max}: use {MIN_DEGREE}..{DEGREE_LIMIT}")
+    DEGREE_MAX = args.degree_max
     TRUTH_ENGINE = args.truth_engine
     TRUTH_PHASE = args.truth_phase
     from fit_overrides import parse_overrides, settings_with

@@ -30,7 +30,7 @@ four pairs the standard error is itself known to a factor of about two (three de
 freedom), and on the paper simulation's d 0.5 um / sigma_t 6 the same call went either way
 between runs (`docs/estimation-log.md`, sessions 80 and 81). The search stops after
 `PATIENCE` degrees in a row that do not gain, or at `MAX_DEGREE` (the largest the paper
-evaluated). On the paper simulation's
+evaluated; `rig estimate --degree-max` allows up to `DEGREE_LIMIT`). On the paper simulation's
 recordings (`benchmarks/bench_paper_sim.py --models expauto`) and on recordings of an exp3
 truth (`benchmarks/bench_estimate.py --model expauto`) the figures are in the README.
 """
@@ -51,13 +51,16 @@ from estimate.loss import profile_scale, reference_delta
 from estimate.problem import Problem
 from estimate.residuals import noise_floor
 
-__all__ = ["BIC_MARGIN", "CLOSE_SE", "CLOSE_SEEDS", "EVAL_RENDER_RATIO", "EVAL_SEEDS", "EVAL_SPP_FACTOR",
+__all__ = ["BIC_MARGIN", "CLOSE_SE", "CLOSE_SEEDS", "DEGREE_LIMIT", "EVAL_RENDER_RATIO", "EVAL_SEEDS", "EVAL_SPP_FACTOR",
            "EVAL_SPP_MAX_FACTOR", "MAX_DEGREE", "MIN_DEGREE", "PATIENCE", "START_FROM", "DegreeChoice",
            "DegreeStep", "Metric", "StartFrom", "choose_degree", "comparison_spp", "degree_chi2"]
 
-#: The first degree tried (the paper's) and the largest (the largest the paper evaluated).
+#: The first degree tried (the paper's) and the largest by default (the largest the paper
+#: evaluated; `rig estimate --degree-max` raises it up to `DEGREE_LIMIT`, the highest degree
+#: `rig estimate` fits at all).
 MIN_DEGREE = 3
 MAX_DEGREE = 7
+DEGREE_LIMIT = 12
 #: A higher degree must lower the BIC by more than this (2 ln of a Bayes factor of about 150,
 #: "very strong" on Kass and Raftery's scale; `estimate.diagnose.BIC_STRONG` for effects) ...
 BIC_MARGIN = 10.0

@@ -126,6 +126,10 @@ def test_report_degree_table_tolerates_hand_edits():
     (["--degree", "13"], "--degree 13: use 0..12 or auto"),
     (["--degree-spp-max", "4096"], "--degree-spp-max 4096: only --degree auto compares degrees"),
     (["--degree", "auto", "--degree-spp-max", "0"], "--degree-spp-max 0: use a positive number"),
+    (["--degree-max", "9"], "--degree-max 9: only --degree auto searches degrees; add --degree auto, or give "
+                            "the degree itself with --degree 9"),
+    (["--degree", "auto", "--degree-max", "2"], "--degree-max 2: use 3..12 (the search starts at exp3)"),
+    (["--degree", "auto", "--degree-max", "13"], "--degree-max 13: use 3..12"),
     (["--channels", ","], "--channels ',': names nothing"),
     (["--channels", "gg"], "--channels 'gg': channel 'g' is named twice"),
     (["--columns", "0"], "--columns 0: use at least 2 pixels"),
@@ -297,18 +301,19 @@ def test_python_dash_m_rig_is_the_rig_command():
 
 
 def test_degree_auto_keeps_the_lowest_degree_the_recording_supports(session, capsys):
-    """The truth's phase is exp1 (b1 = 3), which exp3 holds: no higher degree gains more than
-    the margin, so exp3 is kept after two degrees in a row that do not; the run records
-    every degree's comparison and is named for the search."""
+    """The truth's phase is exp1 (b1 = 3), which exp3 holds: exp4 gains no more than the
+    margin, so exp3 is kept, and `--degree-max 4` ends the search there (the stop after two
+    degrees in a row that gain nothing: `tests/test_phase_degree.py`); the run records every
+    degree's comparison and is named for the search."""
     assert main(["estimate", str(session), "--channels", "g", "--columns", "32", "--max-iterations", "4",
                  "--spp-max", "128", "--polish-steps", "2", "--degree", "auto", "--degree-spp-max", "2048",
-                 "--json"]) == 0
+                 "--degree-max", "4", "--json"]) == 0
     (run,) = json.loads(capsys.readouterr().out)["runs"]
     assert run["model"] == "expauto" and run["path"].endswith("_expauto")
     assert run["channels"]["g"]["model"] == "exp3"
     choice = run["degree_choice"]["g"]
-    assert choice["chosen"] == 3 and [s["degree"] for s in choice["steps"]] == [3, 4, 5]
-    assert [s["accepted"] for s in choice["steps"]] == [True, False, False]
+    assert choice["chosen"] == 3 and [s["degree"] for s in choice["steps"]] == [3, 4]
+    assert [s["accepted"] for s in choice["steps"]] == [True, False] and choice["stopped"].startswith("reached exp4")
     for s in choice["steps"][1:]:
         assert s["gain"] <= 10.0 + 2.0 * s["gain_se"]
     # The comparison renders: 2 x the final spp (2 x --spp-max), doubled while their variance
@@ -325,5 +330,5 @@ def test_degree_auto_keeps_the_lowest_degree_the_recording_supports(session, cap
     assert main(["report", str(session), "--out", str(Path(run["path"]) / "report.html")]) == 0
     capsys.readouterr()
     page = (Path(run["path"]) / "report.html").read_text()
-    assert "degree search (--degree auto)" in page and "g: kept exp3 (stopped after 2 degrees" in page
+    assert "degree search (--degree auto)" in page and "g: kept exp3 (reached exp4, the largest tried" in page
     assert page.count("<td>exp4</td>") == 1 and "<td>kept</td>" in page

@@ -23,6 +23,7 @@ from estimate.phase_degree import (
     EVAL_RENDER_RATIO,
     EVAL_SEEDS,
     EVAL_SPP_MAX_FACTOR,
+    MAX_DEGREE,
     PATIENCE,
     Metric,
     choose_degree,
@@ -181,6 +182,18 @@ def test_a_degree_after_one_that_gains_little_is_still_tried(monkeypatch):
     assert [s.degree for s in choice.steps] == [3, 4, 5, 6, 7]
     assert choice.chosen == 7 and "reached exp7" in choice.stopped
     assert [s.accepted for s in choice.steps] == [True, False, True, False, True]
+
+
+def test_a_higher_degree_limit_lets_a_phase_that_keeps_gaining_go_on(monkeypatch):
+    # The d 0.5 um forward peak: every degree takes more of it. At the default limit the search
+    # ends at exp7; with `max_degree` 10 (`rig estimate --degree-max 10`) it goes on, and still
+    # stops after two degrees in a row that gain nothing.
+    table = {m: _flat(5000.0 - 300.0 * min(m - 3, 5)) for m in range(3, 13)}
+    default, _ = _run(table, monkeypatch)
+    assert default.chosen == MAX_DEGREE == 7 and "reached exp7" in default.stopped
+    higher, _ = _run(table, monkeypatch, max_degree=10)
+    assert higher.chosen == 8 and [s.degree for s in higher.steps] == [3, 4, 5, 6, 7, 8, 9, 10]
+    assert "in a row" in higher.stopped
 
 
 def test_degree_range_seed_count_and_start_are_checked(monkeypatch):

@@ -1,6 +1,6 @@
 """`rig estimate SESSION/`: fit sigma_t, albedo and the phase function per channel.
 
-    rig estimate SESSION/ [--model exp|tthg|both] [--degree 3|auto] [--channels rgb]
+    rig estimate SESSION/ [--model exp|tthg|both] [--degree 3|M|auto] [--degree-max 7] [--channels rgb]
                           [--columns 256] [--allow-partial] [--max-iterations N] [--seed S]
                           [--extensions a,b] [--scale calibrated|free] [--time-limit S] [--json] [--diagnose]
 
@@ -43,6 +43,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="with --degree auto: largest samples per pixel of the renders that compare the degrees "
                         "(they start at twice the final spp and double while their noise exceeds the recording's; "
                         "default 32 x the final spp; lower it for a quicker, coarser comparison on a CPU)")
+    p.add_argument("--degree-max", type=int, default=None,
+                   help="with --degree auto: the highest degree tried (default 7, the largest the paper evaluated; "
+                        "up to 12). The search still stops after two degrees in a row that gain nothing, so only "
+                        "media whose phase keeps gaining, the strongly forward ones, pay for the extra fits")
     p.add_argument("--channels", default=None, help="filters to fit, e.g. rgb or r,g (default: all of the plan)")
     p.add_argument("--columns", type=int, default=None, help="profile window width in pixels (256)")
     p.add_argument("--extensions", default=None, help="forward-model extensions to include, comma separated "
@@ -111,6 +115,15 @@ def run(args: argparse.Namespace) -> int:
                              "add --degree auto or leave the flag out")
         if args.degree_spp_max < 1:
             raise UsageError(f"--degree-spp-max {args.degree_spp_max}: use a positive number of samples per pixel")
+    if args.degree_max is not None:
+        from estimate.phase_degree import DEGREE_LIMIT, MIN_DEGREE
+
+        if not auto:
+            raise UsageError(f"--degree-max {args.degree_max}: only --degree auto searches degrees; "
+                             f"add --degree auto, or give the degree itself with --degree {args.degree_max}")
+        if not MIN_DEGREE <= args.degree_max <= DEGREE_LIMIT:
+            raise UsageError(f"--degree-max {args.degree_max}: use {MIN_DEGREE}..{DEGREE_LIMIT} "
+                             f"(the search starts at exp{MIN_DEGREE})")
     if args.max_iterations is not None and args.max_iterations < 1:
         raise UsageError("--max-iterations must be >= 1")
     if args.columns is not None and args.columns < 2:
@@ -194,11 +207,12 @@ def run(args: argparse.Namespace) -> int:
                     return f
 
                 if by_degree:
-                    from estimate.phase_degree import choose_degree
+                    from estimate.phase_degree import MAX_DEGREE, choose_degree
 
                     log = None if args.json else (lambda s: print(s, file=sys.stderr, flush=True))
                     choice = choose_degree(problems[c], settings, fit=fit_one, extensions=exts, log=log,
-                                           max_spp=args.degree_spp_max)
+                                           max_spp=args.degree_spp_max,
+                                           max_degree=MAX_DEGREE if args.degree_max is None else args.degree_max)
                     choices[c] = choice
                     fits.append(choice.fit)
                     if not args.json:
