@@ -30,9 +30,10 @@ four pairs the standard error is itself known to a factor of about two (three de
 freedom), and on the paper simulation's d 0.5 um / sigma_t 6 the same call went either way
 between runs (`docs/estimation-log.md`, sessions 80 and 81). The search stops after
 `PATIENCE` degrees in a row that do not gain, or at `MAX_DEGREE` (the largest the paper
-evaluated; `rig estimate --degree-max` allows up to `DEGREE_LIMIT`). On the paper simulation's
-recordings (`benchmarks/bench_paper_sim.py --models expauto`) and on recordings of an exp3
-truth (`benchmarks/bench_estimate.py --model expauto`) the figures are in the README.
+evaluated; `rig estimate --degree-max` allows up to `DEGREE_LIMIT`). The figures on the paper
+simulation's recordings (`benchmarks/bench_paper_sim.py --models expauto`) are in the README,
+those on recordings of an exp3 truth (`benchmarks/bench_estimate.py --model expauto`) in
+`docs/estimation-log.md` (sessions 77 and 81).
 """
 
 from __future__ import annotations
