@@ -325,6 +325,10 @@ def derived_errors(row: dict) -> dict:
 
 
 UNBIASED_SPP = 4096
+#: On the forward media near sensor noise 4096 spp leave the ratio uncertain by +-0.25-0.3
+#: over four pairs, from the renders' noise inside the log; 16384 spp bring it to +-0.03 with
+#: the same mean (d 0.5 um / sigma_t 2, session 87). `--unbiased-spp` sets it; a cached row
+#: of another spp is evaluated again (and overwritten with the new figures).
 #: seed pairs of the unbiased losses (each `loss_at`'s two renders). One pair's ratio of a
 #: fit's loss to the truth's scatters by 2-4 % on d 0.5 um / sigma_t 6 (eight pairs, session
 #: 83: the pairs' ratios of one exp7 fit ran 0.93-1.04), a third of the loss target's 10 %
@@ -438,6 +442,7 @@ def truth_check(d: float, s: float, model: str, seed: int) -> dict:
 
 
 def main() -> int:
+    global SCALE, TRUTH_SPP, TRUTH_ENGINE, TRUTH_PHASE, OVERRIDES, DEGREE_START, DEGREE_MAX, UNBIASED_SPP
     ap = argparse.ArgumentParser()
     ap.add_argument("--cases", default=None, help="comma list like d0.5_s2 (default: all 8)")
     ap.add_argument("--models", default="exp3,tthg", help="comma list of models to fit (exp<M>, tthg, or expauto: the degree "
@@ -477,18 +482,24 @@ def main() -> int:
     ap.add_argument("--degree-max", type=int, default=None,
                     help=f"expauto: the highest degree tried ({MAX_DEGREE}, as rig estimate; {MIN_DEGREE}.."
                          f"{DEGREE_LIMIT}; cached apart)")
+    ap.add_argument("--unbiased-spp", type=int, default=None,
+                    help=f"with --unbiased: samples per pixel of each of those renders ({UNBIASED_SPP}; "
+                         "16384 for a ratio known to about 0.03 on the forward media)")
     ap.add_argument("--unbiased", action="store_true",
                     help="add the losses without Monte Carlo variance (fit and truth) to cached fits that lack them")
     args = ap.parse_args()
     if args.truth_spp < 1:
         ap.error(f"--truth-spp {args.truth_spp}: samples per pixel must be at least 1")
-    global SCALE, TRUTH_SPP, TRUTH_ENGINE, TRUTH_PHASE, OVERRIDES, DEGREE_START, DEGREE_MAX
     SCALE = args.scale
     TRUTH_SPP = args.truth_spp
     DEGREE_START = args.degree_start
     if args.degree_max is not None and not MIN_DEGREE <= args.degree_max <= DEGREE_LIMIT:
         ap.error(f"--degree-max {args.degree_max}: use {MIN_DEGREE}..{DEGREE_LIMIT}")
     DEGREE_MAX = args.degree_max
+    if args.unbiased_spp is not None:
+        if args.unbiased_spp < 2 or not args.unbiased:
+            ap.error(f"--unbiased-spp {args.unbiased_spp}: use at least 2, with --unbiased")
+        UNBIASED_SPP = args.unbiased_spp
     TRUTH_ENGINE = args.truth_engine
     TRUTH_PHASE = args.truth_phase
     from fit_overrides import parse_overrides, settings_with
