@@ -324,11 +324,12 @@ def derived_errors(row: dict) -> dict:
             "g_fit": fit["g"]["value"], "g_true": tru["g"]}
 
 
+#: Samples per pixel of each render of the unbiased losses. On the forward media near sensor
+#: noise 4096 spp leave the ratio uncertain by +-0.25-0.3 over four pairs, from the renders'
+#: noise inside the log; 16384 spp bring it to +-0.03 with the same mean (d 0.5 um / sigma_t 2,
+#: session 87). `--unbiased-spp` sets it; a cached row of another spp is evaluated again (and
+#: overwritten with the new figures).
 UNBIASED_SPP = 4096
-#: On the forward media near sensor noise 4096 spp leave the ratio uncertain by +-0.25-0.3
-#: over four pairs, from the renders' noise inside the log; 16384 spp bring it to +-0.03 with
-#: the same mean (d 0.5 um / sigma_t 2, session 87). `--unbiased-spp` sets it; a cached row
-#: of another spp is evaluated again (and overwritten with the new figures).
 #: seed pairs of the unbiased losses (each `loss_at`'s two renders). One pair's ratio of a
 #: fit's loss to the truth's scatters by 2-4 % on d 0.5 um / sigma_t 6 (eight pairs, session
 #: 83: the pairs' ratios of one exp7 fit ran 0.93-1.04), a third of the loss target's 10 %

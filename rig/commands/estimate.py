@@ -46,7 +46,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--degree-max", type=int, default=None,
                    help="with --degree auto: the highest degree tried (default 7, the largest the paper evaluated; "
                         "up to 12). The search still stops after two degrees in a row that gain nothing, so only "
-                        "media whose phase keeps gaining, the strongly forward ones, pay for the extra fits")
+                        "media whose phase keeps gaining pay for the extra fits (on the paper simulation's "
+                        "d 0.5 um medium degrees 8-10 fitted no better than 7: docs/estimation-log.md, session 87)")
     p.add_argument("--channels", default=None, help="filters to fit, e.g. rgb or r,g (default: all of the plan)")
     p.add_argument("--columns", type=int, default=None, help="profile window width in pixels (256)")
     p.add_argument("--extensions", default=None, help="forward-model extensions to include, comma separated "
