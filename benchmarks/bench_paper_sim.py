@@ -160,11 +160,16 @@ def start_tag(model: str) -> str:
     return "-ownstart" if model == "expauto" and DEGREE_START == "own" else ""
 
 
-def largest_phase(model: str) -> str:
-    """The model's largest phase: exp<the search's highest degree> for expauto, else itself."""
+def search_max_degree() -> int:
+    """expauto's highest degree: `--degree-max`, else `estimate.phase_degree.MAX_DEGREE`."""
     from estimate.phase_degree import MAX_DEGREE
 
-    return f"exp{DEGREE_MAX or MAX_DEGREE}" if model == "expauto" else model
+    return DEGREE_MAX or MAX_DEGREE
+
+
+def largest_phase(model: str) -> str:
+    """The model's largest phase: exp<the search's highest degree> for expauto, else itself."""
+    return f"exp{search_max_degree()}" if model == "expauto" else model
 
 
 def max_tag(model: str) -> str:
@@ -277,7 +282,7 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
             from estimate.phase_degree import choose_degree
 
             choice = choose_degree(pb, st, start_from=DEGREE_START,
-                                   max_degree=int(largest_phase(model)[3:]))
+                                   max_degree=search_max_degree())
             r = choice.fit
             extra = {"degree_choice": choice.to_dict()}
         else:
