@@ -2,7 +2,7 @@
 sigma_t when the phase function is free? The profile of the loss over sigma_t.
 
     .venv/bin/python benchmarks/exp_sigma_t_profile.py [CASE] [MODEL] [--sigmas 5.4,6,6.6,7.2]
-        [--pairs 8] [--points FILE ...]
+        [--pairs 8] [--pair-spp 4096] [--truth-spp 1024] [--points FILE ...]
 
 CASE a `bench_paper_sim.py` case on the Mie-table recordings (default d0.5_s6; recorded on
 first use, as the benchmark does), MODEL an exponential model (default exp7). For each
@@ -50,11 +50,16 @@ def main() -> int:
     ap.add_argument("--sigmas", default="5.4,6,6.6,7.2", help="held sigma_t values (1/mm), a comma list")
     ap.add_argument("--pairs", type=int, default=8, help="seed pairs of the scoring loss")
     ap.add_argument("--points", nargs="*", default=[], help="bench_paper_sim results JSON whose fits of the case to score too")
+    ap.add_argument("--pair-spp", type=int, default=PAIR_SPP,
+                    help=f"samples per pixel of each scoring render ({PAIR_SPP}; 16384 brings a forward medium's "
+                         "ratio from +-0.25 to +-0.03)")
     ap.add_argument("--truth-spp", type=int, default=bps.DEFAULT_TRUTH_SPP,
                     help="the recording's samples per pixel (bench_paper_sim.py --truth-spp; output named for it)")
     args = ap.parse_args()
     bps.TRUTH_SPP = args.truth_spp
     spp_tag = "" if args.truth_spp == bps.DEFAULT_TRUTH_SPP else f"_spp{args.truth_spp}"
+    if args.pair_spp != PAIR_SPP:
+        spp_tag += f"_pairs{args.pair_spp}"
     from fit_overrides import settings_with
 
     from estimate.fit import fit_channel, forward_model
@@ -86,7 +91,7 @@ def main() -> int:
     for i in range(args.pairs):
         seed = FIRST_PAIR_SEED + 2 * i
         for name, (fm, params, _) in points.items():
-            a, b = fm.render_profiles_many([(params, seed), (params, seed + 1)], pb.angles_deg, spp=PAIR_SPP)
+            a, b = fm.render_profiles_many([(params, seed), (params, seed + 1)], pb.angles_deg, spp=args.pair_spp)
             losses[name].append(decorrelated_loss(pb.measured, a, b, pb.valid, fs, d_ref))
     truth = np.array(losses["truth"])
     rows = []
@@ -98,7 +103,7 @@ def main() -> int:
         print(f"{name:40s} sigma_t {info['sigma_t']:.3f} albedo {info['albedo']:.4f} "
               f"loss / truth's {ratio.mean():.4f} +- {se:.4f}", flush=True)
     out = ROOT / "benchmarks" / "results" / f"exp_sigma_t_profile_{args.case}{spp_tag}_{args.model}.json"
-    out.write_text(json.dumps({"case": args.case, "model": args.model, "pairs": args.pairs, "pair_spp": PAIR_SPP,
+    out.write_text(json.dumps({"case": args.case, "model": args.model, "pairs": args.pairs, "pair_spp": args.pair_spp,
                                "rows": rows}, indent=1, default=float))
     print(f"wrote {out}")
     return 0
