@@ -178,7 +178,7 @@ from estimate.polish import (
     polish_average,
 )
 from estimate.problem import Problem
-from estimate.start import PHASE_STARTS, coarse_start
+from estimate.start import coarse_start
 from estimate.transforms import Transform, transform_for
 from estimate.uncertainties import (
     combined_covariance,
@@ -298,10 +298,6 @@ class FitSettings:
     #: against the camera engine's 99 s, with a quarter of its uncertainty) or "camera"
     #: (Mitsuba's prbvolpath from the camera)
     engine: str = "light"
-    #: the exponential phases' start shapes in the coarse search (`estimate.start.PHASE_STARTS`):
-    #: "vmf" (four von Mises-Fisher lobes) or "mie" (those and exp<M> fits of eight Mie phase
-    #: functions, `estimate.start.mie_start_shapes`)
-    phase_starts: str = "vmf"
 
     @classmethod
     def for_variant(cls, variant: str | None = None, **kw: Any) -> FitSettings:
@@ -380,9 +376,6 @@ class FitSettings:
             elif f.name == "engine":
                 if v not in ENGINES:
                     raise bad(f"a render engine ({' or '.join(ENGINES)})")
-            elif f.name == "phase_starts":
-                if v not in PHASE_STARTS:
-                    raise bad(f"a set of phase starts ({' or '.join(PHASE_STARTS)})")
             elif isinstance(default, str) and not isinstance(v, str):
                 raise bad("a word")
             out[f.name] = v
@@ -616,7 +609,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         b = dict(base)
         b.update(start or {})
         init, _ = coarse_start(fm, problem, b, spp=st.start_spp, seed=st.seed + 99_991, delta_rel=d_ref,
-                               fixed=fixed, scale=fixed_scale, phase_starts=st.phase_starts)
+                               fixed=fixed, scale=fixed_scale)
     init = fm.validate(init)
     stage_done("start")
     names = [n for n in fm.parameter_names if n not in fixed]

@@ -557,13 +557,6 @@ def test_engine_setting_is_checked():
         FitSettings.from_dict({"engine": "photons"}, where="settings.fit")
 
 
-def test_phase_starts_setting_is_checked():
-    assert FitSettings().phase_starts == "vmf"
-    assert FitSettings.from_dict({"phase_starts": "mie"}).phase_starts == "mie"
-    with pytest.raises(ModelParameterError, match="settings.fit: fit setting phase_starts = 'hg'"):
-        FitSettings.from_dict({"phase_starts": "hg"}, where="settings.fit")
-
-
 def _toy_problem(x, meas):
     return Problem(np.array([0.0]), x, meas, np.ones_like(meas), np.ones_like(meas, bool), None, "t", None)  # type: ignore[arg-type]
 
@@ -702,63 +695,6 @@ def test_coarse_start_searches_phase_and_material_jointly():
     assert calls.count(8) == len(tried) and calls.count(32) == RESCORED and len(calls) == len(tried) + RESCORED
     best, tried = coarse_start(Toy(), pb, {"phase.g": 0.5}, scale=1.0, fixed={"phase.g": 0.5})   # type: ignore[arg-type]
     assert best["phase.g"] == 0.5 and len(tried) == len(SIGMA_GRID) * len(ALBEDO_GRID)
-
-
-def test_mie_start_shapes_run_from_near_isotropic_to_strongly_forward():
-    """The "mie" starts: one exp<M> per start diameter, inside the forward model's
-    coefficient range, their asymmetry rising with the diameter as the Mie tables' does and
-    close to it (the fit is of ln p, so g is not matched exactly)."""
-    from estimate.mie import MieSettings, mie_poly
-    from estimate.phase_exponential import ExponentialPhase
-    from estimate.start import MIE_START_DIAMETERS_UM, mie_start_shapes, phase_candidates
-
-    for degree in (3, 7):
-        shapes = mie_start_shapes(degree)
-        assert len(shapes) == len(MIE_START_DIAMETERS_UM)
-        assert all(len(b) == degree and max(abs(x) for x in b) <= 1000.0 for b in shapes)
-        g = [ExponentialPhase(b).g for b in shapes]
-        assert g[0] < 0.1 and g[-1] > 0.9
-        assert all(b - a > -0.02 for a, b in zip(g, g[1:]))
-    settings = MieSettings(wavelength_nm=550.0, n_particle=1.46, n_medium=1.333)
-    for d, b in zip(MIE_START_DIAMETERS_UM, mie_start_shapes(7)):
-        assert ExponentialPhase(b).g == pytest.approx(mie_poly(d, 0.1, settings).g, abs=0.03)
-    assert len(phase_candidates("exp7", "mie")) == 4 + len(MIE_START_DIAMETERS_UM)
-    assert len(phase_candidates("exp1", "mie")) == 4 == len(phase_candidates("exp7"))
-    assert phase_candidates("hg", "mie") == phase_candidates("hg")
-    with pytest.raises(ModelParameterError, match="unknown phase starts 'table'"):
-        phase_candidates("exp3", "table")
-
-
-def test_coarse_start_with_mie_starts_finds_a_mie_shaped_phase():
-    """A toy exp3 whose profile is the phase itself over the scattering angles, times the
-    albedo and an extinction term: with the truth one of the Mie shapes at a grid material,
-    the "mie" starts find it exactly; the four vMF lobes cannot take its shape and leave
-    a loss many times larger."""
-    from estimate.phase_exponential import ExponentialPhase
-    from estimate.start import ALBEDO_GRID, SIGMA_GRID, coarse_start, mie_start_shapes
-
-    x = np.linspace(0.0, 1.0, 60)
-    mu = np.cos(np.pi * x)
-
-    class Toy:
-        phase = "exp3"
-
-        def render_profiles(self, p, angles, *, spp, seed):
-            ph = ExponentialPhase([p[f"phase.b{i}"] for i in (1, 2, 3)])
-            return (p["albedo"] * np.exp(-0.3 * p["sigma_t"] * x) * ph.eval(mu))[None, :]
-
-        def render_profiles_many(self, requests, angles, *, spp):
-            return [self.render_profiles(p, angles, spp=spp, seed=seed) for p, seed in requests]
-
-    shape = mie_start_shapes(3)[5]
-    truth = {"sigma_t": SIGMA_GRID[6], "albedo": ALBEDO_GRID[3], **{f"phase.b{i + 1}": v for i, v in enumerate(shape)}}
-    pb = _toy_problem(x, Toy().render_profiles(truth, None, spp=0, seed=0))
-    base = {f"phase.b{i}": 0.0 for i in (1, 2, 3)}
-    best, tried = coarse_start(Toy(), pb, base, scale=1.0, phase_starts="mie")   # type: ignore[arg-type]
-    assert best == pytest.approx(truth)
-    assert min(loss for _, loss in tried) == pytest.approx(0.0, abs=1e-12)
-    _, vmf_tried = coarse_start(Toy(), pb, base, scale=1.0)   # type: ignore[arg-type]
-    assert min(loss for _, loss in vmf_tried) > 1e-3
 
 
 
