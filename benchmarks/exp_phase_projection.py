@@ -45,7 +45,7 @@ import bench_paper_sim as bench  # noqa: E402
 SEED = 4242
 
 
-def _cases(text: str) -> list[tuple[float, float]]:
+def _cases(text: str, flag: str = "--cases") -> list[tuple[float, float]]:
     """"0.5:2,0.3:6" -> [(0.5, 2.0), (0.3, 6.0)]; "all" -> the eight cases."""
     if text == "all":
         return [(d, s) for d in bench.DIAMETERS for s in bench.SIGMAS]
@@ -55,9 +55,9 @@ def _cases(text: str) -> list[tuple[float, float]]:
         try:
             case = (float(d), float(s))
         except ValueError:
-            raise ValueError(f"--cases {item!r}: give DIAMETER:SIGMA_T, e.g. 0.5:2") from None
+            raise ValueError(f"{flag} {item!r}: give DIAMETER:SIGMA_T, e.g. 0.5:2") from None
         if not sep or case[0] not in bench.DIAMETERS or case[1] not in bench.SIGMAS:
-            raise ValueError(f"--cases {item!r}: not a paper-simulation case; diameters "
+            raise ValueError(f"{flag} {item!r}: not a paper-simulation case; diameters "
                              f"{', '.join(map(str, bench.DIAMETERS))} um, sigma_t {', '.join(map(str, bench.SIGMAS))} /mm")
         out.append(case)
     return out
