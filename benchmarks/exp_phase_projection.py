@@ -96,6 +96,8 @@ def main() -> int:
         ap.error(f"--degrees {args.degrees!r}: use degrees 1..20")
     if args.spp < 2:
         ap.error(f"--spp {args.spp}: use at least 2 samples per pixel")
+    if args.free_refit and not args.phase_fit:
+        ap.error("--free-refit starts from the phase-only fit: give --phase-fit too")
     bench.TRUTH_SPP, bench.TRUTH_ENGINE, bench.TRUTH_PHASE = args.truth_spp, "light", "table"
 
     from fit_overrides import settings_with
@@ -124,6 +126,9 @@ def main() -> int:
         for m in degrees:
             model = f"exp{m}"
             proj = fit_model(table, model)
+            if not proj.ok:
+                print(f"  {model}: no fit to the table ({proj.message}); skipped", flush=True)
+                continue
             b = proj.params["b"]
             sad_params = {**material, **{f"phase.b{i}": float(b[i]) for i in range(1, m + 1)}}
             t0 = time.monotonic()

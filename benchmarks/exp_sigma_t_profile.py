@@ -56,6 +56,8 @@ def main() -> int:
     ap.add_argument("--truth-spp", type=int, default=bps.DEFAULT_TRUTH_SPP,
                     help="the recording's samples per pixel (bench_paper_sim.py --truth-spp; output named for it)")
     args = ap.parse_args()
+    if args.pair_spp < 2:
+        ap.error(f"--pair-spp {args.pair_spp}: use at least 2 samples per pixel")
     bps.TRUTH_SPP = args.truth_spp
     spp_tag = "" if args.truth_spp == bps.DEFAULT_TRUTH_SPP else f"_spp{args.truth_spp}"
     if args.pair_spp != PAIR_SPP:
