@@ -48,7 +48,7 @@ def main() -> int:
     from fit_overrides import parse_overrides, settings_with
 
     try:
-        cases = projection._cases(args.case, "--case")
+        cases = projection.parse_cases(args.case, "--case")
         if len(cases) != 1:
             raise ValueError(f"--case {args.case!r}: give one case, e.g. 0.5:6")
         (d, s), = cases
@@ -59,26 +59,24 @@ def main() -> int:
         ap.error(f"--model {args.model!r}: give an exponential model, e.g. exp7")
     bench.TRUTH_SPP, bench.TRUTH_ENGINE, bench.TRUTH_PHASE = args.truth_spp, "light", "table"
 
-    from estimate.fit import fit_channel, loss_at
+    from estimate.fit import fit_channel
     from estimate.loss import calibrated_scale
 
     pb, mat = bench.case_inputs(d, s)
     scale = calibrated_scale(pb.session_path, "g", pb.beam.power()).scale
-    tf = bench.truth_forward(pb, mat)
-    truths = [float(loss_at(pb, mat.model, mat.parameters(), spp=args.spp, seed=projection.SEED + bench.UNBIASED_SEED_STEP * k,
-                            forward=tf, fixed_scale=scale)["loss_unbiased"]) for k in range(bench.UNBIASED_PAIRS)]
+    truths = projection.truth_losses(pb, mat, args.spp, scale)
     material = {"sigma_t": s, "albedo": bench.ALBEDO}
     out: list[dict[str, Any]] = []
     for label, overrides in (("default", {}), ("variant", variant)):
         t0 = time.monotonic()
         r = fit_channel(pb, args.model, fixed=material, settings=settings_with(overrides, seed=0, scale="calibrated"))
-        score = projection._score(pb, args.model, dict(r.parameters), args.spp, scale, truths)
+        scored = projection.score(pb, args.model, dict(r.parameters), args.spp, scale, truths)
         row = {"case": bench.case_name(d, s), "model": args.model, "label": label, "overrides": overrides,
                "time_s": time.monotonic() - t0, "lm_steps": r.lm_steps, "parameters": r.parameters,
-               "truth_loss_unbiased": float(np.mean(truths)), **score}
+               "truth_loss_unbiased": float(np.mean(truths)), **scored}
         out.append(row)
-        print(f"{row['case']} {args.model} phase only, {label} {overrides}: {score['ratio']:.3f} +- "
-              f"{score['ratio_se']:.3f} ({row['time_s']:.0f} s, {r.lm_steps} LM steps)", flush=True)
+        print(f"{row['case']} {args.model} phase only, {label} {overrides}: {scored['ratio']:.3f} +- "
+              f"{scored['ratio_se']:.3f} ({row['time_s']:.0f} s, {r.lm_steps} LM steps)", flush=True)
         if args.out:
             Path(args.out).write_text(json.dumps(out, indent=1, default=float))
     return 0

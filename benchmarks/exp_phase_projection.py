@@ -45,7 +45,7 @@ import bench_paper_sim as bench  # noqa: E402
 SEED = 4242
 
 
-def _cases(text: str, flag: str = "--cases") -> list[tuple[float, float]]:
+def parse_cases(text: str, flag: str = "--cases") -> list[tuple[float, float]]:
     """"0.5:2,0.3:6" -> [(0.5, 2.0), (0.3, 6.0)]; "all" -> the eight cases."""
     if text == "all":
         return [(d, s) for d in bench.DIAMETERS for s in bench.SIGMAS]
@@ -63,7 +63,7 @@ def _cases(text: str, flag: str = "--cases") -> list[tuple[float, float]]:
     return out
 
 
-def _score(pb: Any, model: str, params: dict[str, float], spp: int, scale: float,
+def score(pb: Any, model: str, params: dict[str, float], spp: int, scale: float,
            truths: list[float]) -> dict[str, float]:
     """The unbiased loss of (model, params) over the seed pairs and its ratio to the truth's."""
     from estimate.fit import loss_at
@@ -74,6 +74,15 @@ def _score(pb: Any, model: str, params: dict[str, float], spp: int, scale: float
     return {"ratio": float(np.mean(losses) / np.mean(truths)),
             "ratio_se": float(np.std(ratios, ddof=1) / np.sqrt(len(ratios))),
             "loss_unbiased": float(np.mean(losses))}
+
+
+def truth_losses(pb: Any, mat: Any, spp: int, scale: float) -> list[float]:
+    """The truth's unbiased loss at each of the benchmark's seed pairs (`score`'s reference)."""
+    from estimate.fit import loss_at
+
+    tf = bench.truth_forward(pb, mat)
+    return [float(loss_at(pb, mat.model, mat.parameters(), spp=spp, seed=SEED + bench.UNBIASED_SEED_STEP * k,
+                          forward=tf, fixed_scale=scale)["loss_unbiased"]) for k in range(bench.UNBIASED_PAIRS)]
 
 
 def main() -> int:
@@ -88,7 +97,7 @@ def main() -> int:
     ap.add_argument("--out", default=None, help="results JSON")
     args = ap.parse_args()
     try:
-        cases = _cases(args.cases)
+        cases = parse_cases(args.cases)
         degrees = [int(x) for x in args.degrees.split(",")]
     except ValueError as e:
         ap.error(str(e))
@@ -102,7 +111,7 @@ def main() -> int:
 
     from fit_overrides import settings_with
 
-    from estimate.fit import fit_channel, loss_at
+    from estimate.fit import fit_channel
     from estimate.loss import calibrated_scale
     from estimate.phase_fit import fit_model
     from estimate.phase_table import PhaseTable
@@ -115,11 +124,8 @@ def main() -> int:
         tab = mat.phase_table
         table = PhaseTable(np.linspace(0.0, 180.0, tab.log_p.size), np.exp(tab.log_p), float(tab.g), tab.label)
         scale = calibrated_scale(pb.session_path, "g", pb.beam.power()).scale
-        tf = bench.truth_forward(pb, mat)
         t0 = time.monotonic()
-        truths = [float(loss_at(pb, mat.model, mat.parameters(), spp=args.spp,
-                                seed=SEED + bench.UNBIASED_SEED_STEP * k, forward=tf,
-                                fixed_scale=scale)["loss_unbiased"]) for k in range(bench.UNBIASED_PAIRS)]
+        truths = truth_losses(pb, mat, args.spp, scale)
         material = {"sigma_t": s, "albedo": bench.ALBEDO}
         print(f"{bench.case_name(d, s)}: truth's unbiased loss {np.mean(truths):.4g} ({time.monotonic() - t0:.0f} s)",
               flush=True)
@@ -135,7 +141,7 @@ def main() -> int:
             row = {"case": bench.case_name(d, s), "diameter_um": d, "sigma_t_true": s, "model": model,
                    "spp": args.spp, "pairs": bench.UNBIASED_PAIRS, "truth_loss_unbiased": float(np.mean(truths)),
                    "sad": proj.sad, "sad_g": proj.params.get("g"), "table_g": float(mat.phase_table.g),
-                   "sad_fit": {"parameters": sad_params, **_score(pb, model, sad_params, args.spp, scale, truths)}}
+                   "sad_fit": {"parameters": sad_params, **score(pb, model, sad_params, args.spp, scale, truths)}}
             line = (f"  {model}: SAD fit (SAD {proj.sad:.3g}) at the true material {row['sad_fit']['ratio']:.3f} "
                     f"+- {row['sad_fit']['ratio_se']:.3f}")
             if args.phase_fit:
@@ -143,7 +149,7 @@ def main() -> int:
                 r = fit_channel(pb, model, start=sad_params, fixed=material, settings=st)
                 row["phase_only"] = {"parameters": r.parameters, "iterations": r.iterations,
                                      "g": _g(model, r.parameters),
-                                     **_score(pb, model, dict(r.parameters), args.spp, scale, truths)}
+                                     **score(pb, model, dict(r.parameters), args.spp, scale, truths)}
                 line += (f"; phase-only fit {row['phase_only']['ratio']:.3f} +- {row['phase_only']['ratio_se']:.3f} "
                          f"(g {row['phase_only']['g']:.4f}, the SAD fit's {proj.params['g']:.4f}, the table's "
                          f"{row['table_g']:.4f})")
@@ -152,7 +158,7 @@ def main() -> int:
                     row["free_refit"] = {"parameters": f.parameters, "iterations": f.iterations,
                                          "sigma_t_rel_error": f.parameters["sigma_t"] / s - 1.0,
                                          "albedo_error": f.parameters["albedo"] - bench.ALBEDO,
-                                         **_score(pb, model, dict(f.parameters), args.spp, scale, truths)}
+                                         **score(pb, model, dict(f.parameters), args.spp, scale, truths)}
                     fr = row["free_refit"]
                     line += (f"; then free: {fr['ratio']:.3f} +- {fr['ratio_se']:.3f}, sigma_t "
                              f"{100 * fr['sigma_t_rel_error']:+.2f} %, albedo {fr['albedo_error']:+.4f}")
