@@ -43,6 +43,7 @@ def main() -> int:
                     help="fit settings of the second fit (repeat; default: the LM at 16 x final_spp, 200 steps)")
     ap.add_argument("--spp", type=int, default=16384, help="samples per pixel of each scoring render (16384)")
     ap.add_argument("--truth-spp", type=int, default=16384, help="the recordings' spp (their cache name)")
+    ap.add_argument("--no-default", action="store_true", help="fit the variant only (the default's figure is known)")
     ap.add_argument("--out", default=None, help="results JSON")
     args = ap.parse_args()
     from fit_overrides import parse_overrides, settings_with
@@ -67,12 +68,14 @@ def main() -> int:
     truths = projection.truth_losses(pb, mat, args.spp, scale)
     material = {"sigma_t": s, "albedo": bench.ALBEDO}
     out: list[dict[str, Any]] = []
-    for label, overrides in (("default", {}), ("variant", variant)):
+    runs = [("default", {}), ("variant", variant)][1 if args.no_default else 0:]
+    for label, overrides in runs:
         t0 = time.monotonic()
         r = fit_channel(pb, args.model, fixed=material, settings=settings_with(overrides, seed=0, scale="calibrated"))
         scored = projection.score(pb, args.model, dict(r.parameters), args.spp, scale, truths)
         row = {"case": bench.case_name(d, s), "model": args.model, "label": label, "overrides": overrides,
-               "time_s": time.monotonic() - t0, "lm_steps": r.lm_steps, "parameters": r.parameters,
+               "time_s": time.monotonic() - t0, "lm_steps": r.lm_steps, "lm_losses": r.lm_losses,
+               "parameters": r.parameters,
                "truth_loss_unbiased": float(np.mean(truths)), **scored}
         out.append(row)
         print(f"{row['case']} {args.model} phase only, {label} {overrides}: {scored['ratio']:.3f} +- "

@@ -171,6 +171,7 @@ from estimate.loss import (
 )
 from estimate.phase_tabulated import TabulatedPhase
 from estimate.polish import (
+    LM_BASES,
     averaged_point_count,
     first_averaged_point,
     gn_polish,
@@ -296,6 +297,9 @@ class FitSettings:
     #: 2.4-3.8 x the fit's time. It stays 4 until `--degree auto` is judged with 16 on all eight
     #: cases (`bench_paper_sim.py --setting lm_degree_spp_factor=16`).
     lm_degree_spp_factor: int = 4
+    #: the coordinates of the LM's steps for an exponential phase (`lm_polish`'s `basis`):
+    #: "monomial" (the paper's b_i) or "legendre" (the same exponent's Legendre coefficients)
+    lm_basis: str = "monomial"
     uncertainties: bool = True
     scale: str = "free"              # "free": fitted (profiled) per channel; "calibrated": from the beam power
     #: the forward model's render engine (`estimate.forward.ENGINES`): "light" (paths from
@@ -381,6 +385,9 @@ class FitSettings:
             elif f.name == "engine":
                 if v not in ENGINES:
                     raise bad(f"a render engine ({' or '.join(ENGINES)})")
+            elif f.name == "lm_basis":
+                if v not in LM_BASES:
+                    raise bad(f"an LM basis ({' or '.join(LM_BASES)})")
             elif isinstance(default, str) and not isinstance(v, str):
                 raise bad("a word")
             out[f.name] = v
@@ -837,7 +844,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         final, lm_losses = lm_polish(fm, problem, final, stepped, tr, spp=lm_spp,
                                      seed=st.seed * 100_003 + 40_000, delta_rel=d_ref, iterations=lm_iterations,
                                      fixed_scale=fixed_scale, steps_out=lm_steps, deadline=deadline,
-                                     decorrelated=st.lm_decorrelated)
+                                     decorrelated=st.lm_decorrelated, basis=st.lm_basis)
     if lm_steps:
         # The result is the LM's optimum, not the polish's: the polish points' scatter and
         # their Jacobians describe another point (on the paper simulation's d 0.5 um case exp7

@@ -23,6 +23,7 @@ from estimate.evaluation import solve_additive
 from estimate.forward import ForwardModel
 from estimate.gauss_newton import gn_columns, gn_inverse, gn_jacobian, secant_steps
 from estimate.loss import decorrelated_loss_se, log_measured, log_residual, profile_scale
+from estimate.phase_exponential import legendre_to_monomial
 from estimate.problem import Problem
 from estimate.transforms import Transform
 
@@ -37,6 +38,9 @@ DAMPED_TRIES = 4
 #: `lm_polish` stops after a step that gains less than this share of the loss
 LM_MIN_GAIN = 1e-3
 
+#: `lm_polish`'s coordinates for an exponential phase's coefficients
+LM_BASES = ("monomial", "legendre")
+
 #: a render kept as the base of one-sided differences: (profiles, seed, spp)
 Base = tuple[np.ndarray, int, int]
 
@@ -50,7 +54,8 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
               tr: Sequence[Transform], *, spp: int, seed: int, delta_rel: float, iterations: int,
               fixed_scale: float | None = None,
               steps_out: list[dict[str, float]] | None = None,
-              deadline: Deadline | None = None, decorrelated: bool = True) -> tuple[dict[str, float], list[float]]:
+              deadline: Deadline | None = None, decorrelated: bool = True,
+              basis: str = "monomial") -> tuple[dict[str, float], list[float]]:
     """Levenberg-Marquardt on the log residuals at the reference delta, fixed seeds.
 
     With the seeds fixed (common random numbers) the loss is a deterministic function of the
@@ -72,6 +77,13 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
     0.965 +- 0.022, the lowest of every point tried there (the exp7 profile over sigma_t:
     `benchmarks/exp_sigma_t_profile.py`). False: one render at `spp`, the plain loss
     (sessions 79-82).
+
+    `basis` "legendre": the exponential phase's coefficients b_1..b_M are stepped as the
+    Legendre coefficients c of the same exponent (b = L c, `lm_basis_matrix`). The model is
+    the same; what changes is the damping, Marquardt's diag(J^T J), which is invariant to
+    each column's scale but not to mixing them: the monomial columns mu^1..mu^M are nearly
+    collinear, so a damped step along them is a poor direction, where the Legendre columns
+    are nearly orthogonal over [-1, 1].
 
     Stops after `iterations` steps, when no step is accepted, or when a step gains less than
     `LM_MIN_GAIN` of the loss. Returns the parameters and the loss after each accepted step;
@@ -99,6 +111,8 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
     rs, profs, sc, dlt, loss = residual(p)
     losses = [loss]
     lam = 1e-3
+    # z = basis_z @ u: the LM's own coordinates u (the identity but for the phase block)
+    basis_z = lm_basis_matrix(names, tr, basis)
     for _ in range(iterations):
         if deadline is not None and deadline.passed("lm"):
             break
@@ -117,8 +131,13 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
         # the noisy directions further (the cross product A_A^T A_B would be unbiased but can
         # be indefinite).
         A = 0.5 * (mats[0] + mats[-1])
-        AtA = A.T @ A
         Atr = 0.5 * (mats[0].T @ rs[-1].ravel() + mats[-1].T @ rs[0].ravel())
+        # into the LM's coordinates (the scale's column, when free, is the last and stays)
+        to_u = np.eye(A.shape[1])
+        to_u[:n_z, :n_z] = basis_z
+        A = A @ to_u
+        Atr = to_u.T @ Atr
+        AtA = A.T @ A
         accepted = False
         rel = 0.0
         # Up to 8 damping increases (x4 each): in the curved sigma_t-phase valley the
@@ -127,7 +146,7 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
         for _try in range(8):
             H = AtA + lam * np.diag(np.diag(AtA) + 1e-12)
             try:
-                step = -np.linalg.solve(H, Atr)
+                step = to_u @ -np.linalg.solve(H, Atr)
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
@@ -154,6 +173,32 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
         if not accepted or rel < LM_MIN_GAIN:
             break
     return p, losses
+
+
+def lm_basis_matrix(names: Sequence[str], tr: Sequence[Transform], basis: str) -> np.ndarray:
+    """Matrix B with z = B @ u for `lm_polish`'s coordinates u: the identity, except that in
+    the "legendre" basis the exponential phase's b_1..b_M (all present in `names`, linear
+    transforms x = unit * z) are replaced by the Legendre coefficients c_1..c_M of the same
+    exponent, b = L c. The constant terms that P_2, P_4, ... bring are dropped: b_0 is fixed
+    by the normalisation. L is upper triangular with a non-zero diagonal, so every b has
+    one c."""
+    n = len(names)
+    out = np.eye(n)
+    if basis == "monomial":
+        return out
+    if basis not in LM_BASES:
+        raise ModelParameterError(f"LM basis must be one of {LM_BASES}, got {basis!r}")
+    idx = {nm: i for i, nm in enumerate(names)}
+    deg = 0
+    while f"phase.b{deg + 1}" in idx:
+        deg += 1
+    if deg == 0:
+        return out
+    rows = [idx[f"phase.b{i}"] for i in range(1, deg + 1)]
+    lmat = np.stack([legendre_to_monomial(np.eye(deg + 1)[j])[1:] for j in range(1, deg + 1)], axis=1)
+    units = np.array([tr[r].unit if tr[r].kind == "linear" else 1.0 for r in rows])
+    out[np.ix_(rows, rows)] = lmat / units[:, None]
+    return out
 
 
 def polish_average(accepted: Sequence[Mapping[str, Any]], names: Sequence[str], tr: Sequence[Transform],

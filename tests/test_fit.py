@@ -1245,8 +1245,9 @@ def test_a_high_degree_fit_ends_at_the_lm_point_and_takes_its_uncertainties_ther
     calls: list[dict] = []
 
     def fake_lm(fm, pb, params, names, tr, *, spp, seed, delta_rel, iterations, fixed_scale=None, steps_out=None,
-                deadline=None, decorrelated=False):
-        calls.append({"spp": spp, "iterations": iterations, "names": list(names), "decorrelated": decorrelated})
+                deadline=None, decorrelated=False, basis="monomial"):
+        calls.append({"spp": spp, "iterations": iterations, "names": list(names), "decorrelated": decorrelated,
+                      "basis": basis})
         moved = {**params, "sigma_t": params["sigma_t"] * 1.01}
         steps_out.append({n: moved[n] - params[n] for n in names})
         return moved, [1.0, 0.9]
@@ -1262,11 +1263,63 @@ def test_a_high_degree_fit_ends_at_the_lm_point_and_takes_its_uncertainties_ther
     r3 = fit_channel(problem, "exp3", start=start, settings=st)
     assert not calls and r3.polish_se and not central
     r5 = fit_channel(problem, "exp5", start=start, settings=st)
-    assert calls == [{"spp": 64, "iterations": 3, "names": list(r5.uncertainties), "decorrelated": True}]
+    assert calls == [{"spp": 64, "iterations": 3, "names": list(r5.uncertainties), "decorrelated": True,
+                      "basis": "monomial"}]
     assert r5.drift["sigma_t"] == pytest.approx(r5.parameters["sigma_t"] / 1.01 * 0.01, rel=1e-9)
     assert r5.drift["albedo"] == 0.0 and not r5.polish_se
     assert len(central) == 2 and all(c["sigma_t"] == r5.parameters["sigma_t"] for c in central)
     assert all(math.isfinite(v) and v > 0 for v in r5.uncertainties.values())
+
+
+def test_the_lm_legendre_basis_maps_legendre_coefficients_to_the_same_exponent():
+    """z = B u: sigma_t, albedo and the scale's place stay; u's phase block holds the
+    Legendre coefficients c_1..c_M of the exponent whose monomial coefficients are z's b_1..b_M
+    (the constant each P_i adds is the normalisation's), for b's given in any order."""
+    from numpy.polynomial import legendre as leg
+
+    from estimate.polish import lm_basis_matrix
+    from estimate.transforms import transform_for
+
+    fm_specs = {n: None for n in ("sigma_t", "albedo", "phase.b1", "phase.b2", "phase.b3", "phase.b4")}
+    names = ["phase.b3", "sigma_t", "phase.b1", "albedo", "phase.b4", "phase.b2"]
+    tr = [transform_for(n, fm_specs[n]) for n in names]
+    assert np.array_equal(lm_basis_matrix(names, tr, "monomial"), np.eye(6))
+    B = lm_basis_matrix(names, tr, "legendre")
+    rng = np.random.default_rng(3)
+    u = rng.normal(size=6)
+    z = B @ u
+    c = np.zeros(5)
+    c[1:] = [u[names.index(f"phase.b{i}")] for i in range(1, 5)]
+    b = leg.leg2poly(c)
+    mu = np.linspace(-1, 1, 9)
+    exponent = sum(z[names.index(f"phase.b{i}")] * mu ** i for i in range(1, 5))
+    assert np.allclose(exponent, leg.legval(mu, c) - b[0], atol=1e-12)
+    assert z[1] == u[1] and z[3] == u[3]
+    with pytest.raises(ModelParameterError, match="LM basis"):
+        lm_basis_matrix(names, tr, "chebyshev")
+    with pytest.raises(ModelParameterError, match="lm_basis"):
+        FitSettings.from_dict({"lm_basis": "chebyshev"})
+
+
+def test_lm_polish_in_the_legendre_basis_lowers_the_loss_and_reports_its_steps(problem):
+    """The same LM with its phase steps in Legendre coordinates: each accepted step lowers
+    the fixed-seed loss, and the steps (in b units) add up to the way from the start."""
+    from estimate.fit import forward_model
+    from estimate.loss import reference_delta
+    from estimate.polish import lm_polish
+    from estimate.transforms import transform_for
+
+    fm = forward_model(problem, "exp3")
+    names = ["sigma_t", "albedo", "phase.b1", "phase.b2", "phase.b3"]
+    start = {**fm.default_parameters(), **TRUTH, "sigma_t": 2.4, "phase.b1": 1.0, "phase.b2": 0.5, "phase.b3": 0.0}
+    steps: list[dict[str, float]] = []
+    p, losses = lm_polish(fm, problem, start, names, [transform_for(n, fm.specs[n]) for n in names], spp=256, seed=7,
+                          delta_rel=reference_delta(FitSettings().delta_range), iterations=3, fixed_scale=2e5,
+                          steps_out=steps, basis="legendre")
+    assert len(steps) == len(losses) - 1 >= 1
+    assert all(b < a for a, b in zip(losses, losses[1:]))
+    for n in names:
+        assert start[n] + sum(s[n] for s in steps) == pytest.approx(p[n], rel=1e-12, abs=1e-12)
 
 
 def test_deadline_passes_once_its_budget_is_spent_and_names_each_stage_once():
