@@ -103,6 +103,23 @@ def case_name(d: float, s: float) -> str:
     return f"d{d:g}_s{s:g}"
 
 
+def parse_cases(text: str, flag: str = "--cases") -> list[tuple[float, float]]:
+    """"d0.5_s2,d0.3_s6" -> [(0.5, 2.0), (0.3, 6.0)] (`case_name`'s form); "all" -> the eight
+    cases, in the benchmark's order. Raises ValueError (one line naming the flag and the known
+    cases) for anything else."""
+    known = {case_name(d, s): (d, s) for s in SIGMAS for d in DIAMETERS}
+    if text == "all":
+        return list(known.values())
+    out = []
+    for item in text.split(","):
+        if item not in known:
+            raise ValueError(f"{flag} {item!r}: not a paper-simulation case; give a comma list of "
+                             f"{', '.join(known)} (or all)")
+        if known[item] not in out:
+            out.append(known[item])
+    return out
+
+
 def case_key(d: float, s: float) -> str:
     """The case's world and cache name: `case_name`, and the truth's spp where not the default."""
     return (case_name(d, s) + ("" if TRUTH_SPP == DEFAULT_TRUTH_SPP else f"_spp{TRUTH_SPP}")
@@ -519,7 +536,11 @@ def main() -> int:
         print(e, file=sys.stderr)
         return 2
     models = [m for m in args.models.split(",") if m]
-    want = set(args.cases.split(",")) if args.cases else None
+    try:
+        want = {case_name(d, s) for d, s in parse_cases(args.cases)} if args.cases else None
+    except ValueError as e:
+        print(e, file=sys.stderr)
+        return 2
     rows: list[dict] = []
     checks: list[dict] = []
     noise: list[dict] = []

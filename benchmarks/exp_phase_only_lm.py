@@ -8,7 +8,7 @@ a free fit's excess loss is the phase optimisation's, before any trade with sigm
 is scored as `bench_paper_sim.unbiased_losses` scores one (ratio to the truth's loss without
 render noise, `--spp` each render, the benchmark's seed pairs).
 
-    .venv/bin/python benchmarks/exp_phase_only_lm.py [--case 0.5:6] [--model exp7] \
+    .venv/bin/python benchmarks/exp_phase_only_lm.py [--case d0.5_s6] [--model exp7] \
         [--variant lm_degree_iterations=200 --variant lm_degree_spp_factor=16] [--spp 16384] \
         [--truth-spp 16384] [--out FILE.json]
 
@@ -37,7 +37,7 @@ import exp_phase_projection as projection  # noqa: E402
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--case", default="0.5:6", help="DIAMETER:SIGMA_T (0.5:6)")
+    ap.add_argument("--case", default="d0.5_s6", help="a bench_paper_sim case (d0.5_s6)")
     ap.add_argument("--model", default="exp7", help="exp<M> (exp7)")
     ap.add_argument("--variant", action="append", default=[], metavar="KEY=VALUE",
                     help="fit settings of the second fit (repeat; default: the LM at 16 x final_spp, 200 steps)")
@@ -49,9 +49,9 @@ def main() -> int:
     from fit_overrides import parse_overrides, settings_with
 
     try:
-        cases = projection.parse_cases(args.case, "--case")
+        cases = bench.parse_cases(args.case, "--case")
         if len(cases) != 1:
-            raise ValueError(f"--case {args.case!r}: give one case, e.g. 0.5:6")
+            raise ValueError(f"--case {args.case!r}: give one case, e.g. d0.5_s6")
         (d, s), = cases
         variant = parse_overrides(args.variant or ["lm_degree_iterations=200", "lm_degree_spp_factor=16"])
     except ValueError as e:

@@ -20,7 +20,7 @@ the pairs. A ratio above 1.1 for ``phase_only`` says that no exp<M> meets the lo
 the true material; it says nothing about whether a biased material would (the free fit may
 trade sigma_t against the phase).
 
-    .venv/bin/python benchmarks/exp_phase_projection.py [--cases 0.5:2,0.5:6] [--degrees 3,5,7] \
+    .venv/bin/python benchmarks/exp_phase_projection.py [--cases d0.5_s2,d0.5_s6] [--degrees 3,5,7] \
         [--spp 16384] [--phase-fit [--free-refit]] [--truth-spp 16384] [--out FILE.json]
 
 The recordings are the cached light-engine, Mie-table ones of `bench_paper_sim.py` (captured
@@ -43,24 +43,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_paper_sim as bench  # noqa: E402
 
 SEED = 4242
-
-
-def parse_cases(text: str, flag: str = "--cases") -> list[tuple[float, float]]:
-    """"0.5:2,0.3:6" -> [(0.5, 2.0), (0.3, 6.0)]; "all" -> the eight cases."""
-    if text == "all":
-        return [(d, s) for d in bench.DIAMETERS for s in bench.SIGMAS]
-    out = []
-    for item in text.split(","):
-        d, sep, s = item.partition(":")
-        try:
-            case = (float(d), float(s))
-        except ValueError:
-            raise ValueError(f"{flag} {item!r}: give DIAMETER:SIGMA_T, e.g. 0.5:2") from None
-        if not sep or case[0] not in bench.DIAMETERS or case[1] not in bench.SIGMAS:
-            raise ValueError(f"{flag} {item!r}: not a paper-simulation case; diameters "
-                             f"{', '.join(map(str, bench.DIAMETERS))} um, sigma_t {', '.join(map(str, bench.SIGMAS))} /mm")
-        out.append(case)
-    return out
 
 
 def score(pb: Any, model: str, params: dict[str, float], spp: int, scale: float,
@@ -87,7 +69,7 @@ def truth_losses(pb: Any, mat: Any, spp: int, scale: float) -> list[float]:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--cases", default="0.5:2,0.5:6", help="DIAMETER:SIGMA_T list, or 'all' (0.5:2,0.5:6)")
+    ap.add_argument("--cases", default="d0.5_s2,d0.5_s6", help="comma list of bench_paper_sim cases, or all (d0.5_s2,d0.5_s6)")
     ap.add_argument("--degrees", default="3,5,7", help="comma list of exp degrees (3,5,7)")
     ap.add_argument("--spp", type=int, default=16384, help="samples per pixel of each scoring render (16384)")
     ap.add_argument("--phase-fit", action="store_true", help="also fit the phase alone at the true material")
@@ -97,7 +79,7 @@ def main() -> int:
     ap.add_argument("--out", default=None, help="results JSON")
     args = ap.parse_args()
     try:
-        cases = parse_cases(args.cases)
+        cases = bench.parse_cases(args.cases)
         degrees = [int(x) for x in args.degrees.split(",")]
     except ValueError as e:
         ap.error(str(e))

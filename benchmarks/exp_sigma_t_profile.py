@@ -67,7 +67,13 @@ def main() -> int:
     from estimate.fit import fit_channel, forward_model
     from estimate.loss import calibrated_scale, decorrelated_loss, reference_delta
 
-    d, s = (float(x) for x in args.case[1:].split("_s"))   # bench_paper_sim.case_name's form
+    try:
+        cases = bps.parse_cases(args.case, "CASE")
+    except ValueError as e:
+        ap.error(str(e))
+    if len(cases) != 1:
+        ap.error(f"CASE {args.case!r}: give one case, e.g. d0.5_s6")
+    (d, s), = cases
     bps.TRUTH_ENGINE, bps.TRUTH_PHASE = "light", "table"
     pb, mat = bps.case_inputs(d, s)
     fs = calibrated_scale(pb.session_path, "g", pb.beam.power()).scale
