@@ -200,7 +200,9 @@ def max_tag(model: str) -> str:
 def lm_tag(model: str) -> str:
     """"-lmdeg<N>" for a model whose fits end with the Levenberg-Marquardt polish by degree
     (`estimate.fit.lm_plan`; since session 79, degree N and more), else "": earlier fits of
-    those degrees are kept apart, and the others' caches stay valid."""
+    those degrees are kept apart, and the others' caches stay valid. "-leg" follows when the
+    LM steps the phase in Legendre coordinates (`FitSettings.lm_basis`, the default since
+    session 89)."""
     from fit_overrides import settings_with
 
     from estimate.fit import lm_plan
@@ -209,7 +211,9 @@ def lm_tag(model: str) -> str:
     if st.lm_iterations > 0 or st.lm_from_degree is None:
         return ""
     phase = largest_phase(model)
-    return f"-lmdeg{st.lm_from_degree}" if lm_plan(st, phase)[0] > 0 else ""
+    if lm_plan(st, phase)[0] <= 0:
+        return ""
+    return f"-lmdeg{st.lm_from_degree}" + ("-leg" if st.lm_basis == "legendre" else "")
 
 
 def check_cache(cdir: Path, model: str) -> Path:

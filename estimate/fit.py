@@ -98,7 +98,11 @@ result and the loop; the stages' parts live beside it: `estimate.start` (1),
    ill-conditioned optimum that the polish's averaged stochastic steps only crawl down, and
    there the deterministic steps walk it (session 79, d 0.5 um / sigma_t 2 on its Mie
    table: exp7 from 2.2 x to 1.08 x the noise floor's loss, sigma_t from -2.5 % to
-   -0.5 %). After it, the result is the LM's point: its uncertainties take fresh Jacobians
+   -0.5 %). Since session 89 its phase steps are taken in the Legendre coefficients of the
+   same exponent (`lm_basis`): Marquardt's damping diag(J^T J) is blind to the near
+   collinearity of the monomial columns mu^i, and in monomial steps the LM stopped early
+   (d 0.5 um / sigma_t 6, exp7, sigma_t held at the truth: 1.71 x the floor, against 1.21 x
+   in Legendre steps). After it, the result is the LM's point: its uncertainties take fresh Jacobians
    there and its last step as the drift, not the polish points' scatter;
 6. final evaluation at `final_spp` with two seeds: fitted profiles (their mean), the model's
    own Monte Carlo variance per pixel ((p1 - p2)^2 / 4, the variance of the mean of two),
@@ -298,8 +302,13 @@ class FitSettings:
     #: cases (`bench_paper_sim.py --setting lm_degree_spp_factor=16`).
     lm_degree_spp_factor: int = 4
     #: the coordinates of the LM's steps for an exponential phase (`lm_polish`'s `basis`):
-    #: "monomial" (the paper's b_i) or "legendre" (the same exponent's Legendre coefficients)
-    lm_basis: str = "monomial"
+    #: "legendre" (the same exponent's Legendre coefficients) or "monomial" (the paper's b_i,
+    #: sessions 79-88). On the 16384-spp paper-simulation recordings (session 89, exp7 from the
+    #: estimator's own start, unbiased loss / floor at 16384 spp) Legendre steps took d 0.5 um /
+    #: sigma_t 6 from 1.39 x and sigma_t +6.3 % to 1.17 x and +3.3 % in the same time (with
+    #: sigma_t held at the truth: 1.71 -> 1.21 x), left d 0.5 um / sigma_t 2 at 1.44 x and were
+    #: level or a little lower (0.95-1.01 against 0.96-1.03 x) on the six other cases.
+    lm_basis: str = "legendre"
     uncertainties: bool = True
     scale: str = "free"              # "free": fitted (profiled) per channel; "calibrated": from the beam power
     #: the forward model's render engine (`estimate.forward.ENGINES`): "light" (paths from

@@ -55,7 +55,7 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
               fixed_scale: float | None = None,
               steps_out: list[dict[str, float]] | None = None,
               deadline: Deadline | None = None, decorrelated: bool = True,
-              basis: str = "monomial") -> tuple[dict[str, float], list[float]]:
+              basis: str = "legendre") -> tuple[dict[str, float], list[float]]:
     """Levenberg-Marquardt on the log residuals at the reference delta, fixed seeds.
 
     With the seeds fixed (common random numbers) the loss is a deterministic function of the
@@ -78,7 +78,8 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
     `benchmarks/exp_sigma_t_profile.py`). False: one render at `spp`, the plain loss
     (sessions 79-82).
 
-    `basis` "legendre": the exponential phase's coefficients b_1..b_M are stepped as the
+    `basis` "legendre" (the default; "monomial" before session 89): the exponential phase's
+    coefficients b_1..b_M are stepped as the
     Legendre coefficients c of the same exponent (b = L c, `lm_basis_matrix`). The model is
     the same; what changes is the damping, Marquardt's diag(J^T J), which is invariant to
     each column's scale but not to mixing them: the monomial columns mu^1..mu^M are nearly

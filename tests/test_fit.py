@@ -1264,7 +1264,7 @@ def test_a_high_degree_fit_ends_at_the_lm_point_and_takes_its_uncertainties_ther
     assert not calls and r3.polish_se and not central
     r5 = fit_channel(problem, "exp5", start=start, settings=st)
     assert calls == [{"spp": 64, "iterations": 3, "names": list(r5.uncertainties), "decorrelated": True,
-                      "basis": "monomial"}]
+                      "basis": "legendre"}]
     assert r5.drift["sigma_t"] == pytest.approx(r5.parameters["sigma_t"] / 1.01 * 0.01, rel=1e-9)
     assert r5.drift["albedo"] == 0.0 and not r5.polish_se
     assert len(central) == 2 and all(c["sigma_t"] == r5.parameters["sigma_t"] for c in central)
