@@ -320,6 +320,7 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
                "loss": r.loss, "loss_at_truth": floor, "loss_ratio": r.loss / floor, "reduced_chi2": r.reduced_chi2,
                "scale_mode": SCALE, "optimizer": st.optimizer, "load_average_1min_at_end": os.getloadavg()[0],
                "iterations": r.iterations, "spp_schedule": r.spp_schedule, "time_s": wall,
+               "lm_losses": r.lm_losses, "stop_reason": r.stop_reason,
                "parameters": r.parameters, "uncertainties": r.uncertainties, "true_model": mat.model,
                "setting_overrides": OVERRIDES, "variant": init_mitsuba().variant(), "requested_model": model,
                **extra}

@@ -79,12 +79,14 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
     (sessions 79-82).
 
     `basis` "legendre" (the default; "monomial" before session 89): the exponential phase's
-    coefficients b_1..b_M are stepped as the
-    Legendre coefficients c of the same exponent (b = L c, `lm_basis_matrix`). The model is
-    the same; what changes is the damping, Marquardt's diag(J^T J), which is invariant to
-    each column's scale but not to mixing them: the monomial columns mu^1..mu^M are nearly
-    collinear, so a damped step along them is a poor direction, where the Legendre columns
-    are nearly orthogonal over [-1, 1].
+    coefficients b_1..b_M are stepped as the Legendre coefficients c of the same exponent
+    (b = L c, `lm_basis_matrix`). The model and the undamped Gauss-Newton step are the same;
+    what changes is the damping, Marquardt's diag(J^T J), which is invariant to each
+    column's scale but not to mixing them. The residuals' columns for b_i follow mu^i, which
+    are nearly collinear on [-1, 1] (mu^5 and mu^7 correlate at 0.99), so once the damping
+    is up the damped step in b is a poor direction; P_1..P_M are orthogonal there. With
+    sigma_t held at the truth on d 0.5 um / sigma_t 6, exp7's LM stopped after 4 steps at
+    1.71 x the floor in b, and reached 1.21 x in c in the same time (session 89).
 
     Stops after `iterations` steps, when no step is accepted, or when a step gains less than
     `LM_MIN_GAIN` of the loss. Returns the parameters and the loss after each accepted step;
