@@ -12,10 +12,13 @@ render noise, `--spp` each render, the benchmark's seed pairs).
         [--variant lm_degree_iterations=200 --variant lm_degree_spp_factor=16] [--spp 16384] \
         [--truth-spp 16384] [--out FILE.json]
 
-Session 88, d 0.5 um / sigma_t 6, exp7: default 1.71 +- 0.02 (136 s, 4 LM steps accepted);
-LM at 16 x final_spp (200 steps at most) 1.36 +- 0.02 (415 s, 9 steps); from the table's own
-exp7 fit 1.19 +- 0.04 (`exp_phase_only_lm_session88_d05s6_exp7.json`,
-`exp_phase_projection_session88_d05.json`).
+Session 88, d 0.5 um / sigma_t 6, exp7, the LM in the monomial coefficients (the default
+then): 1.71 +- 0.02 (136 s, 4 LM steps accepted); LM at 16 x final_spp (200 steps at most)
+1.36 +- 0.02 (415 s, 9 steps); from the table's own exp7 fit 1.19 +- 0.04
+(`exp_phase_only_lm_session88_d05s6_exp7.json`, `exp_phase_projection_session88_d05.json`).
+Session 89, the LM in Legendre coefficients (the default since): d 0.5 um / sigma_t 6, exp7
+1.21 +- 0.05 (126 s); d 0.5 um / sigma_t 2, exp10 1.09 +- 0.01 (77 s) against 1.37 +- 0.02 in
+monomial steps (`--variant lm_basis=monomial`; `exp_phase_only_lm_session89_*.json`).
 """
 
 from __future__ import annotations

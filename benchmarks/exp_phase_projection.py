@@ -16,9 +16,11 @@ the optimiser's on each case and degree, holding sigma_t and the albedo at their
 Each is scored as `bench_paper_sim.unbiased_losses` scores a fit: the decorrelated loss of two
 independent renders per seed pair (`--spp` each, the calibrated scale), over the same seed
 pairs as the truth's, and reported as the ratio to the truth's with its standard error over
-the pairs. A ratio above 1.1 for ``phase_only`` says that no exp<M> meets the loss target at
-the true material; it says nothing about whether a biased material would (the free fit may
-trade sigma_t against the phase).
+the pairs. A ratio above 1.1 for ``phase_only`` says that the estimator's phase fit finds no
+exp<M> that meets the loss target at the true material, not that none exists: session 88 read
+1.30 x on d 0.5 um / sigma_t 2 as the family's reach, and in session 89 the LM's Legendre
+steps reached 1.09 x there with exp10. It says nothing about whether a biased material would
+(the free fit may trade sigma_t against the phase).
 
     .venv/bin/python benchmarks/exp_phase_projection.py [--cases d0.5_s2,d0.5_s6] [--degrees 3,5,7] \
         [--spp 16384] [--phase-fit [--free-refit]] [--truth-spp 16384] [--out FILE.json]
