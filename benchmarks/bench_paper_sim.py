@@ -120,6 +120,14 @@ def parse_cases(text: str, flag: str = "--cases") -> list[tuple[float, float]]:
     return out
 
 
+def parse_one_case(text: str, flag: str) -> tuple[float, float]:
+    """`parse_cases` for a probe that takes exactly one case (ValueError otherwise)."""
+    cases = parse_cases(text, flag)
+    if len(cases) != 1:
+        raise ValueError(f"{flag} {text!r}: give one case, e.g. d0.5_s6")
+    return cases[0]
+
+
 def case_key(d: float, s: float) -> str:
     """The case's world and cache name: `case_name`, and the truth's spp where not the default."""
     return (case_name(d, s) + ("" if TRUTH_SPP == DEFAULT_TRUTH_SPP else f"_spp{TRUTH_SPP}")

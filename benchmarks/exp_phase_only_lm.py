@@ -52,10 +52,7 @@ def main() -> int:
     from fit_overrides import parse_overrides, settings_with
 
     try:
-        cases = bench.parse_cases(args.case, "--case")
-        if len(cases) != 1:
-            raise ValueError(f"--case {args.case!r}: give one case, e.g. d0.5_s6")
-        (d, s), = cases
+        d, s = bench.parse_one_case(args.case, "--case")
         variant = parse_overrides(args.variant or ["lm_degree_iterations=200", "lm_degree_spp_factor=16"])
     except ValueError as e:
         ap.error(str(e))

@@ -56,6 +56,10 @@ def main() -> int:
     ap.add_argument("--truth-spp", type=int, default=bps.DEFAULT_TRUTH_SPP,
                     help="the recording's samples per pixel (bench_paper_sim.py --truth-spp; output named for it)")
     args = ap.parse_args()
+    try:
+        d, s = bps.parse_one_case(args.case, "CASE")
+    except ValueError as e:
+        ap.error(str(e))
     if args.pair_spp < 2:
         ap.error(f"--pair-spp {args.pair_spp}: use at least 2 samples per pixel")
     bps.TRUTH_SPP = args.truth_spp
@@ -67,13 +71,6 @@ def main() -> int:
     from estimate.fit import fit_channel, forward_model
     from estimate.loss import calibrated_scale, decorrelated_loss, reference_delta
 
-    try:
-        cases = bps.parse_cases(args.case, "CASE")
-    except ValueError as e:
-        ap.error(str(e))
-    if len(cases) != 1:
-        ap.error(f"CASE {args.case!r}: give one case, e.g. d0.5_s6")
-    (d, s), = cases
     bps.TRUTH_ENGINE, bps.TRUTH_PHASE = "light", "table"
     pb, mat = bps.case_inputs(d, s)
     fs = calibrated_scale(pb.session_path, "g", pb.beam.power()).scale

@@ -114,8 +114,11 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
     rs, profs, sc, dlt, loss = residual(p)
     losses = [loss]
     lam = 1e-3
-    # z = basis_z @ u: the LM's own coordinates u (the identity but for the phase block)
-    basis_z = lm_basis_matrix(names, tr, basis)
+    n_z = len(names)
+    # [z, log scale] = to_u @ u: the LM's own coordinates u (the identity but for the phase
+    # block; the scale's column, when free, is the last and stays)
+    to_u = np.eye(n_z + (0 if fixed_scale is not None else 1))
+    to_u[:n_z, :n_z] = lm_basis_matrix(names, tr, basis)
     for _ in range(iterations):
         if deadline is not None and deadline.passed("lm"):
             break
@@ -129,15 +132,11 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
             cols = [np.where(valid, -jac[n] / (np.clip(prof, 0, None) + dlt), 0.0).ravel() * t.dx_dz(float(zz))
                     for n, t, zz in zip(names, tr, z)]
             mats.append(np.stack(cols + scale_col, axis=1))
-        n_z = len(names)
         # The matrix of the mean Jacobian: positive semi-definite, its render noise only damps
         # the noisy directions further (the cross product A_A^T A_B would be unbiased but can
         # be indefinite).
         A = 0.5 * (mats[0] + mats[-1])
         Atr = 0.5 * (mats[0].T @ rs[-1].ravel() + mats[-1].T @ rs[0].ravel())
-        # into the LM's coordinates (the scale's column, when free, is the last and stays)
-        to_u = np.eye(A.shape[1])
-        to_u[:n_z, :n_z] = basis_z
         A = A @ to_u
         Atr = to_u.T @ Atr
         AtA = A.T @ A
@@ -199,7 +198,7 @@ def lm_basis_matrix(names: Sequence[str], tr: Sequence[Transform], basis: str) -
         return out
     rows = [idx[f"phase.b{i}"] for i in range(1, deg + 1)]
     lmat = np.stack([legendre_to_monomial(np.eye(deg + 1)[j])[1:] for j in range(1, deg + 1)], axis=1)
-    units = np.array([tr[r].unit if tr[r].kind == "linear" else 1.0 for r in rows])
+    units = np.array([tr[r].unit for r in rows])
     out[np.ix_(rows, rows)] = lmat / units[:, None]
     return out
 
