@@ -210,7 +210,8 @@ def lm_tag(model: str) -> str:
     (`estimate.fit.lm_plan`; since session 79, degree N and more), else "": earlier fits of
     those degrees are kept apart, and the others' caches stay valid. "-leg" follows when the
     LM steps the phase in Legendre coordinates (`FitSettings.lm_basis`, the default since
-    session 89)."""
+    session 89), then "-x<target>" when it raises its spp to a noise-excess target
+    (`FitSettings.lm_excess_target`, since session 90)."""
     from fit_overrides import settings_with
 
     from estimate.fit import lm_plan
@@ -221,7 +222,8 @@ def lm_tag(model: str) -> str:
     phase = largest_phase(model)
     if lm_plan(st, phase)[0] <= 0:
         return ""
-    return f"-lmdeg{st.lm_from_degree}" + ("-leg" if st.lm_basis == "legendre" else "")
+    return (f"-lmdeg{st.lm_from_degree}" + ("-leg" if st.lm_basis == "legendre" else "")
+            + (f"-x{st.lm_excess_target:g}" if st.lm_excess_target is not None else ""))
 
 
 def check_cache(cdir: Path, model: str) -> Path:
@@ -328,7 +330,7 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
                "loss": r.loss, "loss_at_truth": floor, "loss_ratio": r.loss / floor, "reduced_chi2": r.reduced_chi2,
                "scale_mode": SCALE, "optimizer": st.optimizer, "load_average_1min_at_end": os.getloadavg()[0],
                "iterations": r.iterations, "spp_schedule": r.spp_schedule, "time_s": wall,
-               "lm_losses": r.lm_losses, "stop_reason": r.stop_reason,
+               "lm_losses": r.lm_losses, "lm_stages": r.lm_stages, "stop_reason": r.stop_reason,
                "parameters": r.parameters, "uncertainties": r.uncertainties, "true_model": mat.model,
                "setting_overrides": OVERRIDES, "variant": init_mitsuba().variant(), "requested_model": model,
                **extra}

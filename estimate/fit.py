@@ -102,7 +102,9 @@ result and the loop; the stages' parts live beside it: `estimate.start` (1),
    same exponent (`lm_basis`): Marquardt's damping diag(J^T J) is blind to the near
    collinearity of the monomial columns mu^i, and in monomial steps the LM stopped early
    (d 0.5 um / sigma_t 6, exp7, sigma_t held at the truth: 1.71 x the floor, against 1.21 x
-   in Legendre steps). After it, the result is the LM's point: its uncertainties take fresh Jacobians
+   in Legendre steps). Since session 90 it raises its spp while its optimum still owes more
+   than `lm_excess_target` of the noise floor to fitting its own renders' noise
+   (`lm_noise_excess`; up to `lm_spp_max_factor` x `final_spp`). After it, the result is the LM's point: its uncertainties take fresh Jacobians
    there and its last step as the drift, not the polish points' scatter;
 6. final evaluation at `final_spp` with two seeds: fitted profiles (their mean), the model's
    own Monte Carlo variance per pixel ((p1 - p2)^2 / 4, the variance of the mean of two),
@@ -176,6 +178,7 @@ from estimate.loss import (
 from estimate.phase_tabulated import TabulatedPhase
 from estimate.polish import (
     LM_BASES,
+    LMStage,
     averaged_point_count,
     first_averaged_point,
     gn_polish,
@@ -309,6 +312,16 @@ class FitSettings:
     #: sigma_t held at the truth: 1.71 -> 1.21 x), left d 0.5 um / sigma_t 2 at 1.44 x and were
     #: level or a little lower (0.95-1.01 against 0.96-1.03 x) on the six other cases.
     lm_basis: str = "legendre"
+    #: the LM raises its spp (powers of two, up to `lm_spp_max_factor` x `final_spp`) until
+    #: the loss its optimum owes to fitting its own renders' noise (`lm_noise_excess`) is at
+    #: most this share of the recording's noise floor (None: one stage at the planned spp).
+    #: On the 16384-spp paper-simulation recording of d 0.5 um / sigma_t 2 (session 90; the
+    #: unbiased loss over the truth's at 16384 spp) exp10's LM at 4 x final_spp ended at
+    #: 1.19 x, its excess there 0.35; at 16 x (excess about 0.09) at 1.00 x; at 32 x (0.04)
+    #: at 1.01 x, in 1.8 x the time of 16 x. On d 0.5 um / sigma_t 6 the excess at 4 x was
+    #: 0.79 and the loss 1.15 x; at 16 x 1.19 x; at 32 x (excess 0.11) 1.05 x.
+    lm_excess_target: float | None = 0.1
+    lm_spp_max_factor: int = 32
     uncertainties: bool = True
     scale: str = "free"              # "free": fitted (profiled) per channel; "calibrated": from the beam power
     #: the forward model's render engine (`estimate.forward.ENGINES`): "light" (paths from
@@ -361,6 +374,10 @@ class FitSettings:
             elif f.name == "lm_from_degree":
                 if v is not None and not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
                     raise bad("a whole number >= 0 or null (null: no Levenberg-Marquardt by degree)")
+            elif f.name == "lm_excess_target":
+                if v is not None and not (finite_number(v) and v > 0):
+                    raise bad("a positive share of the noise floor or null (null: the LM at one spp)")
+                v = None if v is None else float(v)
             elif f.name == "iterations_before_polish":
                 if v is not None and not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
                     raise bad("a whole number >= 1 or null (null: until the loss flattens)")
@@ -429,7 +446,9 @@ class FitResult:
     fitted: np.ndarray               # (N, W) rendered profiles (model units, not scaled)
     model_variance: np.ndarray       # (N, W) MC variance of `fitted`
     start: dict[str, float]
-    lm_losses: list[float] = field(default_factory=list)   # LM loss at its start, then after each accepted step
+    lm_losses: list[float] = field(default_factory=list)   # LM loss at its last stage's start, then after each accepted step
+    #: the LM's stages (`estimate.polish.LMStage.to_dict`): spp, steps, losses, stop, noise_excess
+    lm_stages: list[dict[str, Any]] = field(default_factory=list)
     settings: dict[str, Any] = field(default_factory=dict)
     scale_mode: str = "free"
     scale_calibration: dict[str, Any] | None = None   # ScaleCalibration.to_dict() when calibrated
@@ -471,7 +490,14 @@ class FitResult:
     def lm_steps(self) -> int:
         """Accepted steps of the fixed-seed Levenberg-Marquardt (0: none ran, or it moved
         nothing, and the result is the polish's)."""
+        if self.lm_stages:
+            return sum(int(g["steps"]) for g in self.lm_stages)
         return max(0, len(self.lm_losses) - 1)
+
+    @property
+    def lm_spp(self) -> int:
+        """The samples per pixel of the LM's last stage (0: no LM ran)."""
+        return int(self.lm_stages[-1]["spp"]) if self.lm_stages else 0
 
     def summary(self) -> dict[str, Any]:
         """JSON-safe per-channel summary (the `--json` shape)."""
@@ -849,11 +875,15 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     lm_losses: list[float] = []
     lm_iterations, lm_spp = lm_plan(st, phase)
     lm_steps: list[dict[str, float]] = []
+    lm_stages: list[LMStage] = []
     if lm_iterations > 0 and stepped:
         final, lm_losses = lm_polish(fm, problem, final, stepped, tr, spp=lm_spp,
                                      seed=st.seed * 100_003 + 40_000, delta_rel=d_ref, iterations=lm_iterations,
                                      fixed_scale=fixed_scale, steps_out=lm_steps, deadline=deadline,
-                                     decorrelated=st.lm_decorrelated, basis=st.lm_basis)
+                                     decorrelated=st.lm_decorrelated, basis=st.lm_basis,
+                                     excess_target=st.lm_excess_target,
+                                     spp_max=st.lm_spp_max_factor * st.final_spp, stages_out=lm_stages)
+        lm_spp = lm_stages[-1].spp if lm_stages else lm_spp
     if lm_steps:
         # The result is the LM's optimum, not the polish's: the polish points' scatter and
         # their Jacobians describe another point (on the paper simulation's d 0.5 um case exp7
@@ -949,6 +979,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         delta_rel=d_ref, chi2=ev["chi2"], dof=dof, reduced_chi2=red, iterations=it,
         time_s=time.monotonic() - t0, stop_reason=stop, spp_schedule=schedule, loss_curve=curve,
         angles_deg=[float(a) for a in problem.angles_deg], fitted=ev["profiles"], lm_losses=lm_losses,
+        lm_stages=[g.to_dict() for g in lm_stages],
         model_variance=ev["model_variance"], start=dict(init), settings=st.to_dict(), scale_mode=st.scale,
         scale_calibration=cal.to_dict() if cal is not None else None, fisher_uncertainties=fisher,
         optimizer_spread=spread, sandwich_uncertainties=sandwich,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Collection, Mapping, Sequence
+from dataclasses import dataclass
 from functools import partial
 from typing import Any
 
@@ -27,7 +28,8 @@ from estimate.phase_exponential import legendre_to_monomial
 from estimate.problem import Problem
 from estimate.transforms import Transform
 
-__all__ = ["averaged_point_count", "first_averaged_point", "gn_polish", "lm_polish", "polish_average"]
+__all__ = ["LMStage", "averaged_point_count", "first_averaged_point", "gn_polish", "lm_noise_excess", "lm_polish",
+           "polish_average"]
 
 #: the Gauss-Newton matrix's own damping (`gn_inverse`'s default), the polish's least
 GN_DAMPING = 1e-3
@@ -50,12 +52,64 @@ def _chi2(dz: np.ndarray, cov: np.ndarray) -> float:
     return float(dz @ np.linalg.pinv(cov, rcond=1e-10, hermitian=True) @ dz)
 
 
+@dataclass
+class LMStage:
+    """One spp stage of `lm_polish`: its renders' samples per pixel (the two halves' sum when
+    decorrelated), the loss at its start and after each accepted step, why it stopped, and
+    the share of the recording's noise floor its optimum still owes to fitting its own
+    renders' noise (`lm_noise_excess`; nan when not measurable)."""
+
+    spp: int
+    losses: list[float]
+    stop: str
+    noise_excess: float = math.nan
+
+    @property
+    def steps(self) -> int:
+        return max(0, len(self.losses) - 1)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"spp": int(self.spp), "steps": self.steps, "losses": [float(x) for x in self.losses],
+                "stop": self.stop, "noise_excess": float(self.noise_excess)}
+
+
+def lm_noise_excess(A: np.ndarray, r_a: np.ndarray, r_b: np.ndarray, measured: np.ndarray, variance: np.ndarray,
+                    valid: np.ndarray, scale: float, delta: float) -> float:
+    """The loss a fixed-seed least-squares optimum owes to its renders' noise, as a share of the
+    recording's own noise floor.
+
+    With the seeds fixed the optimiser fits the renders' noise along with the data: its optimum
+    moves off the noise-free one by about (A^T A)^-1 A^T e, and the loss without render noise
+    is higher there by tr((A^T A)^-1 A^T D A) / n (D: the per-pixel variance of the residual's
+    render noise, n pixels; about k v / n for k parameters and uniform variance v). `r_a`,
+    `r_b`: the log residuals of the two independent half-spp renders (their difference / 2 has
+    the variance of their mean's noise, which is what the decorrelated loss's gradient
+    carries); `A`: the residuals' Jacobian (any parametrisation: the trace is invariant). The
+    floor is the HDR variance in log units, var / (I / s + delta)^2 s^2, averaged over the
+    pixels: the loss at the true parameters without model error (a real recording's model
+    error only raises it, so the share is an upper bound). `measured`, `variance`, `valid`:
+    the recording's (N, W) profiles, their HDR variance and mask (`Problem`); `scale`,
+    `delta`: the loss's (`log_measured`). nan when the floor is unknown."""
+    n = max(1, int(valid.sum()))
+    d = np.where(valid, 0.25 * (r_a - r_b) ** 2, 0.0).ravel()
+    m = np.clip(measured / scale, -0.5 * delta, None)
+    var_log = np.where(valid, variance / scale ** 2 / (m + delta) ** 2, 0.0)
+    floor = float(np.sum(var_log) / n)
+    if not (math.isfinite(floor) and floor > 0):
+        return math.nan
+    h = A.T @ A
+    meat = A.T @ (d[:, None] * A)
+    excess = float(np.trace(np.linalg.pinv(h, rcond=1e-12, hermitian=True) @ meat)) / n
+    return excess / floor
+
+
 def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], names: Sequence[str],
               tr: Sequence[Transform], *, spp: int, seed: int, delta_rel: float, iterations: int,
               fixed_scale: float | None = None,
               steps_out: list[dict[str, float]] | None = None,
               deadline: Deadline | None = None, decorrelated: bool = True,
-              basis: str = "legendre") -> tuple[dict[str, float], list[float]]:
+              basis: str = "legendre", excess_target: float | None = None, spp_max: int | None = None,
+              stages_out: list[LMStage] | None = None) -> tuple[dict[str, float], list[float]]:
     """Levenberg-Marquardt on the log residuals at the reference delta, fixed seeds.
 
     With the seeds fixed (common random numbers) the loss is a deterministic function of the
@@ -88,11 +142,45 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
     sigma_t held at the truth on d 0.5 um / sigma_t 6, exp7's LM stopped after 4 steps at
     1.71 x the floor in b, and reached 1.21 x in c in the same time (session 89).
 
-    Stops after `iterations` steps, when no step is accepted, or when a step gains less than
-    `LM_MIN_GAIN` of the loss. Returns the parameters and the loss after each accepted step;
-    `steps_out` receives each accepted step in parameter units. Once `deadline` has passed no
-    further step is started (stage name "lm").
+    Each stage stops after `iterations` steps, when no step is accepted, or when a step gains
+    less than `LM_MIN_GAIN` of the loss. `excess_target` (decorrelated only; None: one stage):
+    a stage that stopped on its own with `lm_noise_excess` above this share of the noise floor
+    is followed by one at the spp that brings it there (the excess falls as 1 / spp; powers of
+    two, at most `spp_max`), from its end point with fresh seeds. Its optimum holds the noise
+    of its renders as a fitted signal: on the paper simulation's d 0.5 um / sigma_t 2
+    recording exp10's LM at 4096 spp ended with its own loss below zero and 1.19 x the floor
+    without render noise, at 16384 spp at 1.00 x (session 90). Returns the parameters and the
+    losses of the last stage (at its start, then after each accepted step); `steps_out`
+    receives each accepted step in parameter units, `stages_out` each stage. Once `deadline`
+    has passed no further step is started (stage name "lm").
     """
+    p = dict(params)
+    stages: list[LMStage] = []
+    cur = spp
+    while True:
+        p, stage = _lm_stage(fm, problem, p, names, tr, spp=cur, seed=seed + 2 * len(stages), delta_rel=delta_rel,
+                             iterations=iterations, fixed_scale=fixed_scale, steps_out=steps_out,
+                             deadline=deadline, decorrelated=decorrelated, basis=basis)
+        stages.append(stage)
+        if stages_out is not None:
+            stages_out.append(stage)
+        ex = stage.noise_excess
+        if (excess_target is None or not decorrelated or not math.isfinite(ex) or ex <= excess_target
+                or stage.stop in ("step limit", "time limit")):
+            break
+        nxt = cur * 2 ** math.ceil(math.log2(ex / excess_target))
+        cap = spp if spp_max is None else max(spp, spp_max)
+        if cur >= cap:
+            break
+        cur = min(nxt, cap)
+    return p, stages[-1].losses
+
+
+def _lm_stage(fm: ForwardModel, problem: Problem, params: dict[str, float], names: Sequence[str],
+              tr: Sequence[Transform], *, spp: int, seed: int, delta_rel: float, iterations: int,
+              fixed_scale: float | None, steps_out: list[dict[str, float]] | None,
+              deadline: Deadline | None, decorrelated: bool, basis: str) -> tuple[dict[str, float], LMStage]:
+    """One `lm_polish` stage at one spp and seed pair: the parameters it ends at and its record."""
     valid = problem.valid
     meas = problem.measured
     angles = problem.angles_deg
@@ -119,8 +207,11 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
     # block; the scale's column, when free, is the last and stays)
     to_u = np.eye(n_z + (0 if fixed_scale is not None else 1))
     to_u[:n_z, :n_z] = lm_basis_matrix(names, tr, basis)
+    stop = "step limit"
+    A: np.ndarray | None = None
     for _ in range(iterations):
         if deadline is not None and deadline.passed("lm"):
+            stop = "time limit"
             break
         # the log scale's column depends on the measurement alone: the same for both renders
         m = meas / sc
@@ -172,9 +263,16 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
                 accepted = True
                 break
             lam *= 4.0
-        if not accepted or rel < LM_MIN_GAIN:
+        if not accepted:
+            stop = "no step lowered the loss"
             break
-    return p, losses
+        if rel < LM_MIN_GAIN:
+            stop = f"a step gained under {LM_MIN_GAIN:.1%} of the loss"
+            break
+    # the Jacobian of the last step (at the end point, or one step before it)
+    excess = (lm_noise_excess(A, rs[0], rs[-1], meas, problem.variance, valid, sc, dlt)
+              if A is not None and decorrelated else math.nan)
+    return p, LMStage(spp=each_spp * len(seeds), losses=losses, stop=stop, noise_excess=excess)
 
 
 def lm_basis_matrix(names: Sequence[str], tr: Sequence[Transform], basis: str) -> np.ndarray:

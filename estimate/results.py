@@ -131,6 +131,12 @@ def write_run(run_dir: Path, session_dir: str | os.PathLike[str], fits: Sequence
             # and the point's own Monte Carlo standard deviation from that noise (noise_sd);
             # jacobians: new Jacobians rendered for the step (0 after a noise-sized step: the
             # last ones kept), spp: its gradient renders' samples per pixel
+            # the fixed-seed Levenberg-Marquardt after the polish (exponential phases of degree
+            # 5 and more), per stage: its renders' spp, accepted steps, losses (its own, at fixed
+            # seeds: they may fall below the noise floor), why it stopped, and the share of the
+            # noise floor its optimum owes to its renders' noise (a stage above the target is
+            # followed by one at more spp)
+            "levenberg_marquardt": [dict(g) for g in r.lm_stages],
             "polish": [{"loss": _num(e["loss"]), "loss_new": _num(e["loss_new"]), "accepted": bool(e["accepted"]),
                         "halvings": int(e.get("halvings", 0)), "step": {k: _num(v) for k, v in e["step"].items()},
                         "step_chi2": _num(e.get("step_chi2", float("nan"))),

@@ -1236,7 +1236,7 @@ def test_lm_polish_reports_each_accepted_step(problem):
     assert abs(p["sigma_t"] - 3.0) < abs(start["sigma_t"] - 3.0)
 
 
-def test_a_high_degree_fit_ends_at_the_lm_point_and_takes_its_uncertainties_there(problem, monkeypatch):
+def test_a_high_degree_fit_ends_at_the_lm_point_and_takes_its_uncertainties_there(problem, monkeypatch, tmp_path):
     """exp5 (from `lm_from_degree`) runs the LM after the polish at the degree's spp; exp3 does
     not. The result is the LM's point: the drift is its last step, the polish points' scatter
     is not carried over, and the uncertainties render fresh Jacobians at that point."""
@@ -1245,12 +1245,18 @@ def test_a_high_degree_fit_ends_at_the_lm_point_and_takes_its_uncertainties_ther
     calls: list[dict] = []
 
     def fake_lm(fm, pb, params, names, tr, *, spp, seed, delta_rel, iterations, fixed_scale=None, steps_out=None,
-                deadline=None, decorrelated=False, basis="monomial"):
+                deadline=None, decorrelated=False, basis="monomial", excess_target=None, spp_max=None,
+                stages_out=None):
+        from estimate.polish import LMStage
+
         calls.append({"spp": spp, "iterations": iterations, "names": list(names), "decorrelated": decorrelated,
-                      "basis": basis})
+                      "basis": basis, "excess_target": excess_target, "spp_max": spp_max})
         moved = {**params, "sigma_t": params["sigma_t"] * 1.01}
         steps_out.append({n: moved[n] - params[n] for n in names})
-        return moved, [1.0, 0.9]
+        stages_out.append(LMStage(spp=spp, losses=[1.0, 0.95], stop="no step lowered the loss", noise_excess=0.5))
+        stages_out.append(LMStage(spp=4 * spp, losses=[0.96, 0.9], stop="a step gained under 0.1% of the loss",
+                                  noise_excess=0.08))
+        return moved, [0.96, 0.9]
 
     central: list[dict] = []
     real_jac = fit_mod.gn_jacobian
@@ -1264,11 +1270,105 @@ def test_a_high_degree_fit_ends_at_the_lm_point_and_takes_its_uncertainties_ther
     assert not calls and r3.polish_se and not central
     r5 = fit_channel(problem, "exp5", start=start, settings=st)
     assert calls == [{"spp": 64, "iterations": 3, "names": list(r5.uncertainties), "decorrelated": True,
-                      "basis": "legendre"}]
+                      "basis": "legendre", "excess_target": st.lm_excess_target, "spp_max": 32 * 32}]
+    # every stage is kept, the steps counted over them, the last one's spp reported
+    assert [g["spp"] for g in r5.lm_stages] == [64, 256] and r5.lm_steps == 2 and r5.lm_spp == 256
+    assert r5.lm_stages[0]["noise_excess"] == 0.5 and r5.lm_losses == [0.96, 0.9]
+    # results.yaml keeps the stages
+    import yaml
+
+    from estimate.results import write_run
+
+    (tmp_path / "run").mkdir()
+    out = write_run(tmp_path / "run", problem.session_path, [r5], {"g": problem}, {}, plots=False)
+    doc = yaml.safe_load((out if out.is_file() else out / "results.yaml").read_text())
+    lm = doc["channels"]["g"]["levenberg_marquardt"]
+    assert [g["spp"] for g in lm] == [64, 256] and lm[1]["stop"] == "a step gained under 0.1% of the loss"
     assert r5.drift["sigma_t"] == pytest.approx(r5.parameters["sigma_t"] / 1.01 * 0.01, rel=1e-9)
     assert r5.drift["albedo"] == 0.0 and not r5.polish_se
     assert len(central) == 2 and all(c["sigma_t"] == r5.parameters["sigma_t"] for c in central)
     assert all(math.isfinite(v) and v > 0 for v in r5.uncertainties.values())
+
+
+def test_lm_noise_excess_predicts_what_a_fixed_noise_optimum_adds_to_the_loss():
+    """A linear least-squares model fitted to two noisy 'renders' at fixed noise (the
+    decorrelated loss's optimum) ends off the noise-free optimum; the loss without render
+    noise rises there by tr((A^T A)^-1 A^T D A) / n. `lm_noise_excess`, from one fit's two
+    residuals, predicts the mean rise over 400 fits, as a share of the HDR noise floor, with
+    the render noise differing across the pixels."""
+    from estimate.polish import lm_noise_excess
+
+    rng = np.random.default_rng(90)
+    n, k = 600, 6
+    X = rng.normal(size=(n, k)) * np.linspace(0.2, 2.0, n)[:, None]
+    beta = rng.normal(size=k)
+    sd_half = np.linspace(0.01, 0.05, n)          # each half render's noise in log units
+    floor_sd = 0.02                                # the recording's noise, log units
+    delta = 1e-3
+    measured = rng.uniform(0.5, 2.0, (1, n))
+    variance = (floor_sd * (measured + delta)) ** 2
+    valid = np.ones((1, n), bool)
+    y = X @ beta                                   # the noise-free optimum fits y exactly
+    rises, predicted = [], []
+    for _ in range(400):
+        e_a, e_b = sd_half * rng.normal(size=n), sd_half * rng.normal(size=n)
+        # minimise mean((y - X b - e_a)(y - X b - e_b)): b = (X^T X)^-1 X^T (y - (e_a + e_b) / 2)
+        b = np.linalg.lstsq(X, y - 0.5 * (e_a + e_b), rcond=None)[0]
+        rises.append(float(np.mean((X @ (b - beta)) ** 2)) / floor_sd ** 2)
+        r_a, r_b = (y - X @ b - e_a)[None, :], (y - X @ b - e_b)[None, :]
+        predicted.append(lm_noise_excess(-X, r_a, r_b, measured, variance, valid, 1.0, delta))
+    expected = float(np.trace(np.linalg.solve(X.T @ X, X.T @ (0.5 * sd_half[:, None] ** 2 * X)))) / n / floor_sd ** 2
+    assert np.mean(rises) == pytest.approx(expected, rel=0.1)
+    assert np.mean(predicted) == pytest.approx(expected, rel=0.05)
+    assert np.std(predicted) < 0.15 * expected          # one fit's estimate is already close
+    # no floor, no share
+    assert math.isnan(lm_noise_excess(-X, r_a, r_b, measured, np.zeros_like(variance), valid, 1.0, delta))
+
+
+def test_lm_polish_raises_its_spp_while_its_noise_excess_is_above_the_target(problem):
+    """A stage whose optimum owes more than `excess_target` of the floor to its renders' noise
+    is followed by one at enough more spp (powers of two, at most `spp_max`), from its end
+    point; without a target, one stage. The stages record their spp, losses and stop."""
+    from estimate.fit import forward_model
+    from estimate.loss import reference_delta
+    from estimate.polish import LMStage, lm_polish
+    from estimate.transforms import transform_for
+
+    fm = forward_model(problem, "exp3")
+    names = ["sigma_t", "albedo"]
+    start = {**fm.default_parameters(), **TRUTH, "sigma_t": 2.4}
+    tr = [transform_for(n, fm.specs[n]) for n in names]
+    d_ref = reference_delta(FitSettings().delta_range)
+
+    def run(**kw):
+        stages: list[LMStage] = []
+        p, losses = lm_polish(fm, problem, start, names, tr, spp=32, seed=7, delta_rel=d_ref, iterations=30,
+                              fixed_scale=2e5, stages_out=stages, **kw)
+        return p, losses, stages
+
+    _, losses, one = run()
+    assert len(one) == 1 and one[0].spp == 32 and one[0].losses == losses
+    assert one[0].noise_excess > 0 and one[0].stop != "step limit", one[0]
+    # a target below any 32..128-spp stage's excess: 32 -> 128 (the cap), then stop
+    p, losses, staged = run(excess_target=1e-9, spp_max=128)
+    assert [g.spp for g in staged] == [32, 128] and staged[-1].losses == losses
+    assert staged[0].noise_excess == one[0].noise_excess       # the same first stage
+    # the excess falls about as 1 / spp
+    assert staged[1].noise_excess < 0.6 * staged[0].noise_excess, [(g.spp, g.noise_excess, g.stop) for g in staged]
+    # a target the first stage meets: no second one
+    _, _, met = run(excess_target=10 * one[0].noise_excess, spp_max=128)
+    assert len(met) == 1
+    assert LMStage(spp=64, losses=[1.0, 0.5, 0.4], stop="x").to_dict()["steps"] == 2
+
+
+def test_the_lm_excess_target_setting_is_checked():
+    assert FitSettings.from_dict({"lm_excess_target": None}).lm_excess_target is None
+    assert FitSettings.from_dict({"lm_excess_target": 0.2}).lm_excess_target == 0.2
+    for bad in (0, -0.1, "small", float("nan"), True):
+        with pytest.raises(ModelParameterError, match="lm_excess_target"):
+            FitSettings.from_dict({"lm_excess_target": bad}, where="results.yaml")
+    with pytest.raises(ModelParameterError, match="lm_spp_max_factor"):
+        FitSettings.from_dict({"lm_spp_max_factor": 0})
 
 
 def test_the_lm_legendre_basis_maps_legendre_coefficients_to_the_same_exponent():

@@ -202,7 +202,8 @@ def run(args: argparse.Namespace) -> int:
                                     scale_calibration=scales.get(_c), progress=progress, on_stage=on_stage)
                     if not args.json:
                         steps = sum(1 for e in f.polish if e.get("accepted"))
-                        lm = f" + {f.lm_steps} Levenberg-Marquardt steps at one seed" if f.lm_steps else ""
+                        lm = (f" + {f.lm_steps} Levenberg-Marquardt steps at fixed seeds, up to {f.lm_spp} spp"
+                              if f.lm_steps else "")
                         print(f"  {_c}: {sum(f.stage_times_s.values()):.0f} s, {f.iterations} iterations "
                               f"+ {steps} polish steps{lm}, {f.stop_reason}", file=sys.stderr, flush=True)
                     return f
