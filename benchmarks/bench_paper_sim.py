@@ -373,10 +373,28 @@ UNBIASED_SPP = 4096
 #: margin; four pairs halve that. Before session 83: one pair, seed 4242.
 UNBIASED_PAIRS = 4
 #: the pairs' first seeds: 4242, 4252, ... (`evaluation.evaluate` renders seed and seed + 7777)
+UNBIASED_SEED = 4242
 UNBIASED_SEED_STEP = 10
 
 
-def unbiased_losses(row: dict, seed: int = 4242) -> dict:
+def pair_seeds(pairs: int | None = None, first: int = UNBIASED_SEED) -> list[int]:
+    """The first seed of each scoring pair: `first`, `first` + `UNBIASED_SEED_STEP`, ...
+    (`UNBIASED_PAIRS` of them unless given)."""
+    return [first + UNBIASED_SEED_STEP * k for k in range(UNBIASED_PAIRS if pairs is None else pairs)]
+
+
+def pair_losses(pb: Any, model: str, params: dict, spp: int, fixed_scale: float | None, *,
+                forward: Any = None, pairs: int | None = None, first: int = UNBIASED_SEED) -> list[float]:
+    """The loss without render noise (`loss_at`'s "loss_unbiased") of (model, params) at each
+    scoring pair (`pair_seeds`), `spp` each render; `forward`: the truth's forward model."""
+    from estimate.fit import loss_at
+
+    return [float(loss_at(pb, model, params, spp=spp, seed=sd, fixed_scale=fixed_scale,
+                          **({"forward": forward} if forward is not None else {}))["loss_unbiased"])
+            for sd in pair_seeds(pairs, first)]
+
+
+def unbiased_losses(row: dict, seed: int = UNBIASED_SEED) -> dict:
     """The fit's and the truth's losses without the renders' Monte Carlo variance
     (`estimate.loss.decorrelated_loss` of two independent renders, `UNBIASED_SPP` each, the
     fit's calibrated scale), summed over `UNBIASED_PAIRS` seed pairs with common seeds for the
@@ -395,15 +413,20 @@ def unbiased_losses(row: dict, seed: int = 4242) -> dict:
     cdir = CACHE / case_key(d, s)
     pb, mat = case_inputs(d, s)
     fs = calibrated_scale(pb.session_path, "g", pb.beam.power()).scale if row.get("scale_mode") == "calibrated" else None
-    tf = truth_forward(pb, mat)
-    fits, truths = [], []
-    for k in range(UNBIASED_PAIRS):
-        sd = seed + UNBIASED_SEED_STEP * k
-        fit = loss_at(pb, row["model"], row["parameters"], spp=UNBIASED_SPP, seed=sd, fixed_scale=fs)
-        tru = loss_at(pb, mat.model, mat.parameters(), spp=UNBIASED_SPP, seed=sd, forward=tf,
-                      fixed_scale=fs if fs is not None else fit["scale"])
-        fits.append(float(fit["loss_unbiased"]))
-        truths.append(float(tru["loss_unbiased"]))
+    if fs is None:
+        # a free scale: the truth is scored at the fit's own (profiled) scale of each pair
+        fits, scales = [], []
+        for sd in pair_seeds(first=seed):
+            fit = loss_at(pb, row["model"], row["parameters"], spp=UNBIASED_SPP, seed=sd)
+            fits.append(float(fit["loss_unbiased"]))
+            scales.append(float(fit["scale"]))
+        tf = truth_forward(pb, mat)
+        truths = [pair_losses(pb, mat.model, mat.parameters(), UNBIASED_SPP, sc, forward=tf, pairs=1, first=sd)[0]
+                  for sd, sc in zip(pair_seeds(first=seed), scales)]
+    else:
+        fits = pair_losses(pb, row["model"], row["parameters"], UNBIASED_SPP, fs, first=seed)
+        truths = pair_losses(pb, mat.model, mat.parameters(), UNBIASED_SPP, fs, forward=truth_forward(pb, mat),
+                             first=seed)
     ratios = np.array(fits) / np.array(truths)
     se = float(np.std(ratios, ddof=1) / np.sqrt(len(ratios))) if len(ratios) > 1 else float("nan")
     row.update({"loss_unbiased": float(np.mean(fits)), "loss_unbiased_at_truth": float(np.mean(truths)),

@@ -44,16 +44,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import bench_paper_sim as bench  # noqa: E402
 
-SEED = 4242
-
 
 def score(pb: Any, model: str, params: dict[str, float], spp: int, scale: float,
-           truths: list[float]) -> dict[str, float]:
+          truths: list[float]) -> dict[str, float]:
     """The unbiased loss of (model, params) over the seed pairs and its ratio to the truth's."""
-    from estimate.fit import loss_at
-
-    losses = [float(loss_at(pb, model, params, spp=spp, seed=SEED + bench.UNBIASED_SEED_STEP * k,
-                            fixed_scale=scale)["loss_unbiased"]) for k in range(len(truths))]
+    losses = bench.pair_losses(pb, model, params, spp, scale, pairs=len(truths))
     ratios = np.asarray(losses) / np.asarray(truths)
     return {"ratio": float(np.mean(losses) / np.mean(truths)),
             "ratio_se": float(np.std(ratios, ddof=1) / np.sqrt(len(ratios))),
@@ -62,11 +57,7 @@ def score(pb: Any, model: str, params: dict[str, float], spp: int, scale: float,
 
 def truth_losses(pb: Any, mat: Any, spp: int, scale: float) -> list[float]:
     """The truth's unbiased loss at each of the benchmark's seed pairs (`score`'s reference)."""
-    from estimate.fit import loss_at
-
-    tf = bench.truth_forward(pb, mat)
-    return [float(loss_at(pb, mat.model, mat.parameters(), spp=spp, seed=SEED + bench.UNBIASED_SEED_STEP * k,
-                          forward=tf, fixed_scale=scale)["loss_unbiased"]) for k in range(bench.UNBIASED_PAIRS)]
+    return bench.pair_losses(pb, mat.model, mat.parameters(), spp, scale, forward=bench.truth_forward(pb, mat))
 
 
 def main() -> int:

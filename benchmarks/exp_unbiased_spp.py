@@ -32,7 +32,6 @@ import bench_paper_sim as bench  # noqa: E402
 
 #: Seed pairs and their first seeds, as `bench_paper_sim.unbiased_losses`.
 PAIRS = bench.UNBIASED_PAIRS
-SEED = 4242
 
 
 def _rows(paths: list[str], row: int) -> list[dict]:
@@ -62,7 +61,6 @@ def main() -> int:
     if len(cases) != 1 or any(r.get("truth_engine") != "light" or r.get("truth_phase") != "table" for r in rows):
         ap.error("the fits must be of one case, recorded by the light engine from the Mie table")
     bench.TRUTH_SPP, bench.TRUTH_ENGINE, bench.TRUTH_PHASE = args.truth_spp, "light", "table"
-    from estimate.fit import loss_at
     from estimate.loss import calibrated_scale
 
     (d, s), = cases
@@ -72,15 +70,8 @@ def main() -> int:
     out = []
     for spp in spps:
         t0 = time.monotonic()
-        truths: list[float] = []
-        fits: list[list[float]] = [[] for _ in rows]
-        for k in range(PAIRS):
-            seed = SEED + bench.UNBIASED_SEED_STEP * k
-            truths.append(float(loss_at(pb, mat.model, mat.parameters(), spp=spp, seed=seed, forward=truth_forward,
-                                        fixed_scale=scale)["loss_unbiased"]))
-            for i, r in enumerate(rows):
-                fits[i].append(float(loss_at(pb, r["model"], r["parameters"], spp=spp, seed=seed,
-                                             fixed_scale=scale)["loss_unbiased"]))
+        truths = bench.pair_losses(pb, mat.model, mat.parameters(), spp, scale, forward=truth_forward, pairs=PAIRS)
+        fits = [bench.pair_losses(pb, r["model"], r["parameters"], spp, scale, pairs=PAIRS) for r in rows]
         tr = np.asarray(truths)
         for r, f in zip(rows, fits):
             ratios = np.asarray(f) / tr
