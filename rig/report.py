@@ -137,6 +137,13 @@ def _run_section(rd: Path, doc: dict[str, Any]) -> list[str]:
         rows.append([f, "scale", ch["scale"], scale_unc_missing if s_unc is None else s_unc])
         rows.append([f, "loss / reduced chi2", ch["loss"], ch["reduced_chi2"]])
         rows.append([f, "iterations / time [s]", ch["iterations"], ch["time_s"]])
+        lm = ch.get("levenberg_marquardt") or []
+        if lm:
+            # the fixed-seed LM's stages: spp and accepted steps; the last stage's share of the
+            # noise floor that its optimum owes to its renders' noise (estimate.polish.lm_noise_excess)
+            rows.append([f, "Levenberg-Marquardt stages (spp: steps)",
+                         ", ".join(f"{int(g['spp'])}: {int(g['steps'])}" for g in lm),
+                         f"render-noise share of the floor {_fmt(lm[-1].get('noise_excess'))}; {lm[-1].get('stop', '')}"])
         if ch.get("still_drifting"):
             rows.append([f, "still drifting when the fit stopped", ", ".join(ch["still_drifting"]),
                          "uncertainties include the last drift"])

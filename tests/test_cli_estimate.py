@@ -116,6 +116,23 @@ def test_report_degree_table_tolerates_hand_edits():
         {"degree": 4, "chi2_adjusted": 90.0, "gain": 60.5, "gain_se": 9.0, "gain_pairs": 16, "accepted": True}]}})
 
 
+def test_report_shows_the_lm_stages_of_a_channel(tmp_path):
+    """A high-degree fit's Levenberg-Marquardt stages: spp and steps each, and the last one's
+    render-noise share of the floor and why it stopped; a channel without them has no row."""
+    from rig.report import _run_section
+
+    ch = {"parameters": {"sigma_t": 2.0}, "uncertainties": {"sigma_t": 0.03}, "scale": 1.0, "loss": 1e-6,
+          "reduced_chi2": 1.2, "iterations": 10, "time_s": 113.0}
+    lm = [{"spp": 4096, "steps": 3, "losses": [1.0, 0.5], "stop": "no step lowered the loss", "noise_excess": 0.33},
+          {"spp": 16384, "steps": 3, "losses": [0.6, 0.5], "stop": "a step gained under 0.1% of the loss",
+           "noise_excess": 0.0712345}]
+    doc = {"run_id": "r1", "settings": {"model": "exp10"}, "channels": {"g": {**ch, "levenberg_marquardt": lm},
+                                                                        "r": dict(ch)}}
+    page = "".join(_run_section(tmp_path, doc))
+    assert "<td>4096: 3, 16384: 3</td>" in page and page.count("Levenberg-Marquardt stages") == 1
+    assert "render-noise share of the floor 0.071235; a step gained under 0.1% of the loss" in page
+
+
 @pytest.mark.parametrize("extra, message", [
     (["--channels", "r"], "a01_r (not captured)"),
     (["--channels", "x"], "unknown channel 'x'"),
