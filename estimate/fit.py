@@ -301,8 +301,8 @@ class FitSettings:
     #: On the 16384-spp recordings of d 0.5 um (session 88, exp7 from its own start, unbiased
     #: loss / floor at 16384 spp) 16 instead of 4 took sigma_t 2 from 1.44 to 1.27 x (the
     #: family's reach there: 1.30 x at the true material) and sigma_t 6 from 1.39 to 1.29 x, at
-    #: 2.4-3.8 x the fit's time. It stays 4 until `--degree auto` is judged with 16 on all eight
-    #: cases (`bench_paper_sim.py --setting lm_degree_spp_factor=16`).
+    #: 2.4-3.8 x the fit's time. Since session 90 this is the first stage's spp only: the LM
+    #: goes on at more spp while its noise share is above `lm_excess_target`.
     lm_degree_spp_factor: int = 4
     #: the coordinates of the LM's steps for an exponential phase (`lm_polish`'s `basis`):
     #: "legendre" (the same exponent's Legendre coefficients) or "monomial" (the paper's b_i,
