@@ -413,20 +413,19 @@ def unbiased_losses(row: dict, seed: int = UNBIASED_SEED) -> dict:
     cdir = CACHE / case_key(d, s)
     pb, mat = case_inputs(d, s)
     fs = calibrated_scale(pb.session_path, "g", pb.beam.power()).scale if row.get("scale_mode") == "calibrated" else None
+    tf = truth_forward(pb, mat)
     if fs is None:
         # a free scale: the truth is scored at the fit's own (profiled) scale of each pair
-        fits, scales = [], []
+        fits, truths = [], []
         for sd in pair_seeds(first=seed):
             fit = loss_at(pb, row["model"], row["parameters"], spp=UNBIASED_SPP, seed=sd)
+            tru = loss_at(pb, mat.model, mat.parameters(), spp=UNBIASED_SPP, seed=sd, forward=tf,
+                          fixed_scale=fit["scale"])
             fits.append(float(fit["loss_unbiased"]))
-            scales.append(float(fit["scale"]))
-        tf = truth_forward(pb, mat)
-        truths = [pair_losses(pb, mat.model, mat.parameters(), UNBIASED_SPP, sc, forward=tf, pairs=1, first=sd)[0]
-                  for sd, sc in zip(pair_seeds(first=seed), scales)]
+            truths.append(float(tru["loss_unbiased"]))
     else:
         fits = pair_losses(pb, row["model"], row["parameters"], UNBIASED_SPP, fs, first=seed)
-        truths = pair_losses(pb, mat.model, mat.parameters(), UNBIASED_SPP, fs, forward=truth_forward(pb, mat),
-                             first=seed)
+        truths = pair_losses(pb, mat.model, mat.parameters(), UNBIASED_SPP, fs, forward=tf, first=seed)
     ratios = np.array(fits) / np.array(truths)
     se = float(np.std(ratios, ddof=1) / np.sqrt(len(ratios))) if len(ratios) > 1 else float("nan")
     row.update({"loss_unbiased": float(np.mean(fits)), "loss_unbiased_at_truth": float(np.mean(truths)),

@@ -157,6 +157,7 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
     p = dict(params)
     stages: list[LMStage] = []
     cur = spp
+    cap = spp if spp_max is None else max(spp, spp_max)
     while True:
         p, stage = _lm_stage(fm, problem, p, names, tr, spp=cur, seed=seed + 2 * len(stages), delta_rel=delta_rel,
                              iterations=iterations, fixed_scale=fixed_scale, steps_out=steps_out,
@@ -168,11 +169,9 @@ def lm_polish(fm: ForwardModel, problem: Problem, params: dict[str, float], name
         if (excess_target is None or not decorrelated or not math.isfinite(ex) or ex <= excess_target
                 or stage.stop in ("step limit", "time limit")):
             break
-        nxt = cur * 2 ** math.ceil(math.log2(ex / excess_target))
-        cap = spp if spp_max is None else max(spp, spp_max)
         if cur >= cap:
             break
-        cur = min(nxt, cap)
+        cur = min(cur * 2 ** math.ceil(math.log2(ex / excess_target)), cap)
     return p, stages[-1].losses
 
 
