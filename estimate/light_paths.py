@@ -247,8 +247,14 @@ class LightPaths:
             return dr.opaque(Float, float(x))
 
         n_px = H * n_ang * W
-        image = dr.zeros(Float, n_px)
-        d_img = {name: dr.zeros(Float, n_px) for name in scores}
+        # The sums are kept in double precision. The paths' contributions reach each pixel from
+        # every CPU thread, in an order that changes from run to run; in single precision the
+        # sum then changed in its 7th digit between two calls with the same seed, enough for
+        # the fixed-seed Levenberg-Marquardt to take 3, 6 or 9 steps from the same point
+        # (session 90). In double precision the order shows only in the 16th digit.
+        Acc = mi.Float64
+        image = dr.zeros(Acc, n_px)
+        d_img = {name: dr.zeros(Acc, n_px) for name in scores}
         phase = _PhaseOps(self.phase, values, mi, dr, self.table)
         rows = [(-(window.row0 + r - cy) * pitch - pitch, -(window.row0 + r - cy) * pitch) for r in range(H)]
         names = list(scores)
@@ -354,7 +360,7 @@ class LightPaths:
                         seen = collided & (col >= 0) & (col < W)
                         c = base * mass * part
                         at = UInt32(r * n_ang * W) + ang_i * W + UInt32(dr.clip(col, 0, W - 1))
-                        dr.scatter_reduce(dr.ReduceOp.Add, image, c, at, seen)
+                        dr.scatter_reduce(dr.ReduceOp.Add, image, Acc(c), at, seen)
                         for name in names:
                             if name == "sigma_t":
                                 sc = k_coll / sig_t - length + dconn_sig
@@ -362,7 +368,7 @@ class LightPaths:
                                 sc = k_coll / albedo
                             else:
                                 sc = score[name] + dlog_p[name]
-                            dr.scatter_reduce(dr.ReduceOp.Add, d_img[name], c * sc, at, seen)
+                            dr.scatter_reduce(dr.ReduceOp.Add, d_img[name], Acc(c * sc), at, seen)
                 # The next direction (a collision's; a mirrored flight turns its z).
                 mu, ratio = phase.sample(rng.next_float32(), rng.next_float32())
                 if phase_scored:
