@@ -83,7 +83,8 @@ def main() -> int:
     valid = np.asarray(pb.valid, bool)
     lm, dlt = log_measured(pb.measured, valid, scale, reference_delta(FitSettings().delta_range))
     n_v = int(valid.sum())
-    lm_spp = (r.get("lm_stages") or [{}])[-1].get("spp")
+    stages = r.get("lm_stages") or []
+    lm_spp = int(stages[-1]["spp"]) if stages else 0   # the LM's last stage (0: no LM)
 
     def point(q: dict, seed: int) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
         """Two renders at `args.spp` (seeds seed, seed + 1): their profiles, log residuals and
@@ -122,10 +123,11 @@ def main() -> int:
         var = (infl ** 2) @ dv
         w0 = infl[0] ** 2 * dv
         shares = [float(w0[ang == i].sum() / w0.sum()) for i in range(len(angles))]
-        entry = {"source": label, "sigma_t_sd_rel": float(np.sqrt(var[0]) * x_per_z["sigma_t"] / s),
-                 "albedo_sd": float(np.sqrt(var[1]) * x_per_z["albedo"]), "sigma_t_share_by_angle": shares}
-        budget.append(entry)
-        print(f"  {label:40s} sigma_t sd {100 * entry['sigma_t_sd_rel']:.2f} %, albedo sd {entry['albedo_sd']:.4f}; "
+        sd_sigma = float(np.sqrt(var[0]) * x_per_z["sigma_t"] / s)
+        sd_albedo = float(np.sqrt(var[1]) * x_per_z["albedo"])
+        budget.append({"source": label, "sigma_t_sd_rel": sd_sigma, "albedo_sd": sd_albedo,
+                       "sigma_t_share_by_angle": shares})
+        print(f"  {label:40s} sigma_t sd {100 * sd_sigma:.2f} %, albedo sd {sd_albedo:.4f}; "
               f"by angle {' '.join(f'{x:.2f}' for x in shares)}", flush=True)
     chain = []
     q = p
