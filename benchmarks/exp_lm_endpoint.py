@@ -6,7 +6,8 @@ light engine from the Mie table):
 
 1. **Noise budget.** How far should its sigma_t and albedo scatter, and from which noise? At
    the fit's parameters, the log residuals' Jacobian A (the light engine's score columns,
-   the mean of two renders at `--spp`) and each pixel's variance in log units give the
+   two renders at `--spp`; printed with their mean's matrix and with their cross product,
+   see the code) and each pixel's variance in log units give the
    linear sandwich sd of each parameter, e^T (A^T A)^-1 A^T D A (A^T A)^-1 e, for D = the
    HDR (sensor) variance, the recording's own frozen render noise (a render at its truth
    spp) and the noise of the LM's renders at its last stage's spp (its fixed-seed optimum
@@ -16,15 +17,17 @@ light engine from the Mie table):
    the decorrelated gradient (J_A^T r_B + J_B^T r_A) / 2 and the mean Jacobian's matrix (or
    `--gradient mean`: J^T r of the two renders' means, whose expectation also holds the
    gradient of the renders' variance, as the plain loss's does). Where the fit sits at the
-   optimum in the linear sense the chain's points scatter about it by the budget's LM-render
-   sd at 2 x `--spp` / 2.
+   optimum, the chain's points scatter about it by their two renders' noise taken through
+   the matrix.
 
     .venv/bin/python benchmarks/exp_lm_endpoint.py FIT.json [--spp 8192] [--chain 4]
         [--gradient decorrelated|mean] [--seed 1001] [--out benchmarks/results/exp_lm_endpoint_<case>.json]
 
-Session 91, exp10 on d 0.5 um / sigma_t 6 (sigma_t +3.27 %, `docs/estimation-log.md`): the budget
-gave sensor 0.24 %, the recording's render noise 0.52 %, the LM's 0.37 %; chained decorrelated
-steps moved sigma_t by about 1.5 points each, and chains from two end points did not meet.
+Session 91, exp10 on d 0.5 um / sigma_t 6 (sigma_t +3.27 %, `docs/estimation-log.md`): with the mean
+matrix the budget grew with the Jacobians' spp (the LM's part 0.20 % at 1024 spp, 0.55 % at
+16384; the recording's own render noise 0.28 % to 0.77 %), so it is a lower bound there; the
+cross matrix was still too noisy at 16384 spp. Chained decorrelated steps moved sigma_t by about
+1.5 points each.
 """
 
 from __future__ import annotations
@@ -105,8 +108,6 @@ def main() -> int:
     t0 = time.monotonic()
     print(f"{r['case']} {r['model']}: from {rel(p)}", flush=True)
     profs, res, mats = point(p, args.seed)
-    a = 0.5 * (mats[0] + mats[1])
-    infl = np.linalg.solve(a.T @ a, a.T)               # (k, n): parameter change per unit residual
     # one render's variance at args.spp, in log units, from the two renders' difference
     logs = [np.log(np.clip(q, 0, None) + dlt) for q in profs]
     d_one = np.where(valid, 0.5 * (logs[0] - logs[1]) ** 2, 0.0).ravel()
@@ -118,17 +119,28 @@ def main() -> int:
         sources[f"LM's renders ({lm_spp} spp)"] = d_one * args.spp / lm_spp
     x_per_z = {n: abs(t.dx_dz(t.to_z(p[n]))) for n, t in zip(names, tr)}
     ang = np.repeat(np.arange(len(angles)), pb.measured.shape[-1])
+    # The budget with two matrices. The mean Jacobian's Gram matrix holds its render noise's
+    # Gram matrix too, largest along the weak sigma_t / phase directions, which shrinks
+    # (A^T A)^-1 there and the budget with it (it grows with the Jacobians' spp). The two
+    # renders' cross product A_A^T A_B has no such term in expectation (as `gn_polish`'s
+    # `cross`), but at a few thousand spp it is itself too noisy along those directions.
+    a = 0.5 * (mats[0] + mats[1])
+    h_cross = 0.5 * (mats[0].T @ mats[1] + mats[1].T @ mats[0])
+    influence = {"mean": (np.linalg.solve(a.T @ a, a.T),) * 2,
+                 "cross": (np.linalg.solve(h_cross, mats[0].T), np.linalg.solve(h_cross, mats[1].T))}
     budget = []
-    for label, dv in sources.items():
-        var = (infl ** 2) @ dv
-        w0 = infl[0] ** 2 * dv
-        shares = [float(w0[ang == i].sum() / w0.sum()) for i in range(len(angles))]
-        sd_sigma = float(np.sqrt(var[0]) * x_per_z["sigma_t"] / s)
-        sd_albedo = float(np.sqrt(var[1]) * x_per_z["albedo"])
-        budget.append({"source": label, "sigma_t_sd_rel": sd_sigma, "albedo_sd": sd_albedo,
-                       "sigma_t_share_by_angle": shares})
-        print(f"  {label:40s} sigma_t sd {100 * sd_sigma:.2f} %, albedo sd {sd_albedo:.4f}; "
-              f"by angle {' '.join(f'{x:.2f}' for x in shares)}", flush=True)
+    for matrix, (infl_a, infl_b) in influence.items():
+        print(f"  budget with the {matrix} matrix of two {args.spp}-spp Jacobians", flush=True)
+        for label, dv in sources.items():
+            var = (infl_a * infl_b) @ dv
+            w0 = infl_a[0] * infl_b[0] * dv
+            shares = [float(w0[ang == i].sum() / w0.sum()) for i in range(len(angles))]
+            sd_sigma = float(np.sqrt(max(var[0], 0.0)) * x_per_z["sigma_t"] / s)
+            sd_albedo = float(np.sqrt(max(var[1], 0.0)) * x_per_z["albedo"])
+            budget.append({"matrix": matrix, "source": label, "sigma_t_sd_rel": sd_sigma, "albedo_sd": sd_albedo,
+                           "sigma_t_share_by_angle": shares})
+            print(f"    {label:40s} sigma_t sd {100 * sd_sigma:.2f} %, albedo sd {sd_albedo:.4f}; "
+                  f"by angle {' '.join(f'{x:.2f}' for x in shares)}", flush=True)
     chain = []
     q = p
     for k in range(args.chain):
