@@ -217,8 +217,8 @@ class LightPaths:
                 column's edge change column and common random numbers cancel little of it.
 
         Returns:
-            (image, derivatives): Dr.Jit arrays (evaluated, one chunk of `CHUNK_PATHS`
-            paths at a time), laid out as (rows, angles, columns), radiance per steradian in
+            (image, derivatives): Dr.Jit double-precision arrays (evaluated, one chunk of
+            `CHUNK_PATHS` paths at a time), laid out as (rows, angles, columns), radiance per steradian in
             the map's units; each derivative image per unit of its parameter.
         """
         dr = self.dr
@@ -248,7 +248,7 @@ class LightPaths:
 
         n_px = H * n_ang * W
         # The sums are kept in double precision. The paths' contributions reach each pixel from
-        # every CPU thread, in an order that changes from run to run; in single precision the
+        # every thread (CPU cores, GPU warps), in an order that changes from run to run; in single precision the
         # sum then changed in its 7th digit between two calls with the same seed, enough for
         # the fixed-seed Levenberg-Marquardt to take 3, 6 or 9 steps from the same point
         # (session 90). In double precision the order shows only in the 16th digit.
