@@ -72,7 +72,8 @@ def main() -> int:
         ap.error("the fit must be of a case recorded by the light engine from the Mie table")
     bench.TRUTH_SPP, bench.TRUTH_ENGINE, bench.TRUTH_PHASE = args.truth_spp, "light", "table"
     from estimate.fit import FitSettings, forward_model, reference_delta
-    from estimate.loss import calibrated_scale, log_measured, log_residual
+    from estimate.loss import calibrated_scale, log_hdr_variance, log_measured, log_residual
+    from estimate.polish import log_residual_columns
     from estimate.transforms import transform_for
 
     d, s = r["diameter_um"], r["sigma_t_true"]
@@ -97,8 +98,7 @@ def main() -> int:
         mats, res = [], []
         for prof, sd in zip(profs, (seed, seed + 1)):
             jac = fm.jacobian(q, angles, names, spp=args.spp, seed=sd)
-            mats.append(np.stack([np.where(valid, -jac[n] / (np.clip(prof, 0, None) + dlt), 0.0).ravel() * t.dx_dz(zz)
-                                  for n, t, zz in zip(names, tr, z)], axis=1))
+            mats.append(log_residual_columns(jac, prof, valid, dlt, names, tr, z))
             res.append(log_residual(lm, prof, valid, dlt).ravel())
         return profs, res, mats
 
@@ -111,8 +111,7 @@ def main() -> int:
     # one render's variance at args.spp, in log units, from the two renders' difference
     logs = [np.log(np.clip(q, 0, None) + dlt) for q in profs]
     d_one = np.where(valid, 0.5 * (logs[0] - logs[1]) ** 2, 0.0).ravel()
-    m = np.clip(pb.measured / scale, -0.5 * dlt, None)
-    d_sensor = np.where(valid, pb.variance / scale ** 2 / (m + dlt) ** 2, 0.0).ravel()
+    d_sensor = np.where(valid, log_hdr_variance(pb.measured, pb.variance, scale, dlt), 0.0).ravel()
     sources = {"sensor": d_sensor, f"recording's render noise ({args.truth_spp} spp)": d_one * args.spp / args.truth_spp}
     if lm_spp:
         # the LM's optimum carries the noise of the mean of its two half-spp renders

@@ -54,7 +54,8 @@ from scipy.optimize import least_squares, minimize_scalar
 from estimate.errors import DataError
 
 __all__ = ["DEFAULT_CALIBRATION_ND", "DEFAULT_COLLECTION_SR", "DEFAULT_DELTA_RANGE", "ScaleCalibration",
-           "calibrated_scale", "chi2", "log_loss", "profile_additive", "profile_scale", "reference_delta"]
+           "calibrated_scale", "chi2", "log_hdr_variance", "log_loss", "profile_additive", "profile_scale",
+           "reference_delta"]
 
 #: Collection solid angle of the lens [sr] when the rig configuration gives none
 #: (`camera.collection_sr`); equal to the default simulated world's `optics.collection_sr`.
@@ -83,6 +84,14 @@ def log_measured(measured: np.ndarray, valid: np.ndarray, scale: float, delta_re
     m = measured / scale
     delta = max(delta_rel * float(np.max(np.where(valid, m, -np.inf))), 1e-30)
     return np.log(np.clip(m, -0.5 * delta, None) + delta), delta
+
+
+def log_hdr_variance(measured: np.ndarray, variance: np.ndarray, scale: float, delta: float) -> np.ndarray:
+    """The HDR variance of log(I_meas / s + delta) per pixel, to first order:
+    var / s^2 / (I_meas / s + delta)^2, with I_meas / s clipped at -delta / 2 as in
+    `log_measured` (`variance` in the measured units squared, `delta` in the model's)."""
+    m = np.clip(measured / scale, -0.5 * delta, None)
+    return variance / scale ** 2 / (m + delta) ** 2
 
 
 def log_residual(log_meas: np.ndarray, model: np.ndarray, valid: np.ndarray, delta: float) -> np.ndarray:

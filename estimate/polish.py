@@ -23,13 +23,13 @@ from estimate.errors import ModelParameterError
 from estimate.evaluation import solve_additive
 from estimate.forward import ForwardModel
 from estimate.gauss_newton import gn_columns, gn_inverse, gn_jacobian, secant_steps
-from estimate.loss import decorrelated_loss_se, log_measured, log_residual, profile_scale
+from estimate.loss import decorrelated_loss_se, log_hdr_variance, log_measured, log_residual, profile_scale
 from estimate.phase_exponential import legendre_to_monomial
 from estimate.problem import Problem
 from estimate.transforms import Transform
 
 __all__ = ["LMStage", "averaged_point_count", "first_averaged_point", "gn_polish", "lm_noise_excess", "lm_polish",
-           "polish_average"]
+           "log_residual_columns", "polish_average"]
 
 #: the Gauss-Newton matrix's own damping (`gn_inverse`'s default), the polish's least
 GN_DAMPING = 1e-3
@@ -92,8 +92,7 @@ def lm_noise_excess(A: np.ndarray, r_a: np.ndarray, r_b: np.ndarray, measured: n
     `delta`: the loss's (`log_measured`). nan when the floor is unknown."""
     n = max(1, int(valid.sum()))
     d = np.where(valid, 0.25 * (r_a - r_b) ** 2, 0.0).ravel()
-    m = np.clip(measured / scale, -0.5 * delta, None)
-    var_log = np.where(valid, variance / scale ** 2 / (m + delta) ** 2, 0.0)
+    var_log = np.where(valid, log_hdr_variance(measured, variance, scale, delta), 0.0)
     floor = float(np.sum(var_log) / n)
     if not (math.isfinite(floor) and floor > 0):
         return math.nan
@@ -219,9 +218,7 @@ def _lm_stage(fm: ForwardModel, problem: Problem, params: dict[str, float], name
         mats = []
         for prof, s_ in zip(profs, seeds):
             jac = fm.jacobian(p, angles, list(names), spp=each_spp, seed=s_)
-            cols = [np.where(valid, -jac[n] / (np.clip(prof, 0, None) + dlt), 0.0).ravel() * t.dx_dz(float(zz))
-                    for n, t, zz in zip(names, tr, z)]
-            mats.append(np.stack(cols + scale_col, axis=1))
+            mats.append(np.column_stack([log_residual_columns(jac, prof, valid, dlt, names, tr, z)] + scale_col))
         # The matrix of the mean Jacobian: positive semi-definite, its render noise only damps
         # the noisy directions further (the cross product A_A^T A_B would be unbiased but can
         # be indefinite).
@@ -272,6 +269,15 @@ def _lm_stage(fm: ForwardModel, problem: Problem, params: dict[str, float], name
     excess = (lm_noise_excess(A, rs[0], rs[-1], meas, problem.variance, valid, sc, dlt)
               if A is not None and decorrelated else math.nan)
     return p, LMStage(spp=each_spp * len(seeds), losses=losses, stop=stop, noise_excess=excess)
+
+
+def log_residual_columns(jac: Mapping[str, np.ndarray], profiles: np.ndarray, valid: np.ndarray, delta: float,
+                         names: Sequence[str], tr: Sequence[Transform], z: Sequence[float] | np.ndarray) -> np.ndarray:
+    """The Jacobian of the log residuals r = log(m + delta) - log(I + delta) in the transformed
+    variables z: -dI/dx / (I + delta) * dx/dz per pixel (0 where not valid), a column per name
+    (`jac`: d profiles / d x, `profiles`: the render I they were taken with)."""
+    return np.stack([np.where(valid, -jac[n] / (np.clip(profiles, 0, None) + delta), 0.0).ravel() * t.dx_dz(float(zz))
+                     for n, t, zz in zip(names, tr, z)], axis=1)
 
 
 def lm_basis_matrix(names: Sequence[str], tr: Sequence[Transform], basis: str) -> np.ndarray:

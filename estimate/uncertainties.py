@@ -22,6 +22,7 @@ from scipy import stats
 from estimate.evaluation import jacobian_columns
 from estimate.forward import ForwardModel
 from estimate.gauss_newton import bounded_cross
+from estimate.loss import log_hdr_variance
 from estimate.problem import Problem
 
 __all__ = ["DRIFT_T", "UNCERTAINTY_CROSS_FLOOR", "combined_covariance", "combined_uncertainties", "correlation_factor",
@@ -86,7 +87,7 @@ def log_residuals(problem: Problem, scale: float, profiles: np.ndarray, model_va
     mm = np.clip(m, -0.5 * dl, None)
     ip = np.clip(profiles, 0, None)
     r = np.where(valid, np.log(mm + dl) - np.log(ip + dl), 0.0)
-    return LogResiduals(valid, m, mm, ip, dl, r, (problem.variance / scale ** 2) / (mm + dl) ** 2,
+    return LogResiduals(valid, m, mm, ip, dl, r, log_hdr_variance(problem.measured, problem.variance, scale, dl),
                         model_variance / (ip + dl) ** 2)
 
 
