@@ -1,0 +1,112 @@
+"""Probe: which of several fitted points of one paper-simulation case does the loss prefer,
+scored on common seed pairs?
+
+Two fits of the same recording that end at different sigma_t along the sigma_t / phase valley
+(e.g. the estimator's own fit and a fit started from the Mie table's projection) can have
+losses without render noise whose ratios to the truth's differ by less than either ratio's
+standard error. Their *difference* at common seeds is what decides which the family prefers,
+and what a fixed-seed optimiser compares. This scores each point's loss without render noise
+(`estimate.fit.loss_at`'s "loss_unbiased": two independent renders per seed pair, `--spp`
+each, the calibrated scale) at `--pairs` seed pairs shared by all points and the truth, and
+prints each point's ratio to the truth's and its paired difference to the first point, with
+standard errors over the pairs.
+
+    .venv/bin/python benchmarks/exp_valley_points.py FIT.json [FIT.json ...] [--key free_refit]
+        [--pairs 8] [--spp 16384] [--first 1000] [--out FILE.json]
+
+Each FIT is a `bench_paper_sim.py` fit row (its cached fit JSON) or an
+`exp_phase_projection.py` results file (`--key` picks its point: sad_fit, phase_only or
+free_refit). All must be of one case, recorded by the light engine from the Mie table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import bench_paper_sim as bench  # noqa: E402
+
+
+def load_point(path: str, key: str) -> dict[str, Any]:
+    """(case, model, parameters, label) of one fit file."""
+    doc = json.loads(Path(path).read_text())
+    if isinstance(doc, list):   # exp_phase_projection's rows
+        if not doc or key not in doc[0]:
+            raise ValueError(f"no {key!r} point in it")
+        row = doc[0]
+        return {"case": row["case"], "diameter_um": row["diameter_um"], "sigma_t_true": row["sigma_t_true"],
+                "model": row["model"], "parameters": dict(row[key]["parameters"]), "label": f"{Path(path).name}:{key}"}
+    if "parameters" not in doc or "case" not in doc:
+        raise ValueError("not a bench_paper_sim fit row")
+    return {"case": doc["case"], "diameter_um": doc["diameter_um"], "sigma_t_true": doc["sigma_t_true"],
+            "model": doc["model"], "parameters": dict(doc["parameters"]), "label": Path(path).name}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("fits", nargs="+", help="fit files of one case (the first is the reference of the differences)")
+    ap.add_argument("--key", default="free_refit", help="exp_phase_projection files: which point (free_refit)")
+    ap.add_argument("--pairs", type=int, default=8, help="seed pairs (8)")
+    ap.add_argument("--spp", type=int, default=16384, help="spp of each render (16384)")
+    ap.add_argument("--first", type=int, default=bench.UNBIASED_SEED, help="first pair's seed")
+    ap.add_argument("--truth-spp", type=int, default=16384, help="the recording's truth spp (its cache name)")
+    ap.add_argument("--out", default=None, help="results JSON")
+    args = ap.parse_args()
+    if args.pairs < 2 or args.spp < 2:
+        ap.error("--pairs and --spp must be at least 2")
+    try:
+        points = [load_point(f, args.key) for f in args.fits]
+    except (OSError, ValueError, KeyError) as e:
+        ap.error(f"{e}")
+    if len({p["case"] for p in points}) != 1:
+        ap.error("the fits are of different cases: " + ", ".join(sorted({p["case"] for p in points})))
+    bench.TRUTH_SPP, bench.TRUTH_ENGINE, bench.TRUTH_PHASE = args.truth_spp, "light", "table"
+    from estimate.loss import calibrated_scale
+
+    d, s = points[0]["diameter_um"], points[0]["sigma_t_true"]
+    pb, mat = bench.case_inputs(d, s)
+    scale = calibrated_scale(pb.session_path, "g", pb.beam.power()).scale
+    t0 = time.monotonic()
+    truth = np.array(bench.pair_losses(pb, mat.model, mat.parameters(), args.spp, scale,
+                                       forward=bench.truth_forward(pb, mat), pairs=args.pairs, first=args.first))
+    print(f"{points[0]['case']}: truth's loss {truth.mean():.4g} over {args.pairs} pairs "
+          f"({time.monotonic() - t0:.0f} s)", flush=True)
+    rows = []
+    ref: np.ndarray | None = None
+    for p in points:
+        t0 = time.monotonic()
+        losses = np.array(bench.pair_losses(pb, p["model"], p["parameters"], args.spp, scale,
+                                            pairs=args.pairs, first=args.first))
+        ratios = losses / truth
+        row = {"label": p["label"], "model": p["model"], "sigma_t": p["parameters"]["sigma_t"],
+               "albedo": p["parameters"]["albedo"], "sigma_t_rel_error": p["parameters"]["sigma_t"] / s - 1.0,
+               "losses": losses.tolist(), "ratio": float(losses.mean() / truth.mean()),
+               "ratio_se": float(ratios.std(ddof=1) / np.sqrt(args.pairs))}
+        line = (f"  {p['label']}: sigma_t {100 * row['sigma_t_rel_error']:+.2f} %, loss / truth's "
+                f"{row['ratio']:.3f} +- {row['ratio_se']:.3f}")
+        if ref is None:
+            ref = losses
+        else:
+            diff = (losses - ref) / truth
+            row["diff_to_first"] = float(diff.mean())
+            row["diff_to_first_se"] = float(diff.std(ddof=1) / np.sqrt(args.pairs))
+            line += f"; minus the first's {row['diff_to_first']:+.4f} +- {row['diff_to_first_se']:.4f}"
+        rows.append(row)
+        print(line + f" ({time.monotonic() - t0:.0f} s)", flush=True)
+    if args.out:
+        Path(args.out).write_text(json.dumps({"case": points[0]["case"], "pairs": args.pairs, "spp": args.spp,
+                                              "first_seed": args.first, "truth_losses": truth.tolist(),
+                                              "points": rows}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
