@@ -66,8 +66,14 @@ from estimate.mitsuba_phase import inverse_cdf_table, tabulated_inverse_cdf, tab
 from estimate.phase_exponential import ExponentialPhase
 from estimate.phase_tabulated import TabulatedPhase
 
-__all__ = ["CHUNK_PATHS", "LightPaths", "MAX_ROWS", "SourceTables", "TABLE", "check_phase_table",
-           "phase_parameter_names"]
+__all__ = ["CHUNK_PATHS", "LightPaths", "MAX_ROWS", "RENDER_REVISION", "SourceTables", "TABLE",
+           "check_phase_table", "phase_parameter_names"]
+
+#: Changes whenever the same seed and settings render a different image, so that images cached
+#: from an earlier revision are not reused (`sim_devices.rendered_scene.RenderedScene.cache_key`).
+#: 2: the pixel sums in double precision (session 91); the single-precision sums had put the
+#: bright pixels 0.03-0.10 % low at 16384 spp (see `LightPaths.render`).
+RENDER_REVISION = 2
 
 #: Windows of more rows than this are refused: each vertex adds to every row of the window.
 MAX_ROWS = 64

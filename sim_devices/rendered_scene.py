@@ -231,7 +231,14 @@ class RenderedScene:
 
     def cache_key(self, phys_deg: float, filter_name: str) -> str:
         """Disk-cache key of one radiance image."""
-        text = "|".join([_CACHE_VERSION, self.world.truth_hash(), repr(self.sensor_px), repr(self.pixel_um),
+        parts = [_CACHE_VERSION]
+        if self.world.render.engine == "light":
+            # the light engine's own revision: its images of earlier revisions are not reused
+            # (the camera engine's keys, and so its caches, stay as they were)
+            from estimate.light_paths import RENDER_REVISION
+
+            parts.append(f"light/{RENDER_REVISION}")
+        text = "|".join([*parts, self.world.truth_hash(), repr(self.sensor_px), repr(self.pixel_um),
                          repr(self.magnification), repr(tuple(self.axis_px)), repr(self.row_tiers()),
                          filter_name, f"{round(phys_deg, ANGLE_KEY_DECIMALS):.6f}"])
         return hashlib.sha256(text.encode()).hexdigest()

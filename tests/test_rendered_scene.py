@@ -211,3 +211,18 @@ def test_the_light_engine_renders_the_same_frame_with_less_noise(tmp_path):
         == _world(tmp_path).truth_hash()
     with pytest.raises(WorldError, match="render.engine: must be camera or light"):
         _world(tmp_path, render={**base, "engine": "photons"})
+
+
+def test_a_new_light_engine_revision_renders_afresh_and_the_camera_keeps_its_cache(tmp_path, monkeypatch):
+    """Images cached by an earlier revision of the light engine (whose single-precision sums
+    put bright pixels 0.03-0.10 % low) are not reused: the revision is part of their key. The
+    camera engine's keys do not depend on it."""
+    import estimate.light_paths as lp
+
+    base = _world(tmp_path).raw["render"]
+    light = RenderedScene(_world(tmp_path, render={**base, "engine": "light"}), magnification=0.3)
+    cam = RenderedScene(_world(tmp_path), magnification=0.3)
+    keys = (light.cache_key(45.0, "g"), cam.cache_key(45.0, "g"))
+    monkeypatch.setattr(lp, "RENDER_REVISION", lp.RENDER_REVISION + 1)
+    assert light.cache_key(45.0, "g") != keys[0]
+    assert cam.cache_key(45.0, "g") == keys[1]
