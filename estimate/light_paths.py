@@ -261,8 +261,8 @@ class LightPaths:
         # single-precision sums were biased too: each addition rounds to the sum's last bit
         # (1e-7 of it), and over the 1e5-1e6 additions into a bright pixel the roundings did not
         # cancel. At 16384 spp the profiles' peaks came out 0.03-0.10 % low against these sums
-        # (the tails less), about 0.7 of the sensor's noise in log units on the paper
-        # simulation (session 92).
+        # (the tails less): 0.1-0.3 of one HDR pixel's sensor noise on the paper simulation,
+        # but of one sign over the bright pixels of every angle (session 92).
         Acc = mi.Float64
         image = dr.zeros(Acc, n_px)
         d_img = {name: dr.zeros(Acc, n_px) for name in scores}
