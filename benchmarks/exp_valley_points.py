@@ -12,11 +12,12 @@ prints each point's ratio to the truth's and its paired difference to the first 
 standard errors over the pairs.
 
     .venv/bin/python benchmarks/exp_valley_points.py FIT.json [FIT.json ...] [--key free_refit]
-        [--pairs 8] [--spp 16384] [--first 1000] [--out FILE.json]
+        [--degree M] [--pairs 8] [--spp 16384] [--first 1000] [--out FILE.json]
 
 Each FIT is a `bench_paper_sim.py` fit row (its cached fit JSON) or an
 `exp_phase_projection.py` results file (`--key` picks its point: sad_fit, phase_only or
-free_refit). All must be of one case, recorded by the light engine from the Mie table.
+free_refit; `--degree` its row, where it holds several). All must be of one case, recorded by
+the light engine from the Mie table.
 """
 
 from __future__ import annotations
@@ -35,15 +36,22 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_paper_sim as bench  # noqa: E402
 
 
-def load_point(path: str, key: str) -> dict[str, Any]:
-    """(case, model, parameters, label) of one fit file."""
+def load_point(path: str, key: str, degree: int | None = None) -> dict[str, Any]:
+    """(case, model, parameters, label) of one fit file. An `exp_phase_projection` file holds a
+    row per degree: `degree` picks one, and is needed where it holds more than one."""
     doc = json.loads(Path(path).read_text())
-    if isinstance(doc, list):   # exp_phase_projection's rows
-        if not doc or key not in doc[0]:
-            raise ValueError(f"no {key!r} point in it")
-        row = doc[0]
+    if isinstance(doc, list):   # exp_phase_projection's rows, one per degree
+        rows = [r for r in doc if degree is None or r.get("model") == f"exp{degree}"]
+        if not rows:
+            raise ValueError(f"{path}: no exp{degree} row (it holds {', '.join(r.get('model', '?') for r in doc)})")
+        if len(rows) > 1:
+            raise ValueError(f"{path} holds {', '.join(r['model'] for r in rows)}: pick one with --degree")
+        row = rows[0]
+        if key not in row:
+            raise ValueError(f"{path}: no {key!r} point in its {row['model']} row")
+        label = f"{Path(path).name}:{row['model']}:{key}"
         return {"case": row["case"], "diameter_um": row["diameter_um"], "sigma_t_true": row["sigma_t_true"],
-                "model": row["model"], "parameters": dict(row[key]["parameters"]), "label": f"{Path(path).name}:{key}"}
+                "model": row["model"], "parameters": dict(row[key]["parameters"]), "label": label}
     if "parameters" not in doc or "case" not in doc:
         raise ValueError("not a bench_paper_sim fit row")
     return {"case": doc["case"], "diameter_um": doc["diameter_um"], "sigma_t_true": doc["sigma_t_true"],
@@ -54,6 +62,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("fits", nargs="+", help="fit files of one case (the first is the reference of the differences)")
     ap.add_argument("--key", default="free_refit", help="exp_phase_projection files: which point (free_refit)")
+    ap.add_argument("--degree", type=int, default=None,
+                    help="exp_phase_projection files of several degrees: which degree's row")
     ap.add_argument("--pairs", type=int, default=8, help="seed pairs (8)")
     ap.add_argument("--spp", type=int, default=16384, help="spp of each render (16384)")
     ap.add_argument("--first", type=int, default=bench.UNBIASED_SEED, help="first pair's seed")
@@ -63,7 +73,7 @@ def main() -> int:
     if args.pairs < 2 or args.spp < 2:
         ap.error("--pairs and --spp must be at least 2")
     try:
-        points = [load_point(f, args.key) for f in args.fits]
+        points = [load_point(f, args.key, args.degree) for f in args.fits]
     except (OSError, ValueError, KeyError) as e:
         ap.error(f"{e}")
     if len({p["case"] for p in points}) != 1:
