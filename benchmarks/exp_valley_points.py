@@ -38,24 +38,27 @@ import bench_paper_sim as bench  # noqa: E402
 
 def load_point(path: str, key: str, degree: int | None = None) -> dict[str, Any]:
     """(case, model, parameters, label) of one fit file. An `exp_phase_projection` file holds a
-    row per degree: `degree` picks one, and is needed where it holds more than one."""
+    row per degree: `degree` picks one, and is needed where it holds more than one. A
+    `bench_paper_sim` fit row must be of `degree` where one is given."""
     doc = json.loads(Path(path).read_text())
+    wanted = None if degree is None else f"exp{degree}"
     if isinstance(doc, list):   # exp_phase_projection's rows, one per degree
-        rows = [r for r in doc if degree is None or r.get("model") == f"exp{degree}"]
-        if not rows:
-            raise ValueError(f"{path}: no exp{degree} row (it holds {', '.join(r.get('model', '?') for r in doc)})")
-        if len(rows) > 1:
-            raise ValueError(f"{path} holds {', '.join(r['model'] for r in rows)}: pick one with --degree")
-        row = rows[0]
-        if key not in row:
+        held = ", ".join(str(r.get("model", "?")) for r in doc) or "no rows"
+        rows = [r for r in doc if wanted is None or r.get("model") == wanted]
+        if len(rows) != 1:
+            raise ValueError(f"{path}: no {wanted or 'fit'} row (it holds {held})" if not rows
+                             else f"{path} holds {held}: pick one with --degree")
+        row, point, label = rows[0], rows[0].get(key), f"{Path(path).name}:{rows[0]['model']}:{key}"
+        if point is None:
             raise ValueError(f"{path}: no {key!r} point in its {row['model']} row")
-        label = f"{Path(path).name}:{row['model']}:{key}"
-        return {"case": row["case"], "diameter_um": row["diameter_um"], "sigma_t_true": row["sigma_t_true"],
-                "model": row["model"], "parameters": dict(row[key]["parameters"]), "label": label}
-    if "parameters" not in doc or "case" not in doc:
-        raise ValueError("not a bench_paper_sim fit row")
-    return {"case": doc["case"], "diameter_um": doc["diameter_um"], "sigma_t_true": doc["sigma_t_true"],
-            "model": doc["model"], "parameters": dict(doc["parameters"]), "label": Path(path).name}
+    else:
+        if "parameters" not in doc or "case" not in doc:
+            raise ValueError(f"{path}: not a bench_paper_sim fit row")
+        if wanted is not None and doc["model"] != wanted:
+            raise ValueError(f"{path} is an {doc['model']} fit, not {wanted}")
+        row, point, label = doc, doc, Path(path).name
+    return {"case": row["case"], "diameter_um": row["diameter_um"], "sigma_t_true": row["sigma_t_true"],
+            "model": row["model"], "parameters": dict(point["parameters"]), "label": label}
 
 
 def main() -> int:
