@@ -38,7 +38,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="phase model: exponential (exp, default), two-term HG (tthg) or both")
     p.add_argument("--degree", default="3",
                    help="degree M of the exponential phase function (3, the paper's), or auto: fit degrees 3, 4, ... "
-                        "and keep the one the recording supports (estimate/phase_degree.py; a few fits a channel)")
+                        "and keep the one the recording supports (estimate/phase_degree.py; a few fits a channel). "
+                        "On recordings near sensor noise of forward-scattering media degree 3 cannot take the "
+                        "phase's shape; 10 met the paper simulation's targets on all 8 of its cases (minutes a "
+                        "channel on 2 cores; README, Estimation)")
     p.add_argument("--degree-spp-max", type=int, default=None,
                    help="with --degree auto: largest samples per pixel of the renders that compare the degrees "
                         "(they start at twice the final spp and double while their noise exceeds the recording's; "
@@ -46,8 +49,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--degree-max", type=int, default=None,
                    help="with --degree auto: the highest degree tried (default 7, the largest the paper evaluated; "
                         "up to 12). The search still stops after two degrees in a row that gain nothing, so only "
-                        "media whose phase keeps gaining pay for the extra fits (on the paper simulation's "
-                        "d 0.5 um medium degrees 8-10 fitted no better than 7: docs/estimation-log.md, session 87)")
+                        "media whose phase keeps gaining pay for the extra fits. Each degree starts from the one "
+                        "below's optimum: on the paper simulation's d 0.5 um / sigma_t 6 medium that chain kept "
+                        "exp7 at +9.5 %% in sigma_t, where exp10 from its own start ends at +1 to +4 %% "
+                        "(docs/estimation-log.md, sessions 89-93); a fixed --degree 10 is the surer choice there")
     p.add_argument("--channels", default=None, help="filters to fit, e.g. rgb or r,g (default: all of the plan)")
     p.add_argument("--columns", type=int, default=None, help="profile window width in pixels (256)")
     p.add_argument("--extensions", default=None, help="forward-model extensions to include, comma separated "
