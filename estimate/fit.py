@@ -446,7 +446,6 @@ class FitResult:
     fitted: np.ndarray               # (N, W) rendered profiles (model units, not scaled)
     model_variance: np.ndarray       # (N, W) MC variance of `fitted`
     start: dict[str, float]
-    lm_losses: list[float] = field(default_factory=list)   # LM loss at its last stage's start, then after each accepted step
     #: the LM's stages (`estimate.polish.LMStage.to_dict`): spp, steps, losses, stop, noise_excess
     lm_stages: list[dict[str, Any]] = field(default_factory=list)
     settings: dict[str, Any] = field(default_factory=dict)
@@ -490,9 +489,12 @@ class FitResult:
     def lm_steps(self) -> int:
         """Accepted steps of the fixed-seed Levenberg-Marquardt (0: none ran, or it moved
         nothing, and the result is the polish's)."""
-        if self.lm_stages:
-            return sum(int(g["steps"]) for g in self.lm_stages)
-        return max(0, len(self.lm_losses) - 1)
+        return sum(int(g["steps"]) for g in self.lm_stages)
+
+    @property
+    def lm_losses(self) -> list[float]:
+        """The LM's loss at its last stage's start, then after each accepted step ([]: no LM ran)."""
+        return [float(x) for x in self.lm_stages[-1]["losses"]] if self.lm_stages else []
 
     @property
     def lm_spp(self) -> int:
@@ -872,12 +874,11 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
             final = {**final, **mean_point}
             n_polish_avg = max(1, len(accepted) - first + 1)
     moving: list[str] = []
-    lm_losses: list[float] = []
     lm_iterations, lm_spp = lm_plan(st, phase)
     lm_steps: list[dict[str, float]] = []
     lm_stages: list[LMStage] = []
     if lm_iterations > 0 and stepped:
-        final, lm_losses = lm_polish(fm, problem, final, stepped, tr, spp=lm_spp,
+        final, _ = lm_polish(fm, problem, final, stepped, tr, spp=lm_spp,
                                      seed=st.seed * 100_003 + 40_000, delta_rel=d_ref, iterations=lm_iterations,
                                      fixed_scale=fixed_scale, steps_out=lm_steps, deadline=deadline,
                                      decorrelated=st.lm_decorrelated, basis=st.lm_basis,
@@ -978,7 +979,7 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
         loss_unbiased=ev["loss_unbiased"],
         delta_rel=d_ref, chi2=ev["chi2"], dof=dof, reduced_chi2=red, iterations=it,
         time_s=time.monotonic() - t0, stop_reason=stop, spp_schedule=schedule, loss_curve=curve,
-        angles_deg=[float(a) for a in problem.angles_deg], fitted=ev["profiles"], lm_losses=lm_losses,
+        angles_deg=[float(a) for a in problem.angles_deg], fitted=ev["profiles"],
         lm_stages=[g.to_dict() for g in lm_stages],
         model_variance=ev["model_variance"], start=dict(init), settings=st.to_dict(), scale_mode=st.scale,
         scale_calibration=cal.to_dict() if cal is not None else None, fisher_uncertainties=fisher,
