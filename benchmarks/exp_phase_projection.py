@@ -49,10 +49,8 @@ def score(pb: Any, model: str, params: dict[str, float], spp: int, scale: float,
           truths: list[float]) -> dict[str, float]:
     """The unbiased loss of (model, params) over the seed pairs and its ratio to the truth's."""
     losses = bench.pair_losses(pb, model, params, spp, scale, pairs=len(truths))
-    ratios = np.asarray(losses) / np.asarray(truths)
-    return {"ratio": float(np.mean(losses) / np.mean(truths)),
-            "ratio_se": float(np.std(ratios, ddof=1) / np.sqrt(len(ratios))),
-            "loss_unbiased": float(np.mean(losses))}
+    ratio, se = bench.loss_ratio(losses, truths)
+    return {"ratio": ratio, "ratio_se": se, "loss_unbiased": float(np.mean(losses))}
 
 
 def truth_losses(pb: Any, mat: Any, spp: int, scale: float) -> list[float]:

@@ -98,11 +98,10 @@ def main() -> int:
         t0 = time.monotonic()
         losses = np.array(bench.pair_losses(pb, p["model"], p["parameters"], args.spp, scale,
                                             pairs=args.pairs, first=args.first))
-        ratios = losses / truth
+        ratio, ratio_se = bench.loss_ratio(losses, truth)
         row = {"label": p["label"], "model": p["model"], "sigma_t": p["parameters"]["sigma_t"],
                "albedo": p["parameters"]["albedo"], "sigma_t_rel_error": p["parameters"]["sigma_t"] / s - 1.0,
-               "losses": losses.tolist(), "ratio": float(losses.mean() / truth.mean()),
-               "ratio_se": float(ratios.std(ddof=1) / np.sqrt(args.pairs))}
+               "losses": losses.tolist(), "ratio": ratio, "ratio_se": ratio_se}
         line = (f"  {p['label']}: sigma_t {100 * row['sigma_t_rel_error']:+.2f} %, loss / truth's "
                 f"{row['ratio']:.3f} +- {row['ratio_se']:.3f}")
         if ref is None:

@@ -39,3 +39,12 @@ def test_anything_else_is_refused_in_one_line_naming_the_flag_and_the_cases(item
 def test_the_old_diameter_colon_form_and_near_misses_are_refused(text):
     with pytest.raises(ValueError, match="not a paper-simulation case"):
         bps.parse_cases(text)
+
+
+def test_loss_ratio_is_the_ratio_of_means_with_the_pairs_scatter():
+    # the ratio of means, not the mean of ratios: (2 + 6) / (1 + 2) = 8 / 3, while the
+    # per-pair ratios 2 and 3 (sd 0.707) give the standard error 0.707 / sqrt(2) = 0.5
+    ratio, se = bps.loss_ratio([2.0, 6.0], [1.0, 2.0])
+    assert ratio == pytest.approx(8 / 3) and se == pytest.approx(0.5)
+    ratio, se = bps.loss_ratio([3.0], [2.0])
+    assert ratio == 1.5 and se != se   # one pair: no scatter to speak of (nan)
