@@ -879,11 +879,11 @@ def fit_channel(problem: Problem, model: str = "exp3", *, extensions: Sequence[s
     lm_stages: list[LMStage] = []
     if lm_iterations > 0 and stepped:
         final, _ = lm_polish(fm, problem, final, stepped, tr, spp=lm_spp,
-                                     seed=st.seed * 100_003 + 40_000, delta_rel=d_ref, iterations=lm_iterations,
-                                     fixed_scale=fixed_scale, steps_out=lm_steps, deadline=deadline,
-                                     decorrelated=st.lm_decorrelated, basis=st.lm_basis,
-                                     excess_target=st.lm_excess_target,
-                                     spp_max=st.lm_spp_max_factor * st.final_spp, stages_out=lm_stages)
+                             seed=st.seed * 100_003 + 40_000, delta_rel=d_ref, iterations=lm_iterations,
+                             fixed_scale=fixed_scale, steps_out=lm_steps, deadline=deadline,
+                             decorrelated=st.lm_decorrelated, basis=st.lm_basis,
+                             excess_target=st.lm_excess_target,
+                             spp_max=st.lm_spp_max_factor * st.final_spp, stages_out=lm_stages)
         lm_spp = lm_stages[-1].spp if lm_stages else lm_spp
     if lm_steps:
         # The result is the LM's optimum, not the polish's: the polish points' scatter and

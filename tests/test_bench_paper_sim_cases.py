@@ -2,6 +2,7 @@
 benchmark and its probes (`exp_phase_projection`, `exp_phase_only_lm`, `exp_sigma_t_profile`)
 all read."""
 
+import math
 import sys
 from pathlib import Path
 
@@ -47,4 +48,4 @@ def test_loss_ratio_is_the_ratio_of_means_with_the_pairs_scatter():
     ratio, se = bps.loss_ratio([2.0, 6.0], [1.0, 2.0])
     assert ratio == pytest.approx(8 / 3) and se == pytest.approx(0.5)
     ratio, se = bps.loss_ratio([3.0], [2.0])
-    assert ratio == 1.5 and se != se   # one pair: no scatter to speak of (nan)
+    assert ratio == 1.5 and math.isnan(se)   # one pair: no scatter to speak of
