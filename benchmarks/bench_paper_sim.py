@@ -315,8 +315,10 @@ def run_case(d: float, s: float, models: list[str], seed: int) -> list[dict]:
             # `rig estimate --degree auto`: exp3, exp4, ... and the degree the BIC rule keeps.
             from estimate.phase_degree import choose_degree
 
+            # its log: each degree's fit and comparison as it ends (a search takes many minutes)
             choice = choose_degree(pb, st, start_from=DEGREE_START,
-                                   max_degree=search_max_degree())
+                                   max_degree=search_max_degree(),
+                                   log=lambda msg: print(f"{name} expauto: {msg}", flush=True))
             r = choice.fit
             extra = {"degree_choice": choice.to_dict()}
         else:
