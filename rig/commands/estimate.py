@@ -54,7 +54,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "exp7 at +9.5 %% in sigma_t, where exp10 from its own start ends at +1 to +4 %% "
                         "(docs/estimation-log.md, sessions 89-93); a fixed --degree 10 is the surer choice there. On "
                         "its d 0.5 um / sigma_t 2 medium --degree-max 10 kept exp9 and met the targets the "
-                        "default's exp7 misses, at about 6 x the time (session 94)")
+                        "default's exp7 misses, in 43 min on 2 cores (session 94)")
     p.add_argument("--channels", default=None, help="filters to fit, e.g. rgb or r,g (default: all of the plan)")
     p.add_argument("--columns", type=int, default=None, help="profile window width in pixels (256)")
     p.add_argument("--extensions", default=None, help="forward-model extensions to include, comma separated "
